@@ -1,0 +1,170 @@
+"""Deterministic, hash-based flake field and its glint shading.
+
+The texture plane is cut into square cells of ``C`` pixels. A 32-bit integer hash of
+(cell row, cell column, seed, draw index) decides whether a cell holds a flake and draws that
+flake's centre, ellipse, colour and normal tilt from the :class:`FlakeModel`. Integer hashing
+in int64 (masked to 32 bits) is bit-identical on every device and runtime — no RNG ops.
+
+The field depends on the material only, not on the light, so it is built once (and baked into
+the ONNX renderer). The light enters through the glint term
+
+    sparkle = E · [n·l > 0] · w(p) · c(p) · exp(−|m(p) − h|² / (2 σ_g²)),
+
+with w the flake footprint, c its colour, m its normal and h the half vector: moving the light
+moves h smoothly, so glints fade in and out instead of flickering.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchmetal.flakes.model import FlakeModel
+from torchmetal.geometry import ShadingGeometry, normalize, shading_geometry
+
+_MASK32 = 0xFFFFFFFF
+_TARGET_OCCUPANCY = 0.25  # fraction of cells holding a flake when the density allows it
+_MIN_CELL = 3
+
+
+def hash32(x: Tensor) -> Tensor:
+    """lowbias32 integer hash on int64 tensors holding 32-bit values."""
+    x = x & _MASK32
+    x = x ^ (x >> 16)
+    x = (x * 0x7FEB352D) & _MASK32
+    x = x ^ (x >> 15)
+    x = (x * 0x846CA68B) & _MASK32
+    x = x ^ (x >> 16)
+    return x
+
+
+def hash_uniform(ci: Tensor, cj: Tensor, seed: int, draw: int, dtype: torch.dtype) -> Tensor:
+    """Uniform (0, 1) value for each cell and draw index, from chained hashes."""
+    h = hash32(ci * 0x9E3779B1 + seed * 0x85EBCA77 + draw * 0xC2B2AE3D)
+    h = hash32(h ^ (cj * 0x27D4EB2F))
+    return ((h >> 8).to(dtype) + 0.5) * (1.0 / 16777216.0)
+
+
+def _normal_pair(u1: Tensor, u2: Tensor) -> tuple[Tensor, Tensor]:
+    """Box–Muller: two independent standard normals from two uniforms in (0, 1)."""
+    r = torch.sqrt(-2.0 * torch.log(u1))
+    return r * torch.cos(2.0 * math.pi * u2), r * torch.sin(2.0 * math.pi * u2)
+
+
+def cell_size(density: float) -> int:
+    """Cell edge in pixels so that about a quarter of the cells hold a flake."""
+    if density <= 0:
+        return _MIN_CELL
+    return max(_MIN_CELL, math.ceil(math.sqrt(_TARGET_OCCUPANCY / density)))
+
+
+@dataclass
+class FlakeField:
+    """Per-pixel flake maps (light-independent).
+
+    weight: (1, H, W) footprint in [0, 1]; normal: (3, H, W) unit flake normal (world frame);
+    color: (3, H, W) glint reflectance; glint_sigma: angular width (radians);
+    count: number of flakes in the field.
+    """
+
+    weight: Tensor
+    normal: Tensor
+    color: Tensor
+    glint_sigma: float
+    count: int
+
+
+def _tangent_frame(n: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit tangents (3, H, W) orthogonal to the unit normals n."""
+    ex = torch.zeros_like(n)
+    ex[0] = 1.0
+    t1 = normalize(ex - (ex * n).sum(0, keepdim=True) * n, dim=0)
+    t2 = torch.cross(n, t1, dim=0)
+    return t1, t2
+
+
+def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | None = None) -> FlakeField:
+    """Build the deterministic flake field of ``model`` on an H×W texture.
+
+    Args:
+        model: flake statistics (density per pixel, areas in px², tilt/glint in radians).
+        height, width: texture size.
+        normals: optional (3, H, W) surface normals the flake tilt is relative to
+            (default (0, 0, 1)); its dtype/device are used, else float32 on CPU.
+
+    Returns:
+        :class:`FlakeField`.
+    """
+    dtype = normals.dtype if normals is not None else torch.float32
+    device = normals.device if normals is not None else None
+    if normals is None:
+        normals = torch.zeros(3, height, width, dtype=dtype, device=device)
+        normals[2] = 1.0
+    c = cell_size(model.density)
+    presence = min(1.0, model.density * c * c)
+    ii = torch.arange(height, device=device)
+    jj = torch.arange(width, device=device)
+    ci = (ii // c).view(-1, 1).expand(height, width)
+    cj = (jj // c).view(1, -1).expand(height, width)
+
+    def u(k: int) -> Tensor:
+        return hash_uniform(ci, cj, model.seed, k, dtype)
+
+    present = u(0) < presence
+    z_area, z_aspect = _normal_pair(u(3), u(4))
+    area = torch.exp(model.area_log_mean + model.area_log_std * z_area)
+    aspect = (model.aspect_mean + model.aspect_std * z_aspect).clamp(0.2, 1.0)
+    a = torch.sqrt(area / (math.pi * aspect))  # semi-major axis (px)
+    b = aspect * a
+    a = a.clamp(max=0.5 * c)  # a flake never leaves its cell
+    b = torch.minimum(b, a)
+    margin = a.clamp(max=0.5 * c)
+    cy = ci.to(dtype) * c + margin + u(1) * (c - 2 * margin)
+    cx = cj.to(dtype) * c + margin + u(2) * (c - 2 * margin)
+    theta = math.pi * u(5)
+    dy = ii.to(dtype).view(-1, 1) + 0.5 - cy
+    dx = jj.to(dtype).view(1, -1) + 0.5 - cx
+    # image rows grow downwards; angle measured from +x towards +y (up) like the surface frame
+    along = dx * torch.cos(theta) - dy * torch.sin(theta)
+    across = dx * torch.sin(theta) + dy * torch.cos(theta)
+    rho = torch.sqrt((along / a) ** 2 + (across / b) ** 2)
+    weight = ((1.0 - rho) * b + 0.5).clamp(0.0, 1.0) * present.to(dtype)
+
+    sx, sy = _normal_pair(u(6), u(7))
+    t1, t2 = _tangent_frame(normals)
+    m = normalize(normals + model.tilt_sigma * (sx * t1 + sy * t2), dim=0)
+
+    z1, z2 = _normal_pair(u(8), u(9))
+    z3, _ = _normal_pair(u(10), u(11))
+    chol = torch.linalg.cholesky(
+        torch.tensor(model.color_cov, dtype=torch.float64) + 1e-12 * torch.eye(3, dtype=torch.float64)
+    ).to(dtype=dtype, device=device)
+    mean = torch.tensor(model.color_mean, dtype=dtype, device=device).view(3, 1, 1)
+    z = torch.stack([z1, z2, z3])
+    color = (mean + torch.einsum("ij,jhw->ihw", chol, z)).clamp_min(0.0)
+
+    count = int((present & (ci * c < height) & (cj * c < width))[::c, ::c].sum()) if presence > 0 else 0
+    return FlakeField(weight.unsqueeze(0), m, color, float(model.glint_sigma), count)
+
+
+def sparkle_shading(field: FlakeField, geom: ShadingGeometry) -> Tensor:
+    """Glint radiance of the flake field for B shots, (B, 3, H, W)."""
+    d = field.normal.unsqueeze(0) - geom.half
+    g = torch.exp(-(d * d).sum(1, keepdim=True) / (2.0 * field.glint_sigma**2))
+    g = torch.where(geom.n_dot_l > 0, g, torch.zeros_like(g))
+    return geom.irradiance * (field.weight * field.color).unsqueeze(0) * g
+
+
+def sparkle_render(
+    field: FlakeField,
+    normals: Tensor,
+    light: Tensor,
+    intensity: Tensor,
+    camera: Tensor,
+    size: tuple[float, float],
+) -> Tensor:
+    """Additive sparkle image of B shots, (B, 3, H, W)."""
+    return sparkle_shading(field, shading_geometry(normals, light, intensity, camera, size))

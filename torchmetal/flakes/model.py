@@ -1,0 +1,85 @@
+"""The statistical flake model (the paper's 𝓜: Size, Shape, Color — plus tilt and glint).
+
+Units: lengths and areas in texture pixels; angles in radians; colours are linear-RGB glint
+reflectances (peak flake radiance divided by irradiance), comparable to the texture d(p).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+from torchmetal.errors import MaterialError
+
+
+@dataclass
+class FlakeModel:
+    """Distribution of metallic flakes over the sample.
+
+    Attributes:
+        density: expected flakes per pixel, including flakes that never glint.
+        area_log_mean, area_log_std: area ~ LogNormal(mean, std), area in px².
+        aspect_mean, aspect_std: minor/major axis ratio ~ Normal, clipped to [0.2, 1].
+        color_mean: (3,) mean linear-RGB glint reflectance; color_cov: 3×3 covariance.
+        tilt_sigma: std of the flake-normal slope per tangent axis (radians, small-angle).
+        glint_sigma: angular width of one glint (radians): how far the half vector may leave the
+            flake normal before the glint fades.
+        shape_lines: the paper's limit lines (b1, k1, b2, k2): b + k·√area bounds the semi-major
+            axis from below and above; descriptive, fitted from detections.
+        seed: seed of the deterministic hash field.
+    """
+
+    density: float
+    area_log_mean: float = math.log(6.0)
+    area_log_std: float = 0.4
+    aspect_mean: float = 0.7
+    aspect_std: float = 0.15
+    color_mean: tuple[float, float, float] = (0.8, 0.8, 0.8)
+    color_cov: tuple[tuple[float, ...], ...] = ((0.01, 0.0, 0.0), (0.0, 0.01, 0.0), (0.0, 0.0, 0.01))
+    tilt_sigma: float = 0.15
+    glint_sigma: float = 0.03
+    shape_lines: tuple[float, float, float, float] | None = None
+    seed: int = 0
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        checks = {
+            "density": (self.density, 0.0, 1.0),
+            "area_log_std": (self.area_log_std, 0.0, 5.0),
+            "aspect_mean": (self.aspect_mean, 0.0, 1.0),
+            "aspect_std": (self.aspect_std, 0.0, 1.0),
+            "tilt_sigma": (self.tilt_sigma, 0.0, 1.5),
+            "glint_sigma": (self.glint_sigma, 1e-4, 1.5),
+        }
+        for name, (value, lo, hi) in checks.items():
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi):
+                raise MaterialError(f"FlakeModel.{name}: expected a number in [{lo}, {hi}], found {value!r}")
+        if len(self.color_mean) != 3 or not all(math.isfinite(c) and c >= 0 for c in self.color_mean):
+            raise MaterialError(f"FlakeModel.color_mean: expected 3 finite values >= 0, found {self.color_mean!r}")
+        if len(self.color_cov) != 3 or any(len(r) != 3 for r in self.color_cov):
+            raise MaterialError(f"FlakeModel.color_cov: expected a 3x3 matrix, found {self.color_cov!r}")
+        self.color_mean = tuple(float(c) for c in self.color_mean)  # type: ignore[assignment]
+        self.color_cov = tuple(tuple(float(c) for c in r) for r in self.color_cov)
+
+    @property
+    def median_area(self) -> float:
+        return math.exp(self.area_log_mean)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["color_mean"] = list(self.color_mean)
+        d["color_cov"] = [list(r) for r in self.color_cov]
+        d["shape_lines"] = list(self.shape_lines) if self.shape_lines is not None else None
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FlakeModel":
+        try:
+            d = dict(d)
+            if d.get("shape_lines") is not None:
+                d["shape_lines"] = tuple(d["shape_lines"])
+            d["color_mean"] = tuple(d["color_mean"])
+            d["color_cov"] = tuple(tuple(r) for r in d["color_cov"])
+            return cls(**d)
+        except (TypeError, KeyError) as e:
+            raise MaterialError(f"flakes: expected a FlakeModel dictionary, found {sorted(d)} ({e})") from None

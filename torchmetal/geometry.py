@@ -1,0 +1,142 @@
+"""Per-shot, per-pixel shading geometry on the sample plane (DESIGN 2.1, 2.2).
+
+The surface is the plane z = 0 centred at the origin; pixel (row i, col j) of an H×W image is
+x = ((j + 0.5)/W − 0.5)·width, y = (0.5 − (i + 0.5)/H)·height. Lights and cameras are
+homogeneous 4-vectors: w = 1 a position, w = 0 a direction towards the light / camera.
+
+Everything here is written in plain, ONNX-exportable ops (manual normalisation, ``where``,
+``clamp``) so the renderer can share it verbatim.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+_EPS = 1e-12
+
+
+def surface_points(
+    height: int,
+    width: int,
+    size: tuple[float, float],
+    *,
+    rows: tuple[int, int] | None = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> Tensor:
+    """World positions of pixel centres on the plane z = 0.
+
+    Args:
+        height, width: image size H, W.
+        size: (width, height) of the surface in scene units.
+        rows: optional row range ``(r0, r1)`` to build only rows r0..r1-1 (chunked work).
+
+    Returns:
+        (3, R, W) tensor, R = r1 − r0 (H by default).
+    """
+    r0, r1 = rows if rows is not None else (0, height)
+    i = torch.arange(r0, r1, dtype=dtype, device=device)
+    j = torch.arange(width, dtype=dtype, device=device)
+    y = (0.5 - (i + 0.5) / height) * size[1]
+    x = ((j + 0.5) / width - 0.5) * size[0]
+    yy, xx = torch.meshgrid(y, x, indexing="ij")
+    return torch.stack([xx, yy, torch.zeros_like(xx)])
+
+
+def normalize(x: Tensor, dim: int = -3) -> Tensor:
+    """Unit vectors along ``dim``; zero vectors stay zero (no NaN)."""
+    n2 = (x * x).sum(dim, keepdim=True)
+    return x / torch.sqrt(n2.clamp_min(_EPS * _EPS))
+
+
+def dot(a: Tensor, b: Tensor, dim: int = -3) -> Tensor:
+    """Dot product along the channel axis, keeping it: (..., 3, H, W) → (..., 1, H, W)."""
+    return (a * b).sum(dim, keepdim=True)
+
+
+def direction_to(points: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+    """Unit direction from surface points to homogeneous targets, and the squared distance.
+
+    Args:
+        points: (3, H, W) surface points.
+        target: (B, 4) homogeneous lights or cameras (w = 1 position, w = 0 direction).
+
+    Returns:
+        unit direction (B, 3, H, W), squared distance (B, 1, H, W) (1 for directions).
+    """
+    xyz = target[:, :3, None, None]
+    w = target[:, 3:4, None, None]
+    d = xyz - w * points.unsqueeze(0)
+    d2 = (d * d).sum(1, keepdim=True)
+    unit = d / torch.sqrt(d2.clamp_min(_EPS * _EPS))
+    dist2 = torch.where(w > 0.5, d2, torch.ones_like(d2))
+    return unit, dist2
+
+
+def reflect(n: Tensor, l: Tensor) -> Tensor:
+    """Mirror direction r = 2(n·l)n − l, channel axis −3."""
+    return 2.0 * dot(n, l) * n - l
+
+
+@dataclass
+class ShadingGeometry:
+    """Per-shot shading terms, all (B, 1|3, H, W).
+
+    ``spec_q`` = |r − v|²/2 = 1 − r·v, computed from the vectors so the lobe keeps its precision
+    near the mirror direction (see :func:`torchmetal.phong.specular_lobe`).
+    """
+
+    n: Tensor  # (1|B, 3, H, W) unit normal
+    l: Tensor  # (B, 3, H, W) unit, to light
+    v: Tensor  # (B, 3, H, W) unit, to camera
+    n_dot_l: Tensor  # (B, 1, H, W)
+    spec_q: Tensor  # (B, 1, H, W) in [0, 2]
+    irradiance: Tensor  # (B, 3, H, W)
+
+    @property
+    def r_dot_v(self) -> Tensor:
+        return 1.0 - self.spec_q
+
+    @property
+    def half(self) -> Tensor:
+        """Unit half vector (l + v)/|l + v|, (B, 3, H, W)."""
+        return normalize(self.l + self.v)
+
+
+def shading_geometry(
+    normals: Tensor,
+    light: Tensor,
+    intensity: Tensor,
+    camera: Tensor,
+    size: tuple[float, float] | None = None,
+    *,
+    points: Tensor | None = None,
+) -> ShadingGeometry:
+    """Shading geometry of B shots.
+
+    Args:
+        normals: (3, H, W) unit normals (world frame).
+        light: (B, 4) homogeneous light; intensity: (B, 3) radiant intensity (point) or
+            irradiance (directional).
+        camera: (B, 4) homogeneous camera.
+        size: (width, height) of the surface; used to build the surface points.
+        points: (3, H, W) precomputed surface points (e.g. a row chunk); overrides ``size``.
+
+    Returns:
+        :class:`ShadingGeometry` with irradiance E = intensity/dist² (point) or intensity.
+    """
+    if points is None:
+        if size is None:
+            raise TypeError("shading_geometry needs either size or points")
+        points = surface_points(normals.shape[-2], normals.shape[-1], size, dtype=normals.dtype, device=normals.device)
+    n = normals.unsqueeze(0)
+    l, dist2 = direction_to(points, light)
+    v, _ = direction_to(points, camera)
+    r = reflect(n, l)
+    rv = r - v
+    spec_q = 0.5 * (rv * rv).sum(1, keepdim=True)
+    irradiance = intensity[:, :, None, None] / dist2
+    return ShadingGeometry(n=n, l=l, v=v, n_dot_l=dot(n, l), spec_q=spec_q, irradiance=irradiance)

@@ -1,0 +1,238 @@
+"""The fitted material and its directory on disk (DESIGN 2.3).
+
+```
+material/
+  material.json          format "torchmetal-material", version 1
+  texture.npy            (H, W, 3) float32 linear diffuse texture d(p)
+  normals.npy            (H, W, 3) float32, only when not flat
+  specular_labels.npy    (H, W) int32, only with clustered specular
+  renderer.onnx          when exported
+```
+Writes are atomic: everything goes to a temporary sibling directory that replaces the target in
+one rename, so an interrupted save never leaves a half-written material.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchmetal.errors import MaterialError
+from torchmetal.flakes.model import FlakeModel
+
+FORMAT = "torchmetal-material"
+VERSION = 1
+
+
+@dataclass
+class Material:
+    """Everything needed to render the sample for any light and camera.
+
+    Attributes:
+        texture: (3, H, W) linear diffuse texture.
+        s, alpha: (3,) global specular strength and exponent (the paper's model). With clustered
+            specular they hold the area-weighted mean, and ``cluster_s``/``cluster_alpha`` (K, 3)
+            with ``spec_labels`` (H, W) int64 give the per-pixel terms.
+        size: (width, height) of the surface in scene units.
+        normals: (3, H, W) unit normals, or None for flat (0, 0, 1).
+        flakes: the flake model, or None when the sample has no flakes.
+        report: the fit report (per-stage times, iterations, errors, what was skipped).
+    """
+
+    texture: Tensor
+    s: Tensor
+    alpha: Tensor
+    size: tuple[float, float]
+    normals: Tensor | None = None
+    spec_labels: Tensor | None = None
+    cluster_s: Tensor | None = None
+    cluster_alpha: Tensor | None = None
+    flakes: FlakeModel | None = None
+    report: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        t = self.texture
+        if not isinstance(t, Tensor) or t.dim() != 3 or t.shape[0] != 3:
+            found = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            raise MaterialError(f"texture: expected shape (3, H, W), found {found}")
+        for name in ("s", "alpha"):
+            v = getattr(self, name)
+            if not isinstance(v, Tensor) or tuple(v.shape) != (3,):
+                raise MaterialError(f"{name}: expected shape (3,), found {tuple(getattr(v, 'shape', ()))}")
+        if self.normals is not None and tuple(self.normals.shape) != tuple(t.shape):
+            raise MaterialError(f"normals: expected shape {tuple(t.shape)}, found {tuple(self.normals.shape)}")
+        clustered = [x is not None for x in (self.spec_labels, self.cluster_s, self.cluster_alpha)]
+        if any(clustered) and not all(clustered):
+            raise MaterialError("clustered specular: expected spec_labels, cluster_s and cluster_alpha together")
+        if self.spec_labels is not None:
+            if tuple(self.spec_labels.shape) != tuple(t.shape[1:]):
+                raise MaterialError(f"spec_labels: expected shape {tuple(t.shape[1:])}, found {tuple(self.spec_labels.shape)}")
+            k = self.cluster_s.shape[0]
+            if self.cluster_s.shape != (k, 3) or self.cluster_alpha.shape != (k, 3):
+                raise MaterialError(f"cluster_s/cluster_alpha: expected (K, 3), found {tuple(self.cluster_s.shape)}, {tuple(self.cluster_alpha.shape)}")
+        if not (all(math.isfinite(v) and v > 0 for v in self.size) and len(self.size) == 2):
+            raise MaterialError(f"size: expected two positive numbers (width, height), found {self.size!r}")
+
+    @property
+    def height(self) -> int:
+        return int(self.texture.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.texture.shape[2])
+
+    @property
+    def clustered(self) -> bool:
+        return self.spec_labels is not None
+
+    def flat_normals(self) -> Tensor:
+        """(3, H, W) normals, (0, 0, 1) when the material is flat."""
+        if self.normals is not None:
+            return self.normals
+        n = torch.zeros_like(self.texture)
+        n[2] = 1.0
+        return n
+
+    def specular_maps(self) -> tuple[Tensor, Tensor]:
+        """s and α as (3,) globals, or (3, H, W) maps for clustered specular."""
+        if self.spec_labels is None:
+            return self.s, self.alpha
+        lab = self.spec_labels.long()
+        return self.cluster_s[lab].permute(2, 0, 1), self.cluster_alpha[lab].permute(2, 0, 1)
+
+    def to(self, device: torch.device | str) -> "Material":
+        move = lambda x: None if x is None else x.to(device)  # noqa: E731
+        return Material(
+            move(self.texture), move(self.s), move(self.alpha), self.size, move(self.normals),
+            move(self.spec_labels), move(self.cluster_s), move(self.cluster_alpha), self.flakes, dict(self.report),
+        )
+
+
+def _to_list(x: Tensor) -> list:
+    return x.detach().cpu().double().tolist()
+
+
+def material_to_json(m: Material) -> dict:
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "surface": {"width": float(m.size[0]), "height": float(m.size[1])},
+        "resolution": [m.height, m.width],
+        "texture": "texture.npy",
+        "normals": "normals.npy" if m.normals is not None else None,
+        "phong": {
+            "s": _to_list(m.s),
+            "alpha": _to_list(m.alpha),
+            "clusters": None
+            if m.spec_labels is None
+            else {"labels": "specular_labels.npy", "s": _to_list(m.cluster_s), "alpha": _to_list(m.cluster_alpha)},
+        },
+        "flakes": m.flakes.to_dict() if m.flakes is not None else None,
+        "fit": m.report,
+    }
+
+
+def _hwc(x: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(x.detach().cpu().float().permute(1, 2, 0).numpy())
+
+
+def save_material(m: Material, path: str | os.PathLike, *, extra_files: dict[str, Path] | None = None) -> Path:
+    """Write ``m`` to the material directory ``path`` atomically; returns the path.
+
+    ``extra_files`` maps names in the directory to files to copy in (e.g. ``renderer.onnx``).
+    An existing ``renderer.onnx`` in the target is kept unless replaced.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        np.save(tmp / "texture.npy", _hwc(m.texture))
+        if m.normals is not None:
+            np.save(tmp / "normals.npy", _hwc(m.normals))
+        if m.spec_labels is not None:
+            np.save(tmp / "specular_labels.npy", m.spec_labels.detach().cpu().numpy().astype(np.int32))
+        (tmp / "material.json").write_text(json.dumps(material_to_json(m), indent=2, allow_nan=False))
+        keep = path / "renderer.onnx"
+        if keep.is_file() and not (extra_files and "renderer.onnx" in extra_files):
+            shutil.copy2(keep, tmp / "renderer.onnx")
+        for name, src in (extra_files or {}).items():
+            shutil.copy2(src, tmp / name)
+        _replace_dir(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path
+
+
+def _replace_dir(tmp: Path, path: Path) -> None:
+    """Move ``tmp`` to ``path``; an existing directory is swapped out, then removed."""
+    if path.exists():
+        old = path.with_name(f".{path.name}.old")
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, path)
+
+
+def _load_array(root: Path, name: str, shape_hint: str) -> np.ndarray:
+    f = root / name
+    if not f.is_file():
+        raise MaterialError(f"{f}: expected a {shape_hint} array file, found nothing")
+    try:
+        return np.load(f, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise MaterialError(f"{f}: expected a numpy .npy file, found unreadable data ({e})") from None
+
+
+def load_material(path: str | os.PathLike) -> Material:
+    """Read a material directory written by :func:`save_material`."""
+    root = Path(path)
+    meta_file = root / "material.json"
+    if not meta_file.is_file():
+        raise MaterialError(f"{root}: expected a material directory with material.json, found none")
+    try:
+        meta = json.loads(meta_file.read_text())
+    except json.JSONDecodeError as e:
+        raise MaterialError(f"{meta_file}: expected JSON, found a syntax error at line {e.lineno} column {e.colno}: {e.msg}") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise MaterialError(f"{meta_file}: expected format {FORMAT!r}, found {meta.get('format') if isinstance(meta, dict) else meta!r}")
+    if meta.get("version") != VERSION:
+        raise MaterialError(f"{meta_file}: expected version {VERSION}, found {meta.get('version')!r}")
+    try:
+        tex = _load_array(root, meta["texture"], "(H, W, 3)")
+        if tex.ndim != 3 or tex.shape[2] != 3:
+            raise MaterialError(f"{root / meta['texture']}: expected shape (H, W, 3), found {tex.shape}")
+        texture = torch.from_numpy(tex.astype(np.float32)).permute(2, 0, 1).contiguous()
+        normals = None
+        if meta.get("normals"):
+            normals = torch.from_numpy(_load_array(root, meta["normals"], "(H, W, 3)").astype(np.float32)).permute(2, 0, 1).contiguous()
+        ph = meta["phong"]
+        s = torch.tensor(ph["s"], dtype=torch.float32)
+        alpha = torch.tensor(ph["alpha"], dtype=torch.float32)
+        labels = cs = ca = None
+        if ph.get("clusters"):
+            cl = ph["clusters"]
+            labels = torch.from_numpy(_load_array(root, cl["labels"], "(H, W)").astype(np.int64))
+            cs = torch.tensor(cl["s"], dtype=torch.float32)
+            ca = torch.tensor(cl["alpha"], dtype=torch.float32)
+        flakes = FlakeModel.from_dict(meta["flakes"]) if meta.get("flakes") else None
+        size = (float(meta["surface"]["width"]), float(meta["surface"]["height"]))
+    except KeyError as e:
+        raise MaterialError(f"{meta_file}: expected key {e.args[0]!r}, found it missing") from None
+    except (TypeError, ValueError) as e:
+        raise MaterialError(f"{meta_file}: expected numeric parameters, found {e}") from None
+    for name, x in (("texture", texture), ("s", s), ("alpha", alpha)):
+        if not bool(torch.isfinite(x).all()):
+            raise MaterialError(f"{root}: expected finite {name}, found NaN/Inf")
+    return Material(texture, s, alpha, size, normals, labels, cs, ca, flakes, meta.get("fit") or {})
