@@ -1,0 +1,96 @@
+"""Material directory: round trip, atomic writes, one-line errors."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from torchmetal.errors import MaterialError
+from torchmetal.flakes.model import FlakeModel
+from torchmetal.material import Material, load_material, save_material
+
+
+def make_material(clustered=False, flakes=True, normals=False):
+    g = torch.Generator().manual_seed(0)
+    tex = torch.rand(3, 6, 5, generator=g)
+    kw = {}
+    if clustered:
+        kw = dict(spec_labels=torch.randint(0, 2, (6, 5), generator=g), cluster_s=torch.rand(2, 3, generator=g),
+                  cluster_alpha=torch.rand(2, 3, generator=g) * 100 + 1)
+    n = None
+    if normals:
+        n = torch.nn.functional.normalize(torch.rand(3, 6, 5, generator=g) + torch.tensor([0, 0, 2.0]).view(3, 1, 1), dim=0)
+    return Material(tex, torch.tensor([0.1, 0.2, 0.3]), torch.tensor([10.0, 20.0, 30.0]), (0.1, 0.2), normals=n,
+                    flakes=FlakeModel(0.01, seed=3) if flakes else None, report={"status": "converged"}, **kw)
+
+
+@pytest.mark.parametrize("clustered", [False, True])
+@pytest.mark.parametrize("normals", [False, True])
+def test_round_trip_exact(tmp_path, clustered, normals):
+    m = make_material(clustered=clustered, normals=normals)
+    save_material(m, tmp_path / "mat")
+    m2 = load_material(tmp_path / "mat")
+    assert torch.equal(m2.texture, m.texture)
+    assert torch.equal(m2.s, m.s) and torch.equal(m2.alpha, m.alpha)
+    assert m2.size == m.size and m2.flakes == m.flakes and m2.report == m.report
+    if clustered:
+        assert torch.equal(m2.spec_labels, m.spec_labels)
+        s_map, a_map = m2.specular_maps()
+        assert s_map.shape == (3, 6, 5) and torch.equal(s_map[:, 0, 0], m.cluster_s[m.spec_labels[0, 0]])
+    if normals:
+        assert torch.equal(m2.normals, m.normals)
+    texture = np.load(tmp_path / "mat" / "texture.npy")  # numpy alone reads the texture
+    assert texture.shape == (6, 5, 3)
+
+
+def test_flakes_null_in_json(tmp_path):
+    save_material(make_material(flakes=False), tmp_path / "m")
+    meta = json.loads((tmp_path / "m" / "material.json").read_text())
+    assert meta["format"] == "torchmetal-material" and meta["version"] == 1 and meta["flakes"] is None
+
+
+def test_interrupted_save_keeps_old_material(tmp_path, monkeypatch):
+    path = tmp_path / "m"
+    save_material(make_material(), path)
+    before = (path / "material.json").read_text()
+
+    def boom(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("torchmetal.material.material_to_json", boom)
+    with pytest.raises(KeyboardInterrupt):
+        save_material(make_material(flakes=False), path)
+    assert (path / "material.json").read_text() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["m"]  # no temp leftovers
+
+
+@pytest.mark.parametrize(
+    "mutate, expected",
+    [
+        (lambda d, p: (p / "material.json").write_text("{bad json"), "line 1"),
+        (lambda d, p: (p / "material.json").write_text(json.dumps({**d, "format": "x"})), "expected format"),
+        (lambda d, p: (p / "material.json").write_text(json.dumps({**d, "version": 9})), "expected version 1"),
+        (lambda d, p: (p / "texture.npy").unlink(), "texture"),
+        (lambda d, p: (p / "material.json").unlink(), "material.json"),
+        (lambda d, p: (p / "material.json").write_text(json.dumps({k: v for k, v in d.items() if k != "phong"})), "'phong'"),
+    ],
+)
+def test_bad_material_dir(tmp_path, mutate, expected):
+    path = tmp_path / "m"
+    save_material(make_material(), path)
+    mutate(json.loads((path / "material.json").read_text()), path)
+    with pytest.raises(MaterialError) as e:
+        load_material(path)
+    assert expected in str(e.value) and "\n" not in str(e.value)
+
+
+def test_bad_material_values():
+    with pytest.raises(MaterialError, match=r"expected shape \(3, H, W\)"):
+        Material(torch.rand(4, 2, 2), torch.zeros(3), torch.ones(3), (1.0, 1.0))
+    with pytest.raises(MaterialError, match="size"):
+        Material(torch.rand(3, 2, 2), torch.zeros(3), torch.ones(3), (0.0, 1.0))
+    with pytest.raises(MaterialError, match="together"):
+        Material(torch.rand(3, 2, 2), torch.zeros(3), torch.ones(3), (1.0, 1.0), spec_labels=torch.zeros(2, 2))
+    with pytest.raises(MaterialError, match="density"):
+        FlakeModel(density=float("nan"))

@@ -1,0 +1,90 @@
+"""Phong forward model: reference values, module == function, finite gradients."""
+
+import numpy as np
+import pytest
+import torch
+
+from tests.test_geometry import numpy_geometry, random_config
+from torchmetal.geometry import shading_geometry
+from torchmetal.phong import PhongModel, log1p_exact, phong_render, phong_shading, specular_lobe
+
+
+def numpy_phong(texture, s, alpha, n, L, I, C, size):
+    out = []
+    for l, v, nl, rv, E in numpy_geometry(n, L, I, C, size):
+        lobe = np.maximum(rv, 0.0)[None] ** alpha[:, None, None]
+        out.append(E * (texture * np.maximum(nl, 0) + (nl > 0) * s[:, None, None] * lobe))
+    return np.stack(out)
+
+
+@pytest.mark.parametrize("grazing", [False, True])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_matches_float64_reference(seed, grazing):
+    rng = np.random.default_rng(seed)
+    n, L, I, C = random_config(rng, grazing=grazing)
+    tex = rng.uniform(0, 1, size=n.shape)
+    s = np.array([0.3, 1.0, 4.0])
+    alpha = np.array([1.0, 40.0, 3000.0])
+    got = phong_render(*(torch.from_numpy(x) for x in (tex, s, alpha, n, L, I, C)), (0.1, 0.1))
+    ref = numpy_phong(tex, s, alpha, n, L, I, C, (0.1, 0.1))
+    np.testing.assert_allclose(got.numpy(), ref, atol=1e-6 * max(1.0, np.abs(ref).max()))
+
+
+def test_lobe_precision_near_peak_float32():
+    q64 = torch.logspace(-9, -2, 200, dtype=torch.float64)
+    alpha = torch.tensor([1000.0, 1000.0, 1000.0])
+    exact = (1 - q64) ** 1000
+    got = specular_lobe(q64.float().view(-1, 1, 1, 1), alpha)[:, 0, 0, 0].double()
+    assert (got - exact).abs().max() < 1e-5
+
+
+def test_lobe_zero_past_horizon_and_finite_grad():
+    q = torch.tensor([0.0, 0.5, 1.0, 1.5, 2.0], dtype=torch.float64).view(-1, 1, 1, 1).requires_grad_()
+    alpha = torch.tensor([1.0, 100.0, 1e4], dtype=torch.float64, requires_grad=True)
+    lobe = specular_lobe(q, alpha)
+    assert torch.all(lobe[2:] == 0)
+    lobe.sum().backward()
+    assert torch.isfinite(q.grad).all() and torch.isfinite(alpha.grad).all()
+
+
+def test_log1p_exact():
+    y = torch.tensor([0.0, 1e-12, -1e-8, -0.5, 3.0], dtype=torch.float64)
+    np.testing.assert_allclose(log1p_exact(y).numpy(), np.log1p(y.numpy()), rtol=1e-12)
+
+
+def test_gradcheck_float64():
+    rng = np.random.default_rng(0)
+    n, L, I, C = (torch.from_numpy(x) for x in random_config(rng, b=3, h=3, w=3))
+    geom = shading_geometry(n, L, I, C, (0.1, 0.1))
+    tex = torch.rand(3, 3, 3, dtype=torch.float64, requires_grad=True)
+    s = torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64, requires_grad=True)
+    beta = torch.tensor([1.0, 3.0, 6.0], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t, s_, b: phong_shading(t, s_, torch.exp(b), geom), (tex, s, beta))
+
+
+def test_gradients_finite_at_grazing_and_huge_alpha():
+    n = torch.zeros(3, 2, 2, dtype=torch.float64)
+    n[2] = 1
+    L = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)  # n·l = 0, overhead
+    C = torch.tensor([[0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 0.0]], dtype=torch.float64)  # r·v = 1, r·v = 0
+    m = PhongModel(torch.rand(3, 2, 2, dtype=torch.float64), torch.ones(3, dtype=torch.float64),
+                   torch.tensor([1.0, 1e3, 1e4], dtype=torch.float64), n)
+    m(L, torch.ones(2, 3, dtype=torch.float64), C).sum().backward()
+    for p in m.parameters():
+        assert torch.isfinite(p.grad).all()
+
+
+def test_module_equals_function():
+    rng = np.random.default_rng(4)
+    n, L, I, C = (torch.from_numpy(x).float() for x in random_config(rng))
+    tex, s, a = torch.rand(3, 5, 7), torch.tensor([0.5, 0.6, 0.7]), torch.tensor([10.0, 50.0, 200.0])
+    m = PhongModel(tex, s, a, n, (0.1, 0.1))
+    torch.testing.assert_close(m(L, I, C), phong_render(tex, s, a, n, L, I, C, (0.1, 0.1)))
+
+
+def test_spatially_varying_maps_broadcast_like_globals():
+    rng = np.random.default_rng(6)
+    n, L, I, C = (torch.from_numpy(x).float() for x in random_config(rng))
+    tex, s, a = torch.rand(3, 5, 7), torch.tensor([0.5, 0.6, 0.7]), torch.tensor([10.0, 50.0, 200.0])
+    maps = phong_render(tex, s[:, None, None].expand(3, 5, 7), a[:, None, None].expand(3, 5, 7), n, L, I, C, (0.1, 0.1))
+    torch.testing.assert_close(maps, phong_render(tex, s, a, n, L, I, C, (0.1, 0.1)))

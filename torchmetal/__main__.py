@@ -1,0 +1,5 @@
+import sys
+
+from torchmetal.cli import main
+
+sys.exit(main())

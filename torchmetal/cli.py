@@ -1,0 +1,210 @@
+"""``torchmetal`` command line: a thin layer over the library (DESIGN 2.5).
+
+Every verb has ``--help``; bad input exits with status 2 and one line on stderr, never a
+traceback. Heavy imports happen inside the verbs so ``--help`` stays instant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from torchmetal.errors import TorchmetalError
+
+
+def _vec(n: int):
+    def parse(text: str) -> list[float]:
+        parts = text.replace(",", " ").split()
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {n} numbers, found {text!r}") from None
+        if len(values) != n:
+            raise argparse.ArgumentTypeError(f"expected {n} numbers, found {len(values)} in {text!r}")
+        return values
+
+    return parse
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from torchmetal.io.capture import load_capture
+    from torchmetal.material import save_material
+    from torchmetal.pipeline import fit_material
+
+    capture = load_capture(args.capture)
+    result = fit_material(
+        capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
+        tol=args.tol, max_iters=args.max_iters, seed=args.seed, progress=not args.quiet,
+    )
+    extra = {}
+    if args.export:
+        from torchmetal.onnx_export import export_onnx
+
+        onnx_path = Path(args.output).with_name(Path(args.output).name + ".renderer.onnx.tmp")
+        export_onnx(result.material, onnx_path)
+        extra["renderer.onnx"] = onnx_path
+    save_material(result.material, args.output, extra_files=extra)
+    for p in extra.values():
+        p.unlink(missing_ok=True)
+    rep = result.report
+    flakes = result.material.flakes
+    print(
+        f"fitted {capture.num_shots} shots {capture.height}x{capture.width} in {rep['total_time']:.2f} s: "
+        f"rmse {rep['rmse']:.4g}, s {[round(v, 4) for v in result.material.s.tolist()]}, "
+        f"alpha {[round(v, 1) for v in result.material.alpha.tolist()]}, "
+        f"flakes {'none' if flakes is None else f'density {flakes.density:.3g}/px'}; "
+        f"skipped: {'; '.join(rep['skipped']) or 'nothing'} -> {args.output}"
+    )
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+
+    from torchmetal.io.images import linear_to_srgb, write_image
+    from torchmetal.material import load_material
+    from torchmetal.renderer import MaterialRenderer
+
+    material = load_material(args.material)
+    renderer = MaterialRenderer(material, flakes=not args.no_flakes)
+    light = torch.tensor([args.light], dtype=torch.float32)
+    camera = torch.tensor([args.camera], dtype=torch.float32)
+    intensity = torch.tensor([args.intensity], dtype=torch.float32)
+    from torchmetal.io.capture import check_light_camera
+
+    check_light_camera(light, intensity, camera)
+    with torch.inference_mode():
+        image = renderer(light, intensity, camera)[0] * args.exposure
+    out = Path(args.output)
+    if out.suffix.lower() == ".npy":
+        write_image(out, image.permute(1, 2, 0).numpy())
+    else:
+        encoded = linear_to_srgb(image.clamp(0, 1)) if not args.linear else image.clamp(0, 1)
+        write_image(out, encoded.permute(1, 2, 0).numpy().astype(np.float32), bits=args.bits)
+    print(f"rendered {material.height}x{material.width} -> {out}")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from torchmetal.material import load_material
+    from torchmetal.onnx_export import export_onnx
+
+    material = load_material(args.material)
+    out = Path(args.output) if args.output else Path(args.material) / "renderer.onnx"
+    path = export_onnx(material, out, opset=args.opset)
+    print(f"exported {material.height}x{material.width} renderer ({path.stat().st_size / 2**20:.1f} MiB) -> {path}")
+    return 0
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from torchmetal.synth import synth_capture, write_synth
+
+    flakes = None
+    if args.flakes:
+        from torchmetal.flakes.model import FlakeModel
+
+        flakes = FlakeModel(density=args.flake_density, seed=args.seed)
+    result = synth_capture(
+        size=args.size, shots=args.shots, seed=args.seed, noise=args.noise, bits=args.bits,
+        layout=args.layout, bumpy=args.bumpy, flakes=flakes, spec_clusters=args.spec_clusters,
+        texture=args.texture,
+    )
+    write_synth(result, args.output)
+    print(f"wrote synthetic capture ({args.shots} shots, {args.size}x{args.size}) with truth/ -> {args.output}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from torchmetal.demo import run_demo
+
+    run_demo(args.output, size=args.size, quick=args.quick)
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from torchmetal.bench.__main__ import main as bench_main
+
+    return bench_main(args.rest)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="torchmetal", description="Photos of a coated surface → Phong + metallic-flake material → ONNX renderer.")
+    sub = p.add_subparsers(dest="verb", required=True, metavar="VERB")
+
+    d = sub.add_parser("demo", help="synthetic capture → fit → render → report (no arguments needed)")
+    d.add_argument("-o", "--output", default="torchmetal-demo", help="report folder (default: %(default)s)")
+    d.add_argument("--size", type=int, default=256, help="image size of the embedded capture")
+    d.add_argument("--quick", action="store_true", help="smaller, faster run")
+    d.set_defaults(func=cmd_demo)
+
+    f = sub.add_parser("fit", help="fit a material to a capture directory")
+    f.add_argument("capture", help="capture directory (DESIGN 2.1)")
+    f.add_argument("-o", "--output", required=True, help="material directory to write")
+    f.add_argument("--scheme", choices=["refine", "paper"], default="refine")
+    f.add_argument("--specular", choices=["auto", "global", "clustered", "none"], default="auto")
+    f.add_argument("--flakes", choices=["auto", "on", "off"], default="auto")
+    f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
+    f.add_argument("--max-iters", type=int, default=100)
+    f.add_argument("--seed", type=int, default=0, help="seed of the flake field")
+    f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
+    f.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    f.set_defaults(func=cmd_fit)
+
+    r = sub.add_parser("render", help="render a material for one light and camera")
+    r.add_argument("material", help="material directory")
+    r.add_argument("--light", type=_vec(4), required=True, help="'x y z w' (w=1 point, w=0 direction)")
+    r.add_argument("--camera", type=_vec(4), required=True, help="'x y z w' (w=1 position, w=0 orthographic direction)")
+    r.add_argument("--intensity", type=_vec(3), default=[1.0, 1.0, 1.0], help="'r g b' light intensity")
+    r.add_argument("-o", "--output", required=True, help=".png (sRGB), .npy (linear float)")
+    r.add_argument("--bits", type=int, choices=[8, 16], default=8)
+    r.add_argument("--linear", action="store_true", help="write linear values to PNG (no sRGB encoding)")
+    r.add_argument("--exposure", type=float, default=1.0, help="scale before encoding")
+    r.add_argument("--no-flakes", action="store_true", help="render without sparkles")
+    r.set_defaults(func=cmd_render)
+
+    e = sub.add_parser("export", help="export a material's renderer to ONNX")
+    e.add_argument("material", help="material directory")
+    e.add_argument("-o", "--output", help="output .onnx (default: MATERIAL/renderer.onnx)")
+    e.add_argument("--opset", type=int, default=20)
+    e.set_defaults(func=cmd_export)
+
+    s = sub.add_parser("synth", help="write a synthetic capture with ground truth")
+    s.add_argument("-o", "--output", required=True, help="capture directory to write")
+    s.add_argument("--size", type=int, default=256)
+    s.add_argument("--shots", type=int, default=12)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--noise", type=float, default=0.0, help="noise std relative to the image mean")
+    s.add_argument("--bits", type=int, choices=[8, 16], default=16)
+    s.add_argument("--layout", default="ring", choices=["ring", "hemisphere", "grazing", "near", "far"])
+    s.add_argument("--texture", default="auto", choices=["auto", "procedural", "photo"])
+    s.add_argument("--bumpy", action="store_true", help="add a bumpy normal map")
+    s.add_argument("--flakes", action="store_true", help="add metallic flakes with known statistics")
+    s.add_argument("--flake-density", type=float, default=0.003, help="flakes per pixel")
+    s.add_argument("--spec-clusters", type=int, default=1, help="regions with their own specular terms")
+    s.set_defaults(func=cmd_synth)
+
+    b = sub.add_parser("bench", help="benchmark run time against error (see: torchmetal bench --help)", add_help=False)
+    b.add_argument("rest", nargs=argparse.REMAINDER)
+    b.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except TorchmetalError as e:
+        print(f"torchmetal {args.verb}: error: {e}", file=sys.stderr)
+        return 2
+    except (OSError, ValueError) as e:
+        print(f"torchmetal {args.verb}: error: {type(e).__name__}: {e}".splitlines()[0], file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"torchmetal {args.verb}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

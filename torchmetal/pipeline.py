@@ -1,0 +1,101 @@
+"""The whole reconstruction: Phong fit → flake stage → material, with a report of what ran.
+
+Each stage is skipped when the scene does not need it, and the report says so:
+no highlights → no specular fit (inside :func:`~torchmetal.fit.fit_phong`), no flakes → the flake
+stage returns no model and the material stores ``flakes: null``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from torchmetal.errors import InputError
+from torchmetal.material import Material
+
+FLAKE_MODES = ("auto", "on", "off")
+
+
+@dataclass
+class PipelineResult:
+    """Outcome of :func:`fit_material`: the material plus the stage results behind it."""
+
+    material: Material
+    fit: object  # torchmetal.fit.FitResult
+    flakes: object | None  # torchmetal.flakes.stage.FlakeStageResult, None when the stage was off
+    report: dict = field(default_factory=dict)
+
+
+def render_shots(fit, capture, *, chunk: int = 4) -> torch.Tensor:
+    """Phong renders of every shot of ``capture`` (N, 3, H, W), a few shots at a time."""
+    parts = [
+        fit.render(capture.lights[k : k + chunk], capture.intensities[k : k + chunk], capture.cameras[k : k + chunk])
+        for k in range(0, capture.num_shots, chunk)
+    ]
+    return torch.cat(parts)
+
+
+def fit_material(
+    capture,
+    *,
+    scheme: str = "refine",
+    specular: str = "auto",
+    flakes: str = "auto",
+    tol: float = 1e-6,
+    max_iters: int = 100,
+    seed: int = 0,
+    progress: bool = False,
+) -> PipelineResult:
+    """Fit a full material to a capture.
+
+    Args:
+        capture: a :class:`~torchmetal.io.capture.Capture`.
+        scheme, specular, tol, max_iters: passed to :func:`~torchmetal.fit.fit_phong`.
+        flakes: "auto" (fit a flake model when detections exceed noise), "on" (same, and the
+            report says when none was found), "off" (skip the stage).
+        seed: seed of the material's flake field.
+        progress: show progress bars.
+
+    Returns:
+        :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,
+        errors and the list of skipped stages.
+    """
+    from torchmetal.fit import fit_phong
+
+    if flakes not in FLAKE_MODES:
+        raise InputError(f"flakes: expected one of {FLAKE_MODES}, found {flakes!r}")
+    t0 = time.perf_counter()
+    fit = fit_phong(capture, scheme=scheme, specular=specular, tol=tol, max_iters=max_iters, progress=progress)
+    stage_times = {f"phong.{k}": v for k, v in fit.stage_times.items()}
+    skipped = list(fit.skipped)
+    flake_result = None
+    flake_model = None
+    if flakes == "off":
+        skipped.append("flakes: disabled by the caller")
+        stage_times["flakes"] = 0.0
+    else:
+        from torchmetal.flakes.stage import flake_stage
+
+        t = time.perf_counter()
+        phong_images = render_shots(fit, capture)
+        flake_result = flake_stage(capture, phong_images, seed=seed)
+        del phong_images
+        stage_times["flakes"] = time.perf_counter() - t
+        flake_model = flake_result.model
+        if flake_model is None:
+            reason = flake_result.report.get("skipped", "detections consistent with noise")
+            skipped.append(f"flakes: {reason}")
+    report = {
+        "stage_times": stage_times,
+        "total_time": time.perf_counter() - t0,
+        "skipped": skipped,
+        "status": fit.status,
+        "iterations": fit.iterations,
+        "rmse": fit.rmse,
+        "flakes": None if flake_result is None else flake_result.report,
+    }
+    material = fit.to_material(report_extra=report)
+    material.flakes = flake_model
+    return PipelineResult(material=material, fit=fit, flakes=flake_result, report=material.report)
