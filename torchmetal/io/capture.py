@@ -1,0 +1,612 @@
+"""Capture directories (DESIGN 2.1) ↔ :class:`Capture` tensors.
+
+```
+capture/
+  capture.json      format "torchmetal-capture", version 1
+  images/…          one RGB image per shot: 8/16-bit PNG, float .npy or .exr
+  normals.npy       optional (H, W, 3) unit normals; default (0, 0, 1)
+  mask.png          optional; nonzero = sample
+  saturated.npy     optional torchmetal extension (key "saturated"): (N, H, W, 3) bool clipping
+                    flags that the image encoding cannot carry itself (e.g. float .npy images);
+                    other readers may ignore it
+```
+Loading decodes everything once (BGR, uint8/16, sRGB) into linear float32 tensors and checks
+every value a renderer relies on; each problem is a one-line :class:`CaptureError` naming the
+file, what was expected and what was found. Saving is atomic: the directory is written under a
+temporary sibling name and renamed into place, so an interrupted save never leaves a
+half-written capture.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchmetal.errors import CaptureError, InputError, TorchmetalError
+from torchmetal.io.images import PNG_MAX, decode_planes, encode_image, linear_to_srgb, quantize, read_raw, srgb_to_linear
+
+__all__ = ["Capture", "load_capture", "save_capture", "write_capture_files", "check_light_camera", "FORMAT", "VERSION", "COLOR_SPACES"]
+
+FORMAT = "torchmetal-capture"
+VERSION = 1
+COLOR_SPACES = ("srgb", "linear")
+_SHOT_KEYS = ("image", "light", "light_intensity", "camera")
+_TOP_KEYS = ("color_space", "surface", "shots")
+_UNIT_TOL = 1e-6  # normals within this of unit length are kept bit-exact
+_SAFE_STEM = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
+
+
+# ------------------------------------------------------------------------------ value checks
+
+
+def _short(x: object, limit: int = 60) -> str:
+    r = repr(x)
+    return r if len(r) <= limit else r[: limit - 3] + "..."
+
+
+def _numbers(values: object, n: int, label: str, error: type[TorchmetalError] = CaptureError) -> list[float]:
+    """A JSON/list value that must be ``n`` finite numbers."""
+    ok = isinstance(values, (list, tuple)) and len(values) == n
+    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)  # type: ignore[union-attr]
+    if not ok:
+        found = f"{len(values)} values {_short(values)}" if isinstance(values, (list, tuple)) else _short(values)
+        raise error(f"{label}: expected {n} numbers, found {found}")
+    out = [float(v) for v in values]  # type: ignore[union-attr]
+    if not all(math.isfinite(v) for v in out):
+        raise error(f"{label}: expected finite numbers, found {_short(out)}")
+    return out
+
+
+def _check_light(v: list[float], label: str, error: type[TorchmetalError] = CaptureError) -> None:
+    x, y, z, w = v
+    if w not in (0.0, 1.0):
+        raise error(f"{label}: expected w = 1 (point light) or w = 0 (directional), found w = {w:g}")
+    if z <= 0:
+        where = "a point light above the surface plane z = 0" if w == 1 else "a direction above the horizon"
+        raise error(f"{label}: expected z > 0 ({where}), found z = {z:g}")
+
+
+def _check_camera(v: list[float], label: str, error: type[TorchmetalError] = CaptureError) -> None:
+    x, y, z, w = v
+    if w not in (0.0, 1.0):
+        raise error(f"{label}: expected w = 1 (camera position) or w = 0 (orthographic direction), found w = {w:g}")
+    if z <= 0:
+        raise error(f"{label}: expected z > 0 (camera above the surface), found z = {z:g}")
+
+
+def _check_intensity(v: list[float], label: str, error: type[TorchmetalError] = CaptureError) -> None:
+    if min(v) < 0:
+        raise error(f"{label}: expected values >= 0, found {_short(v)}")
+
+
+def check_light_camera(
+    light: Tensor, intensity: Tensor, camera: Tensor, *, labels: Sequence[str] | None = None,
+    error: type[TorchmetalError] = InputError,
+) -> None:
+    """Check B shots' lights (B, 4), intensities (B, 3) and cameras (B, 4) like a capture's.
+
+    Homogeneous w must be exactly 0 or 1, everything finite, z > 0 (lights above the surface
+    plane / horizon, cameras above the surface) and intensities >= 0. Raises ``error`` (one
+    line, naming the shot) — :class:`InputError` by default, for render inputs.
+    """
+    for name, t, width in (("light", light, 4), ("light_intensity", intensity, 3), ("camera", camera, 4)):
+        if not isinstance(t, Tensor) or t.dim() != 2 or t.shape[1] != width:
+            found = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            raise error(f"{name}: expected shape (B, {width}), found {found}")
+        if not t.is_floating_point():
+            raise error(f"{name}: expected a floating-point tensor, found dtype {t.dtype}")
+    if not (light.shape[0] == intensity.shape[0] == camera.shape[0]):
+        raise error(f"light/light_intensity/camera: expected the same batch size B, found "
+                    f"{light.shape[0]}, {intensity.shape[0]}, {camera.shape[0]}")
+    rows = (t.detach().cpu().double().tolist() for t in (light, intensity, camera))
+    for k, (lv, iv, cv) in enumerate(zip(*rows)):
+        label = labels[k] if labels is not None else f"shot {k}"
+        _check_light(_numbers(lv, 4, f"{label}: light", error), f"{label}: light", error)
+        _check_intensity(_numbers(iv, 3, f"{label}: light_intensity", error), f"{label}: light_intensity", error)
+        _check_camera(_numbers(cv, 4, f"{label}: camera", error), f"{label}: camera", error)
+
+
+def _check_size(size: object, label: str) -> tuple[float, float]:
+    ok = isinstance(size, (tuple, list)) and len(size) == 2
+    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in size)  # type: ignore[union-attr]
+    if not ok:
+        raise CaptureError(f"{label}: expected positive finite (width, height), found {_short(size)}")
+    return float(size[0]), float(size[1])  # type: ignore[index]
+
+
+def _check_pixels(t: Tensor, label: str) -> None:
+    """Finite and >= 0, in one pass (NaN propagates to min/max); details only on failure."""
+    if t.numel() == 0:
+        return
+    lo, hi = torch.aminmax(t)
+    lo, hi = float(lo), float(hi)
+    if math.isfinite(lo) and math.isfinite(hi) and lo >= 0:
+        return
+    bad = ~torch.isfinite(t)
+    if bool(bad.any()):
+        n = int(bad.sum())
+        kind = "NaN" if bool(torch.isnan(t).any()) else "Inf"
+        raise CaptureError(f"{label}: expected finite pixel values, found {n} non-finite ({kind})")
+    raise CaptureError(f"{label}: expected pixel values >= 0, found minimum {lo:.4g}")
+
+
+def _shape_error(name: str, want: str, x: object) -> CaptureError:
+    found = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+    return CaptureError(f"Capture.{name}: expected shape {want}, found {found}")
+
+
+# ---------------------------------------------------------------------------------- Capture
+
+
+@dataclass(kw_only=True, repr=False, eq=False)
+class Capture:
+    """N photos of a sample under known lights and cameras, decoded to linear RGB.
+
+    Attributes:
+        images: (N, 3, H, W) float linear RGB.
+        normals: (3, H, W) unit normals, world frame; default (0, 0, 1).
+        mask: (1, H, W) bool, True on the sample; default all True.
+        lights: (N, 4) homogeneous (w = 1 position, w = 0 direction to the light).
+        intensities: (N, 3) radiant intensity (point) or irradiance (directional), linear.
+        cameras: (N, 4) homogeneous (w = 1 position, w = 0 orthographic direction).
+        size: (width, height) of the surface in scene units.
+        saturated: (N, 3, H, W) bool, True where the recorded value was clipped.
+        names: N image paths as in capture.json (relative to the capture directory).
+        color_space: encoding of the source files ("srgb" or "linear"); ``images`` are always
+            linear.
+
+    Built in Python, the missing optional fields get their defaults and everything is checked
+    (:meth:`validate`); a bad field raises :class:`CaptureError`.
+    """
+
+    images: Tensor
+    normals: Tensor | None = None
+    mask: Tensor | None = None
+    lights: Tensor
+    intensities: Tensor
+    cameras: Tensor
+    size: tuple[float, float]
+    saturated: Tensor | None = None
+    names: list[str] = field(default_factory=list)
+    color_space: str = "linear"
+
+    def __post_init__(self) -> None:
+        x = self.images
+        if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[1] != 3:
+            raise _shape_error("images", "(N, 3, H, W)", x)
+        n, _, h, w = x.shape
+        if self.normals is None:
+            self.normals = torch.zeros(3, h, w, dtype=x.dtype, device=x.device)
+            self.normals[2] = 1.0
+        if self.mask is None:
+            self.mask = torch.ones(1, h, w, dtype=torch.bool, device=x.device)
+        if self.saturated is None:
+            self.saturated = torch.zeros(x.shape, dtype=torch.bool, device=x.device)
+        if not self.names:
+            self.names = [f"images/{k:03d}.png" for k in range(n)]
+        self.names = list(self.names)
+        self.size = _check_size(self.size, "Capture.size")
+        self.validate()
+
+    # -- shape and value checks -------------------------------------------------------------
+
+    def validate(self) -> "Capture":
+        """Check shapes, dtypes and values; raises :class:`CaptureError`. Returns ``self``."""
+        x = self.images
+        if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[1] != 3 or x.shape[0] < 1:
+            raise _shape_error("images", "(N >= 1, 3, H, W)", x)
+        if not x.is_floating_point():
+            raise CaptureError(f"Capture.images: expected a floating-point tensor, found dtype {x.dtype}")
+        n, _, h, w = x.shape
+        shapes = {
+            "normals": ((3, h, w), None), "mask": ((1, h, w), torch.bool),
+            "lights": ((n, 4), None), "intensities": ((n, 3), None), "cameras": ((n, 4), None),
+            "saturated": ((n, 3, h, w), torch.bool),
+        }
+        for name, (shape, dtype) in shapes.items():
+            t = getattr(self, name)
+            if not isinstance(t, Tensor) or tuple(t.shape) != shape:
+                raise _shape_error(name, str(shape), t)
+            if dtype is None and not t.is_floating_point():
+                raise CaptureError(f"Capture.{name}: expected a floating-point tensor, found dtype {t.dtype}")
+            if dtype is not None and t.dtype != dtype:
+                raise CaptureError(f"Capture.{name}: expected dtype {dtype}, found {t.dtype}")
+            if t.device != x.device:
+                raise CaptureError(f"Capture.{name}: expected device {x.device} (as images), found {t.device}")
+        if len(self.names) != n:
+            raise CaptureError(f"Capture.names: expected {n} image names, found {len(self.names)}")
+        if self.color_space not in COLOR_SPACES:
+            raise CaptureError(f"Capture.color_space: expected one of {list(COLOR_SPACES)}, found {self.color_space!r}")
+        for k in range(n):  # shot by shot: no full-size temporaries
+            _check_pixels(x[k], f"Capture.images[{k}] ({self.names[k]})")
+        nrm = self.normals
+        if not bool(torch.isfinite(nrm).all()):
+            raise CaptureError("Capture.normals: expected finite unit vectors, found NaN/Inf")
+        length = torch.linalg.vector_norm(nrm.double(), dim=0)
+        worst = float((length - 1).abs().max())
+        if worst > 1e-3:
+            raise CaptureError(f"Capture.normals: expected unit vectors, found a length off by {worst:.3g}")
+        check_light_camera(self.lights, self.intensities, self.cameras, error=CaptureError,
+                           labels=[f"Capture shot {k} ({self.names[k]})" for k in range(n)])
+        return self
+
+    # -- views ------------------------------------------------------------------------------
+
+    @property
+    def num_shots(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[2])
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[3])
+
+    @property
+    def flat(self) -> bool:
+        """True when every normal is exactly (0, 0, 1)."""
+        n = self.normals
+        return bool((n[0] == 0).all() and (n[1] == 0).all() and (n[2] == 1).all())
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "Capture":
+        """Copy on ``device`` and/or with float tensors cast to ``dtype`` (bool masks stay bool)."""
+
+        def move(t: Tensor) -> Tensor:
+            return t.to(device=device, dtype=dtype if t.is_floating_point() else None)
+
+        return Capture(
+            images=move(self.images), normals=move(self.normals), mask=move(self.mask),
+            lights=move(self.lights), intensities=move(self.intensities), cameras=move(self.cameras),
+            size=self.size, saturated=move(self.saturated), names=list(self.names), color_space=self.color_space,
+        )
+
+    def subset(self, indices: Sequence[int] | Tensor | slice) -> "Capture":
+        """A capture with only the shots ``indices`` (in that order)."""
+        if isinstance(indices, slice):
+            indices = list(range(self.num_shots))[indices]
+        idx = torch.as_tensor(indices, dtype=torch.long).reshape(-1)
+        if idx.numel() == 0:
+            raise CaptureError("Capture.subset: expected at least one shot index, found none")
+        if bool(((idx < -self.num_shots) | (idx >= self.num_shots)).any()):
+            raise CaptureError(f"Capture.subset: expected indices in [0, {self.num_shots}), found {idx.tolist()}")
+        idx = idx % self.num_shots
+        pick = lambda t: t.index_select(0, idx.to(t.device))  # noqa: E731
+        return Capture(
+            images=pick(self.images), normals=self.normals, mask=self.mask, lights=pick(self.lights),
+            intensities=pick(self.intensities), cameras=pick(self.cameras), size=self.size,
+            saturated=pick(self.saturated), names=[self.names[i] for i in idx.tolist()],
+            color_space=self.color_space,
+        )
+
+    def __repr__(self) -> str:
+        kinds = {0.0: "directional", 1.0: "point"}
+        lights = sorted({kinds.get(float(w), "?") for w in self.lights[:, 3].tolist()})
+        return (
+            f"Capture({self.num_shots} shots, {self.height}x{self.width}, {self.images.dtype}, "
+            f"{self.images.device}, source {self.color_space}, size={self.size}, lights={'/'.join(lights)}, "
+            f"flat={self.flat}, mask={int(self.mask.sum())}/{self.height * self.width} px, "
+            f"saturated={float(self.saturated.float().mean()):.2%})"
+        )
+
+
+# -------------------------------------------------------------------------------- loading
+
+
+@dataclass
+class _Shot:
+    image: str
+    light: list[float]
+    intensity: list[float]
+    camera: list[float]
+
+
+def _read_meta(meta_file: Path) -> dict:
+    if not meta_file.is_file():
+        raise CaptureError(f"{meta_file}: expected a capture description file, found nothing")
+    try:
+        return json.loads(meta_file.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise CaptureError(f"{meta_file}: expected valid JSON, found a syntax error at line {e.lineno} column {e.colno} ({e.msg})") from None
+    except UnicodeDecodeError as e:
+        raise CaptureError(f"{meta_file}: expected UTF-8 JSON text, found undecodable bytes at offset {e.start}") from None
+    except OSError as e:
+        raise CaptureError(f"{meta_file}: expected a readable file, found {e.strerror or e}") from None
+
+
+def _parse_meta(meta: object, label: str) -> tuple[str, tuple[float, float], str | None, str | None, str | None, list[_Shot]]:
+    if not isinstance(meta, dict):
+        raise CaptureError(f"{label}: expected a JSON object, found {type(meta).__name__}")
+    if "format" not in meta:
+        raise CaptureError(f"{label}: expected \"format\": {FORMAT!r}, found no format key")
+    if meta["format"] != FORMAT:
+        raise CaptureError(f"{label}: expected format {FORMAT!r}, found {_short(meta['format'])}")
+    if meta.get("version") != VERSION or isinstance(meta.get("version"), bool):
+        raise CaptureError(f"{label}: expected version {VERSION}, found {_short(meta.get('version'))} (unsupported)")
+    missing = [k for k in _TOP_KEYS if k not in meta]
+    if missing:
+        raise CaptureError(f"{label}: expected keys {list(_TOP_KEYS)}, missing {missing}")
+    cs = meta["color_space"]
+    if cs not in COLOR_SPACES:
+        raise CaptureError(f"{label}: color_space: expected one of {list(COLOR_SPACES)}, found {_short(cs)}")
+    surf = meta["surface"]
+    if not isinstance(surf, dict) or "width" not in surf or "height" not in surf:
+        raise CaptureError(f"{label}: surface: expected {{\"width\": w, \"height\": h}}, found {_short(surf)}")
+    size = _check_size((surf["width"], surf["height"]), f"{label}: surface width/height")
+    opt: dict[str, str | None] = {}
+    for key in ("normals", "mask", "saturated"):
+        v = meta.get(key)
+        if v is not None and (not isinstance(v, str) or not v):
+            raise CaptureError(f"{label}: {key}: expected a file name or null, found {_short(v)}")
+        opt[key] = v
+    raw = meta["shots"]
+    if not isinstance(raw, list):
+        raise CaptureError(f"{label}: shots: expected a list of shots, found {type(raw).__name__}")
+    if not raw:
+        raise CaptureError(f"{label}: shots: expected at least 1 shot, found 0")
+    shots = []
+    for k, s in enumerate(raw):
+        where = f"{label}: shots[{k}]"
+        if not isinstance(s, dict):
+            raise CaptureError(f"{where}: expected an object with keys {list(_SHOT_KEYS)}, found {type(s).__name__}")
+        lost = [key for key in _SHOT_KEYS if key not in s]
+        if lost:
+            raise CaptureError(f"{where}: expected keys {list(_SHOT_KEYS)}, missing {lost}")
+        if not isinstance(s["image"], str) or not s["image"]:
+            raise CaptureError(f"{where}.image: expected a file name, found {_short(s['image'])}")
+        light = _numbers(s["light"], 4, f"{where}.light")
+        _check_light(light, f"{where}.light")
+        inten = _numbers(s["light_intensity"], 3, f"{where}.light_intensity")
+        _check_intensity(inten, f"{where}.light_intensity")
+        cam = _numbers(s["camera"], 4, f"{where}.camera")
+        _check_camera(cam, f"{where}.camera")
+        shots.append(_Shot(s["image"], light, inten, cam))
+    return cs, size, opt["normals"], opt["mask"], opt["saturated"], shots
+
+
+def _load_npy(f: Path, what: str) -> np.ndarray:
+    if not f.is_file():
+        raise CaptureError(f"{f}: expected the {what} file named in capture.json, found nothing")
+    try:
+        return np.load(f, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise CaptureError(f"{f}: expected a numpy .npy array, found unreadable data ({e})") from None
+
+
+def _load_normals(f: Path, h: int, w: int) -> Tensor:
+    arr = _load_npy(f, "normals")
+    if arr.shape != (h, w, 3):
+        raise CaptureError(f"{f}: expected shape (H, W, 3) = {(h, w, 3)}, found {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise CaptureError(f"{f}: expected float normals, found dtype {arr.dtype}")
+    n = np.asarray(arr, dtype=np.float64)
+    bad = ~np.isfinite(n).all(axis=2)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise CaptureError(f"{f}: expected finite normals, found {int(bad.sum())} non-finite (first at row {i}, col {j})")
+    length = np.sqrt((n * n).sum(axis=2, keepdims=True))
+    zero = length[..., 0] < 1e-12
+    if zero.any():
+        i, j = np.argwhere(zero)[0]
+        raise CaptureError(f"{f}: expected non-zero normals, found {int(zero.sum())} zero-length (first at row {i}, col {j})")
+    off = np.abs(length - 1.0) > _UNIT_TOL  # leave unit vectors bit-exact, normalise the rest
+    out = np.where(off, n / length, n).astype(np.float32)
+    return torch.from_numpy(np.ascontiguousarray(out.transpose(2, 0, 1)))
+
+
+def _load_mask(f: Path, h: int, w: int) -> Tensor:
+    if f.suffix.lower() == ".npy":
+        arr = _load_npy(f, "mask")
+    else:
+        if not f.is_file():
+            raise CaptureError(f"{f}: expected the mask file named in capture.json, found nothing")
+        data = np.fromfile(f, dtype=np.uint8)
+        arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        if arr is None:
+            raise CaptureError(f"{f}: expected a readable mask image, found undecodable data")
+    if arr.ndim == 3:
+        arr = arr[:, :, :3] if arr.shape[2] == 4 else arr
+        arr = (arr != 0).any(axis=2)
+    if arr.ndim != 2 or arr.shape != (h, w):
+        raise CaptureError(f"{f}: expected a mask of size {w}x{h} (width x height), found shape {arr.shape}")
+    return torch.from_numpy(np.ascontiguousarray(arr != 0)).unsqueeze(0)
+
+
+def _load_saturated(f: Path, n: int, h: int, w: int) -> Tensor:
+    arr = _load_npy(f, "saturated")
+    if arr.shape != (n, h, w, 3) or arr.dtype != np.bool_:
+        raise CaptureError(f"{f}: expected a bool array of shape {(n, h, w, 3)}, found {arr.dtype} {arr.shape}")
+    return torch.from_numpy(np.ascontiguousarray(arr.transpose(0, 3, 1, 2)))
+
+
+def load_capture(path: str | os.PathLike) -> Capture:
+    """Read a capture directory (DESIGN 2.1).
+
+    Images are read one at a time into a preallocated (N, 3, H, W) float32 tensor; sRGB files
+    are decoded with :func:`srgb_to_linear`. Saturation comes from the raw values (255 / 65535
+    for PNG; none for float files, unless the capture carries ``saturated.npy``).
+
+    Args:
+        path: the capture directory, or its capture.json.
+
+    Raises:
+        CaptureError: anything missing, malformed or physically impossible, in one line.
+    """
+    root = Path(path)
+    meta_file = root if root.suffix.lower() == ".json" and not root.is_dir() else root / "capture.json"
+    root = meta_file.parent
+    color_space, size, normals_name, mask_name, sat_name, shots = _parse_meta(_read_meta(meta_file), str(meta_file))
+
+    n = len(shots)
+    first = read_raw(root / shots[0].image)
+    h, w = first.shape[:2]
+    images = torch.empty((n, 3, h, w), dtype=torch.float32)  # the only full-size allocation
+    saturated = torch.empty((n, 3, h, w), dtype=torch.bool)
+    images_np, saturated_np = images.numpy(), saturated.numpy()  # shared memory views
+    for k, shot in enumerate(shots):
+        f = root / shot.image
+        raw = first if k == 0 else read_raw(f)
+        if raw.shape[:2] != (h, w):
+            raise CaptureError(
+                f"{f}: expected size {w}x{h} (width x height, as {shots[0].image}), found {raw.shape[1]}x{raw.shape[0]}"
+            )
+        decode_planes(raw, images_np[k], saturated_np[k])
+        if raw.dtype.kind == "f":  # integer files are finite and >= 0 by construction
+            _check_pixels(images[k], str(f))
+        del raw
+        if color_space == "srgb":
+            images[k] = srgb_to_linear(images[k])
+    del first
+
+    normals = _load_normals(root / normals_name, h, w) if normals_name else None
+    mask = _load_mask(root / mask_name, h, w) if mask_name else None
+    if sat_name:
+        saturated |= _load_saturated(root / sat_name, n, h, w)
+
+    f32 = lambda rows: torch.tensor(rows, dtype=torch.float64).to(torch.float32)  # noqa: E731
+    return Capture(
+        images=images, normals=normals, mask=mask,
+        lights=f32([s.light for s in shots]), intensities=f32([s.intensity for s in shots]),
+        cameras=f32([s.camera for s in shots]), size=size, saturated=saturated,
+        names=[s.image for s in shots], color_space=color_space,
+    )
+
+
+# --------------------------------------------------------------------------------- saving
+
+
+def _file_names(names: list[str], suffix: str) -> list[str]:
+    """images/<stem><suffix>, keeping the source stems when they are safe and unique."""
+    stems = [PurePosixPath(str(nm).replace("\\", "/")).stem for nm in names]
+    if len(set(stems)) != len(stems) or not all(_SAFE_STEM.match(s) for s in stems):
+        stems = [f"{k:03d}" for k in range(len(names))]
+    return [f"images/{s}{suffix}" for s in stems]
+
+
+def _hwc(t: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().permute(1, 2, 0).numpy())
+
+
+def _row(t: Tensor) -> list[float]:
+    return [float(v) for v in t.detach().cpu().tolist()]
+
+
+def write_capture_files(
+    capture: Capture, root: str | os.PathLike, *, bits: int | str = "npy", color_space: str | None = None
+) -> dict:
+    """Write the files of ``capture`` into the existing, empty directory ``root`` (not atomic:
+    :func:`save_capture` wraps it). Returns the capture.json dictionary written."""
+    if bits not in (8, 16, "npy"):
+        raise CaptureError(f"bits: expected 8, 16 or 'npy', found {bits!r}")
+    cs = color_space or ("linear" if bits == "npy" else capture.color_space)
+    if cs not in COLOR_SPACES:
+        raise CaptureError(f"color_space: expected one of {list(COLOR_SPACES)}, found {cs!r}")
+    capture.validate()
+    root = Path(root)
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    suffix = ".npy" if bits == "npy" else ".png"
+    names = _file_names(capture.names, suffix)
+    need_sat_file = False
+    for k, name in enumerate(names):
+        img = capture.images[k].detach().cpu().double()  # one shot at a time, encoded in float64
+        if cs == "srgb":
+            img = linear_to_srgb(img)
+        arr = _hwc(img)
+        (root / name).write_bytes(encode_image(arr, suffix, 8 if bits == "npy" else int(bits)))
+        sat = _hwc(capture.saturated[k])
+        if bits == "npy":
+            need_sat_file |= bool(sat.any())
+        else:
+            need_sat_file |= bool((sat & (quantize(arr, int(bits)) != PNG_MAX[int(bits)])).any())
+    meta: dict = {
+        "format": FORMAT,
+        "version": VERSION,
+        "color_space": cs,
+        "surface": {"width": float(capture.size[0]), "height": float(capture.size[1])},
+    }
+    if not capture.flat:
+        np.save(root / "normals.npy", _hwc(capture.normals.float()), allow_pickle=False)
+        meta["normals"] = "normals.npy"
+    if not bool(capture.mask.all()):
+        m = capture.mask[0].detach().cpu().numpy().astype(np.uint8) * 255
+        ok, buf = cv2.imencode(".png", m)
+        if not ok:
+            raise CaptureError(f"mask: expected a PNG-encodable mask, found shape {m.shape}")
+        (root / "mask.png").write_bytes(buf.tobytes())
+        meta["mask"] = "mask.png"
+    if need_sat_file:
+        np.save(root / "saturated.npy", capture.saturated.detach().cpu().permute(0, 2, 3, 1).numpy(), allow_pickle=False)
+        meta["saturated"] = "saturated.npy"
+    meta["shots"] = [
+        {"image": name, "light": _row(capture.lights[k]), "light_intensity": _row(capture.intensities[k]),
+         "camera": _row(capture.cameras[k])}
+        for k, name in enumerate(names)
+    ]
+    (root / "capture.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    return meta
+
+
+def replace_dir(tmp: Path, path: Path) -> None:
+    """Move the finished directory ``tmp`` to ``path``; an existing capture there is swapped out."""
+    if path.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=path.parent))
+        os.replace(path, old / path.name)
+        try:
+            os.replace(tmp, path)
+        except BaseException:
+            os.replace(old / path.name, path)  # put the old capture back
+            raise
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, path)
+
+
+def prepare_target(path: str | os.PathLike) -> tuple[Path, Path]:
+    """Check that ``path`` may be (re)written as a capture; returns (path, fresh temp sibling dir)."""
+    path = Path(path)
+    if path.exists():
+        if not path.is_dir():
+            raise CaptureError(f"{path}: expected a directory (or nothing) to write the capture to, found a file")
+        if any(path.iterdir()) and not (path / "capture.json").is_file():
+            raise CaptureError(f"{path}: expected an empty directory or an existing capture, found other files (not overwritten)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path, Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp.", dir=path.parent))
+
+
+def save_capture(
+    capture: Capture, path: str | os.PathLike, *, bits: int | str = "npy", color_space: str | None = None
+) -> Path:
+    """Write ``capture`` as a capture directory, atomically; returns the path.
+
+    Args:
+        bits: "npy" (float32 images, bit-exact round trip, the default), 16 or 8 (PNG).
+        color_space: file encoding, "linear" or "srgb"; default "linear" for npy and the
+            capture's own ``color_space`` for PNG (so a PNG capture re-saved with the bit depth
+            it was loaded with reproduces its values exactly).
+
+    Writes capture.json, images/<stem>.png|.npy (source stems kept when safe and unique, else
+    NNN), normals.npy when not flat, mask.png when not all True, saturated.npy when the
+    clipping flags can't be recovered from the image values. An existing capture at ``path`` is
+    replaced in one rename; a directory holding anything else is refused.
+    """
+    path, tmp = prepare_target(path)
+    try:
+        write_capture_files(capture, tmp, bits=bits, color_space=color_space)
+        replace_dir(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path
