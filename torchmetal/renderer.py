@@ -1,7 +1,32 @@
 """The material renderer: Phong shading plus deterministic sparkles, as an ``nn.Module``.
 
-``MaterialRenderer(material)(light (B,4), light_intensity (B,3), camera (B,4)) -> (B,3,H,W)``.
+``MaterialRenderer(material)(light (B,4), light_intensity (B,3), camera (B,4)) -> (B,3,H,W)``
+computes exactly the model of :func:`torchmetal.phong.phong_render` plus
+:func:`torchmetal.flakes.field.sparkle_render` (to float32 rounding), but is written for speed
+and for a small ONNX graph (DESIGN 2.4):
+
+- **Only what the material uses is in the graph.** No flake ops when the material has no flakes
+  (or ``flakes=False``); global ``(3,)`` specular terms stay scalars per channel, clustered
+  specular is stored as a ``uint8`` label map plus a ``(3, K)`` table (the ``(3, H, W)`` maps are
+  gathered once: cached buffers in eager mode, constant-folded by onnxruntime at session load).
+- **Everything light-independent is precomputed.** The surface is the plane z = 0, so a pixel's
+  offset to a light or camera is separable: ``x − w·X`` depends on the column only and
+  ``y − w·Y`` on the row only. Only the pixel-centre coordinate vectors ``(W,)`` and ``(H,)`` are
+  stored, never a dense ``(3, H, W)`` point map.
+- **Flat normals are folded.** With n = (0, 0, 1) (``material.normals`` is None or all
+  (0, 0, 1)), n·l = l_z, the mirror direction is (−l_x, −l_y, l_z) and "lit" (n·l > 0) is one
+  boolean per shot, so the dense work is a handful of single-channel maps. Other normals take a
+  general per-pixel path.
+- **Sparse sparkles.** The flake field is baked once; only the pixels with a non-zero flake
+  footprint (a few % of the texture) are kept, as flat indices plus their flake normal and
+  weighted colour. Their glints are shaded with the flake module's own
+  :func:`~torchmetal.flakes.field.sparkle_shading` at those points only and scatter-added into
+  the Phong image. If the footprint covers more than a quarter of the texture, dense maps are
+  used instead.
+
 All state lives in buffers, so ``.to()``, ``state_dict`` and ONNX export need no extra code.
+The specular lobe uses the same Kahan ``log1p`` form as :func:`torchmetal.phong.specular_lobe`
+and only ops that export bit-for-bit or within a few ulp (no ``log1p``, no RNG, no ``pow``).
 """
 
 from __future__ import annotations
@@ -9,36 +34,217 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from torchmetal.checks import check_finite, check_float, check_shape
+from torchmetal.errors import InputError
 from torchmetal.flakes.field import FlakeField, flake_field, sparkle_shading
 from torchmetal.geometry import shading_geometry, surface_points
 from torchmetal.material import Material
-from torchmetal.phong import phong_shading
+
+__all__ = ["MaterialRenderer", "DENSE_FLAKE_FRACTION"]
+
+_EPS2 = 1e-24  # geometry._EPS ** 2: clamp of squared lengths before normalising
+_TINY = 1.1754944e-38  # smallest normal float32
+_BELOW_ONE = 1.0 - 2.0**-24  # largest float32 below 1
+DENSE_FLAKE_FRACTION = 0.25  # above this footprint fraction the flake maps stay dense
+
+
+def _split(target: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(B, 4) homogeneous vectors → four (B, 1, 1, 1) components x, y, z, w."""
+    t = target.reshape(-1, 4, 1, 1)
+    return t[:, 0:1], t[:, 1:2], t[:, 2:3], t[:, 3:4]
+
+
+def _is_flat(normals: Tensor | None) -> bool:
+    if normals is None:
+        return True
+    return bool((normals[0] == 0).all() and (normals[1] == 0).all() and (normals[2] == 1).all())
 
 
 class MaterialRenderer(nn.Module):
-    """Render a :class:`Material` for any batch of lights and cameras."""
+    """Render a :class:`Material` for any batch of lights and cameras.
+
+    Args:
+        material: the fitted material.
+        flakes: include the sparkle term when the material has flakes (default True).
+
+    ``forward(light (B,4), light_intensity (B,3), camera (B,4)) -> (B,3,H,W)`` float32 linear
+    radiance. Attributes: ``height``, ``width``, ``flat`` (normals folded), ``clustered``
+    (per-pixel specular), ``has_flakes``, ``flake_pixels`` (number of sparse flake pixels, or
+    −1 for dense maps).
+    """
 
     def __init__(self, material: Material, *, flakes: bool = True) -> None:
         super().__init__()
+        if not isinstance(material, Material):
+            raise InputError(f"material: expected a torchmetal Material, found {type(material).__name__}")
         m = material
-        normals = m.flat_normals().float()
-        s, alpha = m.specular_maps()
-        self.register_buffer("texture", m.texture.detach().float().clone())
-        self.register_buffer("s", s.detach().float().clone())
-        self.register_buffer("alpha", alpha.detach().float().clone())
-        self.register_buffer("normals", normals.clone())
-        self.register_buffer("points", surface_points(m.height, m.width, m.size, dtype=torch.float32, device=normals.device))
-        self.has_flakes = bool(flakes and m.flakes is not None)
-        if self.has_flakes:
-            f = flake_field(m.flakes, m.height, m.width, normals)
-            self.glint_sigma = f.glint_sigma
-            self.register_buffer("flake_weighted_color", f.weight * f.color)
-            self.register_buffer("flake_normal", f.normal)
+        f32 = torch.float32
+        dev = m.texture.device
+        self.height, self.width = m.height, m.width
+        self.size = (float(m.size[0]), float(m.size[1]))
+        self.register_buffer("texture", m.texture.detach().to(f32).clone())
+        # pixel-centre coordinates, bit-identical to geometry.surface_points
+        self.register_buffer("xs", surface_points(1, m.width, self.size, dtype=f32, device=dev)[0, 0].clone())
+        self.register_buffer("ys", surface_points(m.height, 1, self.size, dtype=f32, device=dev)[1, :, 0].clone())
 
-    def forward(self, light: Tensor, light_intensity: Tensor, camera: Tensor) -> Tensor:
-        geom = shading_geometry(self.normals, light, light_intensity, camera, points=self.points)
-        image = phong_shading(self.texture, self.s, self.alpha, geom)
+        self.flat = _is_flat(m.normals)
+        if not self.flat:
+            self.register_buffer("normals", m.normals.detach().to(f32).clone())
+
+        self.clustered = m.clustered
+        if self.clustered:
+            k = int(m.cluster_s.shape[0])
+            lab_dtype = torch.uint8 if k <= 256 else torch.int32
+            self.register_buffer("spec_labels", m.spec_labels.detach().to(dev).to(lab_dtype).clone())
+            self.register_buffer("cluster_s", m.cluster_s.detach().to(f32).t().contiguous())  # (3, K)
+            self.register_buffer("cluster_alpha", m.cluster_alpha.detach().to(f32).t().contiguous())
+            s_map, a_map = self._gather_specular()
+            self.register_buffer("_s_map", s_map, persistent=False)
+            self.register_buffer("_alpha_map", a_map, persistent=False)
+        else:
+            self.register_buffer("s", m.s.detach().to(f32).clone())
+            self.register_buffer("alpha", m.alpha.detach().to(f32).clone())
+
+        self.has_flakes = bool(flakes and m.flakes is not None)
+        self.flake_pixels = 0
         if self.has_flakes:
-            field = FlakeField(torch.ones_like(self.flake_normal[:1]), self.flake_normal, self.flake_weighted_color, self.glint_sigma, 0)
-            image = image + sparkle_shading(field, geom)
+            self._bake_flakes(m)
+
+    # ----------------------------------------------------------------------------------- setup
+    def _gather_specular(self) -> tuple[Tensor, Tensor]:
+        lab = self.spec_labels.long()
+        return self.cluster_s[:, lab], self.cluster_alpha[:, lab]
+
+    def _bake_flakes(self, m: Material) -> None:
+        normals = m.flat_normals().detach().to(torch.float32)
+        f = flake_field(m.flakes, m.height, m.width, normals)
+        self.glint_sigma = float(f.glint_sigma)
+        wc = (f.weight * f.color).to(torch.float32)  # (3, H, W) footprint × colour
+        keep = (f.weight[0] > 0) & (wc.abs().sum(0) > 0)
+        n_px = int(keep.sum())
+        if n_px == 0:
+            self.has_flakes = False
+            return
+        if n_px > DENSE_FLAKE_FRACTION * m.height * m.width:
+            self.flake_pixels = -1
+            self.register_buffer("flake_wc", wc.contiguous())
+            self.register_buffer("flake_normal", f.normal.to(torch.float32).contiguous())
+            return
+        self.flake_pixels = n_px
+        flat_idx = torch.nonzero(keep.reshape(-1), as_tuple=False).reshape(-1)
+        rows, cols = flat_idx // m.width, flat_idx % m.width
+        self.register_buffer("flake_index", flat_idx.to(torch.int64))  # (N,) into H·W
+        self.register_buffer("flake_points", torch.stack([self.xs[cols], self.ys[rows], torch.zeros_like(self.xs[cols])]).view(3, 1, n_px))
+        self.register_buffer("flake_wc", wc[:, rows, cols].reshape(3, 1, n_px).contiguous())
+        self.register_buffer("flake_normal", f.normal.to(torch.float32)[:, rows, cols].reshape(3, 1, n_px).contiguous())
+        if not self.flat:
+            self.register_buffer("flake_surface_normal", normals[:, rows, cols].reshape(3, 1, n_px).contiguous())
+
+    def extra_repr(self) -> str:
+        return (
+            f"{self.height}x{self.width}, flat={self.flat}, clustered={self.clustered}, "
+            f"flakes={'off' if not self.has_flakes else ('dense' if self.flake_pixels < 0 else f'{self.flake_pixels} px')}"
+        )
+
+    # --------------------------------------------------------------------------------- forward
+    def forward(self, light: Tensor, light_intensity: Tensor, camera: Tensor) -> Tensor:
+        dtype = self.texture.dtype
+        light, light_intensity, camera = light.to(dtype), light_intensity.to(dtype), camera.to(dtype)
+        x = self.xs.view(1, 1, 1, -1)
+        y = self.ys.view(1, 1, -1, 1)
+        lx, ly, lz, lw = _split(light)
+        vx, vy, vz, vw = _split(camera)
+        # Separable offsets to the targets: (B,1,1,W) and (B,1,H,1); the z offset is the target's
+        # own z (plane z = 0). Only the final sums are full (B,1,H,W) maps.
+        dlx, dly = lx - lw * x, ly - lw * y
+        dvx, dvy = vx - vw * x, vy - vw * y
+        lx2, lyz2 = dlx * dlx, dly * dly + lz * lz
+        nrm_l = torch.sqrt(lx2 + lyz2.clamp_min(_EPS2))
+        nrm_v = torch.sqrt(dvx * dvx + (dvy * dvy + vz * vz).clamp_min(_EPS2))
+        ux, uy, uz = dlx / nrm_l, dly / nrm_l, lz / nrm_l  # unit l
+        wx, wy, wz = dvx / nrm_v, dvy / nrm_v, vz / nrm_v  # unit v
+        # 1/dist² for point lights, 1 for directional ones, without a per-pixel select:
+        # dist² = p·|d|² + (1 − p) with p = [w > 0.5] folded into the separable parts.
+        point = (lw > 0.5).to(dtype)
+        inv_d2 = 1.0 / (point * lx2 + (point * lyz2 + (1.0 - point)))
+
+        if self.flat:
+            # n = (0,0,1): n·l = l_z, r − v = (−l_x − v_x, −l_y − v_y, l_z − v_z), lit ⇔ light z > 0
+            n_dot_l = uz
+            ex, ey, ez = ux + wx, uy + wy, uz - wz
+            lit = (lz > 0).to(dtype)  # (B,1,1,1), folded into the specular scale below
+        else:
+            nx, ny, nz = self.normals[0:1].unsqueeze(0), self.normals[1:2].unsqueeze(0), self.normals[2:3].unsqueeze(0)
+            n_dot_l = nx * ux + ny * uy + nz * uz
+            two_nl = 2.0 * n_dot_l
+            ex, ey, ez = two_nl * nx - ux - wx, two_nl * ny - uy - wy, two_nl * nz - uz - wz
+            lit = None
+
+        # log of the lobe max(r·v, 0) with y = −q = −|r − v|²/2: log1p(y) in the Kahan form
+        # y·log(u)/(u − 1), u = fl(1 + y). u is clipped to [tiny, 1 − 2⁻²⁴]: the upper clip only
+        # touches u == 1 (then the ratio is 1 to 1 ulp), the lower one gives a log-lobe ≤ −87·|y|
+        # past the horizon (r·v ≤ 0), i.e. a lobe ≤ 1e-38 for α ≥ 1 instead of selects.
+        yq = -0.5 * (ex * ex + ey * ey + ez * ez)
+        if lit is None:
+            yq = torch.where(n_dot_l > 0, yq, -2.0)  # unlit pixel: no lobe
+        u = (1.0 + yq).clamp(_TINY, _BELOW_ONE)
+        t = torch.log(u) * (yq / (u - 1.0))
+
+        shade = light_intensity.reshape(-1, 3, 1, 1)  # (B,3,1,1)
+        q_diffuse = shade * (n_dot_l.clamp_min(0.0) * inv_d2)  # outer products (B,3,H,W)
+        q_spec = (shade if lit is None else shade * lit)
+        if self.clustered:
+            s, alpha = self._specular_maps()
+            spec = s * torch.exp(alpha * t)
+        else:
+            q_spec = q_spec * self.s.view(1, 3, 1, 1)
+            spec = torch.exp(self.alpha.view(1, 3, 1, 1) * t)
+        image = self.texture * q_diffuse + spec * (q_spec * inv_d2)
+
+        if self.has_flakes:
+            image = self._add_sparkle(image, light, light_intensity, camera)
         return image
+
+    def _specular_maps(self) -> tuple[Tensor, Tensor]:
+        if torch.compiler.is_exporting():
+            # in the file: uint8 labels + (3, K) tables; onnxruntime folds the gather at load
+            return self._gather_specular()
+        return self._s_map, self._alpha_map
+
+    def _add_sparkle(self, image: Tensor, light: Tensor, intensity: Tensor, camera: Tensor) -> Tensor:
+        if self.flake_pixels < 0:  # dense maps
+            normals = self.normals if not self.flat else _flat_like(self.texture)
+            geom = shading_geometry(normals, light, intensity, camera, self.size)
+            field = FlakeField(torch.ones_like(self.flake_normal[:1]), self.flake_normal, self.flake_wc, self.glint_sigma, 0)
+            return image + sparkle_shading(field, geom)
+        pts = self.flake_points  # (3, 1, N)
+        normals = self.flake_surface_normal if not self.flat else _flat_like(pts)
+        geom = shading_geometry(normals, light, intensity, camera, points=pts)
+        field = FlakeField(torch.ones_like(self.flake_wc[:1]), self.flake_normal, self.flake_wc, self.glint_sigma, self.flake_pixels)
+        glint = sparkle_shading(field, geom)  # (B, 3, 1, N)
+        b = image.shape[0]
+        flat = image.reshape(b, 3, self.height * self.width)
+        index = self.flake_index.view(1, 1, -1).expand(b, 3, -1)
+        flat = flat.scatter_add(2, index, glint.reshape(b, 3, -1))
+        return flat.reshape(b, 3, self.height, self.width)
+
+    # ----------------------------------------------------------------------------------- checks
+    @staticmethod
+    def check_inputs(light: Tensor, light_intensity: Tensor, camera: Tensor) -> None:
+        """One-line :class:`InputError` for wrong shapes, dtypes or non-finite values."""
+        for name, x, c in (("light", light, 4), ("light_intensity", light_intensity, 3), ("camera", camera, 4)):
+            check_shape(x, ("B", c), name)
+            check_float(x, name)
+            check_finite(x, name)
+        b = {light.shape[0], light_intensity.shape[0], camera.shape[0]}
+        if len(b) != 1:
+            raise InputError(
+                f"batch: expected light, light_intensity and camera with the same B, found "
+                f"{light.shape[0]}, {light_intensity.shape[0]}, {camera.shape[0]}"
+            )
+
+
+def _flat_like(ref: Tensor) -> Tensor:
+    """(3, *ref.shape[1:]) normals (0, 0, 1)."""
+    z = torch.zeros_like(ref[:1])
+    return torch.cat([z, z, torch.ones_like(z)])
