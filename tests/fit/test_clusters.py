@@ -1,0 +1,51 @@
+"""Spatially varying specular: k-means, labelers, feature maps, the held-out choice."""
+
+import torch
+
+from tests.fit.helpers import synth
+from torchmetal.fit import fit_phong
+from torchmetal.fit.clusters import SpecFeatureMap, colour_features, grid_coords, kmeans, make_labeler
+
+
+def test_kmeans_separates_blobs():
+    g = torch.Generator().manual_seed(0)
+    x = torch.cat([torch.randn(200, 2, generator=g) * 0.1, torch.randn(300, 2, generator=g) * 0.1 + 3.0]).double()
+    cent, lab = kmeans(x, 2, seed=1)
+    assert lab[:200].unique().numel() == 1 and lab[200:].unique().numel() == 1 and lab[0] != lab[-1]
+    assert sorted(torch.bincount(lab).tolist()) == [200, 300]
+
+
+def test_colour_labeler_splits_two_materials():
+    tex = torch.zeros(3, 8, 8)
+    tex[:, :, :4] = torch.tensor([0.6, 0.5, 0.1]).view(3, 1, 1)  # gold-ish
+    tex[:, :, 4:] = torch.tensor([0.1, 0.4, 0.5]).view(3, 1, 1)  # teal-ish
+    tex = tex + 0.01 * torch.rand(3, 8, 8, generator=torch.Generator().manual_seed(0))
+    t = tex.reshape(3, -1)
+    ij = grid_coords(8, 8, 1, t.device).to(t.dtype)
+    lab = make_labeler(t, ij, torch.ones(64, dtype=torch.bool), 2, spec=None, features="colour")
+    out = lab(t, ij).view(8, 8)
+    assert out[:, :4].unique().numel() == 1 and out[:, 4:].unique().numel() == 1 and out[0, 0] != out[0, -1]
+    f = colour_features(t, 1e-3)
+    assert f.shape == (64, 3) and torch.isfinite(f).all()
+
+
+def test_spec_feature_map_samples_its_grid_exactly():
+    maps = torch.arange(2 * 4 * 5, dtype=torch.float32).view(2, 4, 5)
+    fm = SpecFeatureMap(maps, stride=3, off=1)
+    ij = grid_coords(4, 5, 3, torch.device("cpu")).float()
+    torch.testing.assert_close(fm.sample(ij), maps.reshape(2, -1).T)
+    mid = fm.sample(torch.tensor([[2.5], [1.0]]))  # halfway between rows 0 and 1 of the grid
+    torch.testing.assert_close(mid[0], 0.5 * (maps[:, 0, 0] + maps[:, 1, 0]))
+
+
+def test_clustered_with_two_shots_has_no_holdout_but_still_clusters():
+    r = synth(size=32, shots=2, seed=3, spec_clusters=2)
+    f = fit_phong(r.capture, specular="clustered", clusters=(2,))
+    assert f.specular in ("clustered", "none")
+    if f.specular == "clustered":
+        assert f.selection["hold"] == -1
+        m = f.to_material()
+        assert m.clustered and m.spec_labels.shape == (32, 32)
+    a = fit_phong(r.capture, specular="auto")
+    assert a.spec_labels is None
+    assert any("held-out test needs >= 3 shots" in s or "no highlight" in s for s in a.skipped)

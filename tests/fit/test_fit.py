@@ -1,0 +1,285 @@
+"""fit_phong end to end on tiny synthetic captures: accuracy, edge cases, skips, the result API."""
+
+import math
+
+import pytest
+import torch
+
+from tests.fit.helpers import psnr, rel_err, render_all, replace, synth
+from torchmetal.errors import FitError, InputError
+from torchmetal.fit import FitResult, fit_phong, leave_one_out
+from torchmetal.material import Material
+from torchmetal.phong import phong_render
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return synth(size=64, shots=12, seed=0)
+
+
+@pytest.fixture(scope="module")
+def clean_fit(clean):
+    return fit_phong(clean.capture, specular="global")
+
+
+def test_noise_free_refine_is_exact(clean, clean_fit):
+    f = clean_fit
+    assert isinstance(f, FitResult) and f.status == "converged" and f.scheme == "refine"
+    assert psnr(render_all(f, clean.capture), clean.capture.images) >= 70.0
+    assert rel_err(f.s, clean.truth["s"]) <= 1e-3 and rel_err(f.alpha, clean.truth["alpha"]) <= 1e-3
+    assert psnr(f.texture, clean.truth["texture"]) >= 70.0
+    assert f.texture.shape == (3, 64, 64) and f.s.shape == (3,) and f.alpha.shape == (3,)
+    assert f.spec_labels is None and f.cluster_s is None and f.cluster_alpha is None
+
+
+def test_history_times_iterations(clean_fit):
+    f = clean_fit
+    assert {h["stage"] for h in f.history} >= {"init", "paper", "refine"}
+    for h in f.history:
+        assert set(h) >= {"stage", "iter", "rmse", "active"} and math.isfinite(h["rmse"]) and 0 <= h["active"] <= 1
+    assert set(f.stage_times) >= {"init", "paper", "refine", "geometry", "texture"}
+    assert all(v >= 0 for v in f.stage_times.values())
+    assert int(f.iterations) == sum(f.iterations.values()) and f.iterations["refine"] <= 5
+    assert math.isfinite(f.rmse) and f.rmse < 1e-4
+
+
+def test_paper_scheme(clean):
+    f = fit_phong(clean.capture, scheme="paper", tol=1e-5)
+    assert f.scheme == "paper" and f.status == "converged"
+    assert rel_err(f.s, clean.truth["s"]) < 5e-3 and rel_err(f.alpha, clean.truth["alpha"]) < 5e-3
+    assert psnr(render_all(f, clean.capture), clean.capture.images) > 60.0
+    assert any("scheme='paper'" in s for s in f.skipped)
+    with pytest.raises(InputError, match="clustered"):
+        fit_phong(clean.capture, scheme="paper", specular="clustered")
+
+
+def test_noisy_8bit_texture_and_heldout():
+    r = synth(size=64, shots=14, seed=1, noise=0.01, bits=8)
+    cap = r.capture
+    fit_idx, hold = list(range(12)), [12, 13]
+    f = fit_phong(cap.subset(fit_idx), specular="global")
+    assert psnr(f.texture, r.truth["texture"], peak=float(r.truth["texture"].max())) >= 40.0
+    hc = cap.subset(hold)
+    v = ~hc.saturated
+    truth = phong_render(r.truth["texture"], r.truth["s"], r.truth["alpha"], hc.normals, hc.lights, hc.intensities,
+                         hc.cameras, hc.size)
+    assert psnr(render_all(f, hc), hc.images, v) >= psnr(truth, hc.images, v) - 0.5
+
+
+def test_one_shot_no_specular_no_nan():
+    r = synth(size=24, shots=1, seed=2)
+    f = fit_phong(r.capture)
+    assert torch.isfinite(f.texture).all() and bool((f.s == 0).all())
+    assert any("no highlight evidence" in s and "one shot" in s for s in f.skipped)
+    assert psnr(render_all(f, r.capture), r.capture.images) > 60.0  # one shot: texture explains it
+
+
+def test_no_highlight_evidence_is_skipped():
+    r = synth(size=32, shots=8, seed=3, s=(0.0, 0.0, 0.0))
+    f = fit_phong(r.capture)
+    assert f.specular == "none" and bool((f.s == 0).all())
+    assert any(s.startswith("specular: no highlight evidence") for s in f.skipped)
+    assert "select" not in f.stage_times  # no clusters tried either
+    assert psnr(f.texture, r.truth["texture"]) > 70.0
+
+
+def test_specular_none():
+    r = synth(size=24, shots=6, seed=4)
+    f = fit_phong(r.capture, specular="none")
+    assert bool((f.s == 0).all()) and any("disabled" in s for s in f.skipped)
+
+
+def test_black_pixels():
+    r = synth(size=32, shots=8, seed=5)
+    img = r.capture.images.clone()
+    img[:, :, 10:14, 10:14] = 0.0  # black: no light at all there
+    f = fit_phong(replace(r.capture, images=img), specular="global")
+    assert torch.isfinite(f.texture).all() and float(f.texture[:, 10:14, 10:14].abs().max()) < 0.05
+    assert rel_err(f.s, r.truth["s"]) < 0.05
+
+
+def test_saturated_pixels_are_left_out():
+    r = synth(size=48, shots=12, seed=6, bits=16, exposure=1.6)
+    cap = r.capture
+    assert 0.001 < float(cap.saturated.float().mean()) < 0.5
+    f = fit_phong(cap, specular="global")
+    assert rel_err(f.s, r.truth["s"]) < 1e-3 and rel_err(f.alpha, r.truth["alpha"]) < 1e-3
+    assert torch.isfinite(f.texture).all()
+
+
+def test_shadowed_pixels_and_normal_maps():
+    r = synth(size=48, shots=12, seed=7, bumpy=True)
+    cap = r.capture
+    normals = cap.normals.clone()
+    normals[:, 5:8, 5:8] = torch.tensor([0.0, 0.0, -1.0]).view(3, 1, 1)  # facing away: n·l ≤ 0 everywhere
+    f = fit_phong(replace(cap, normals=normals), specular="global")
+    assert not f.flat and torch.isfinite(f.texture).all()
+    assert rel_err(f.s, r.truth["s"]) < 1e-3 and rel_err(f.alpha, r.truth["alpha"]) < 1e-3
+    ok = torch.ones(48, 48, dtype=torch.bool)
+    ok[5:8, 5:8] = False
+    assert float((f.texture - r.truth["texture"])[:, ok].abs().max()) < 1e-3
+
+
+def test_only_mask_pixels_count():
+    r = synth(size=32, shots=8, seed=8)
+    cap = r.capture
+    mask = torch.ones_like(cap.mask)
+    mask[:, :, :10] = False
+    img = cap.images.clone()
+    img[:, :, :, :10] = torch.rand(img[:, :, :, :10].shape, generator=torch.Generator().manual_seed(0)) * 5
+    f = fit_phong(replace(cap, images=img, mask=mask), specular="global")
+    assert rel_err(f.s, r.truth["s"]) < 1e-3 and rel_err(f.alpha, r.truth["alpha"]) < 1e-3
+    assert float((f.texture - r.truth["texture"])[:, :, 10:].abs().max()) < 1e-3
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.float64])
+def test_half_and_double_captures(dtype):
+    r = synth(size=32, shots=8, seed=9, dtype=torch.float64)
+    cap = r.capture.to(dtype=dtype)
+    f = fit_phong(cap, specular="global", tol=1e-10)
+    assert f.texture.dtype == (torch.float64 if dtype == torch.float64 else torch.float32)
+    tol = 1e-7 if dtype == torch.float64 else 2e-2
+    assert rel_err(f.s, r.truth["s"]) < tol and rel_err(f.alpha, r.truth["alpha"]) < tol
+
+
+def test_chunking_gives_the_same_result():
+    r = synth(size=40, shots=8, seed=10, noise=0.01)
+    a = fit_phong(r.capture, specular="global")
+    b = fit_phong(r.capture, specular="global", max_pixels_per_chunk=97)
+    torch.testing.assert_close(a.s, b.s, rtol=1e-5, atol=0)
+    torch.testing.assert_close(a.alpha, b.alpha, rtol=1e-5, atol=0)
+    torch.testing.assert_close(a.texture, b.texture, rtol=0, atol=1e-5)
+
+
+def test_non_finite_input_raises_one_line_fit_error():
+    r = synth(size=16, shots=4, seed=11)
+    cap = r.capture
+    bad = cap.images.clone()
+    bad[1, 0, 3, 3] = float("nan")
+    cap.images = bad  # bypass Capture's own checks: fit_phong must still refuse
+    with pytest.raises(FitError) as e:
+        fit_phong(cap)
+    assert "\n" not in str(e.value) and "non-finite" in str(e.value)
+
+
+@pytest.mark.parametrize("kw", [dict(scheme="x"), dict(specular="x"), dict(tol=0.0), dict(max_iters=0),
+                                dict(robust="l1"), dict(outliers=-1.0), dict(clusters=(1,))])
+def test_bad_arguments(kw):
+    r = synth(size=8, shots=2, seed=12)
+    with pytest.raises(InputError):
+        fit_phong(r.capture, **kw)
+
+
+def test_robust_losses_and_outlier_masks_resist_glints():
+    r = synth(size=40, shots=10, seed=13, noise=0.005)
+    g = torch.Generator().manual_seed(1)
+    img = r.capture.images.clone()
+    spots = torch.rand(img.shape[0], 1, 40, 40, generator=g) < 0.01  # glints: 1 % of observations
+    img = torch.where(spots, img + 2.0, img)
+    cap = replace(r.capture, images=img)
+    plain = fit_phong(cap, specular="global", outliers=None)
+    errs = {}
+    for name, kw in {"mad": dict(outliers=5.0), "huber": dict(robust="huber", outliers=None),
+                     "cauchy": dict(robust="cauchy", outliers=None)}.items():
+        f = fit_phong(cap, specular="global", **kw)
+        errs[name] = psnr(f.texture, r.truth["texture"])
+        assert torch.isfinite(f.texture).all()
+    base = psnr(plain.texture, r.truth["texture"])
+    assert errs["mad"] > base + 10 and errs["cauchy"] > base + 10 and errs["huber"] > base + 3
+
+
+def test_clustered_specular_found_and_kept():
+    r = synth(size=64, shots=12, seed=14, spec_clusters=2)
+    f = fit_phong(r.capture, specular="auto")
+    assert f.specular == "clustered" and f.spec_labels.shape == (64, 64) and f.spec_labels.dtype == torch.int64
+    assert f.cluster_s.shape[1] == 3 and f.cluster_alpha.shape == f.cluster_s.shape
+    assert f.selection is not None and f.selection["k"] >= 2
+    truth_s = r.truth["cluster_s"][r.truth["spec_labels"]]
+    got_s = f.cluster_s[f.spec_labels]
+    agree = ((got_s - truth_s).abs().amax(-1) < 0.01).float().mean()
+    assert float(agree) > 0.9
+    assert psnr(render_all(f, r.capture), r.capture.images) > 45.0
+    g = fit_phong(r.capture, specular="global")
+    assert f.rmse < 0.5 * g.rmse
+
+
+def test_auto_keeps_global_when_clusters_do_not_help(clean):
+    f = fit_phong(clean.capture, specular="auto")
+    assert f.specular == "global" and f.spec_labels is None
+    assert any(s.startswith("specular clusters: not kept") for s in f.skipped)
+    c = fit_phong(clean.capture, specular="clustered")
+    assert c.specular == "clustered"
+
+
+def test_to_material_and_render(clean_fit, clean):
+    m = clean_fit.to_material({"extra": 1})
+    assert isinstance(m, Material) and m.report["extra"] == 1
+    assert set(m.report) >= {"stage_times", "iterations", "history", "status", "skipped"}
+    assert m.normals is None  # flat capture
+    img = clean_fit.render(clean.capture.lights[:2], clean.capture.intensities[:2], clean.capture.cameras[:2])
+    assert img.shape == (2, 3, 64, 64)
+
+
+def _analytic_grads(fit, cap):
+    """Gradients of Σ (y − render)² w.r.t. texture, s and log α from the analytic Jacobian."""
+    from torchmetal.fit.problem import build_observations
+    from torchmetal.fit.refine import model_terms
+
+    obs = build_observations(cap)
+    labels = None if fit.spec_labels is None else fit.spec_labels.reshape(-1)
+    s = fit.s.view(1, 3) if labels is None else fit.cluster_s
+    alpha = fit.alpha.view(1, 3) if labels is None else fit.cluster_alpha
+    a, b, db = model_terms(obs, alpha.double(), labels)
+    s_pix = s.double()[labels].T if labels is not None else s.double().view(3, 1)
+    d = fit.texture.double().reshape(3, -1)
+    r = obs.y.double() - a * d - s_pix * b
+    lit = obs.g > 0
+    r = torch.where(lit.expand_as(r), r, torch.zeros_like(r))
+    g_d = (-2 * r * a).sum(0)
+    g_s_pix = (-2 * r * b).sum(0)
+    g_b_pix = (-2 * r * s_pix * db).sum(0)
+    if labels is None:
+        return g_d, g_s_pix.sum(-1), g_b_pix.sum(-1)
+    k = s.shape[0]
+    return (g_d, torch.zeros(k, 3, dtype=torch.float64).index_add_(0, labels, g_s_pix.T),
+            torch.zeros(k, 3, dtype=torch.float64).index_add_(0, labels, g_b_pix.T))
+
+
+@pytest.mark.parametrize("clustered", [False, True])
+def test_module_gradients_equal_the_analytic_ones(clustered):
+    r = synth(size=12, shots=5, seed=15, noise=0.02, bumpy=True, spec_clusters=2 if clustered else 1)
+    f = fit_phong(r.capture, specular="clustered" if clustered else "global", clusters=(2,))
+    cap = r.capture.to(dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(f.to_module()(r.capture.lights, r.capture.intensities, r.capture.cameras),
+                                   render_all(f, r.capture), rtol=1e-5, atol=1e-6)
+    # move away from the optimum (gradients O(1)), in float64
+    f.texture = (f.texture.double() * 1.1).contiguous()
+    f.normals = f.normals.double()
+    if clustered:
+        f.cluster_s, f.cluster_alpha = f.cluster_s.double() * 0.9, f.cluster_alpha.double() * 1.2
+    else:
+        f.s, f.alpha = f.s.double() * 0.9, f.alpha.double() * 1.2
+    mod = f.to_module()
+    assert mod.texture.requires_grad
+    loss = (mod(cap.lights, cap.intensities, cap.cameras) - cap.images).square().sum()
+    loss.backward()
+    g_d, g_s, g_b = _analytic_grads(f, cap)
+    close = lambda a, b: torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9 * float(b.abs().max()))  # noqa: E731
+    close(mod.texture.grad.reshape(3, -1), g_d)
+    if clustered:
+        close(mod.cluster_s.grad, g_s)
+        close(mod.cluster_log_alpha.grad, g_b)
+    else:
+        close(mod.s.grad, g_s)
+        close(mod.log_alpha.grad, g_b)
+    opt = torch.optim.Adam(mod.parameters(), lr=1e-3)  # and a user can keep training it
+    opt.step()
+
+
+def test_progress_bar_and_leave_one_out():
+    r = synth(size=16, shots=4, seed=16)
+    f = fit_phong(r.capture, progress=True)
+    assert f.status == "converged"
+    vals = leave_one_out(r.capture, specular="global")
+    assert len(vals) == 4 and all(v > 50 for v in vals)

@@ -1,0 +1,90 @@
+"""Observations: the decomposition I = a·d + s·b matches the renderer; chunking, strides, masks."""
+
+import torch
+
+from tests.fit.helpers import replace, synth
+from torchmetal.fit.problem import Reference, Weighting, build_observations, grid_stride
+from torchmetal.fit.refine import model_terms
+from torchmetal.phong import phong_render
+
+
+def _render64(cap, tex, s, alpha):
+    return phong_render(tex, s, alpha, cap.normals.double(), cap.lights.double(), cap.intensities.double(),
+                        cap.cameras.double(), cap.size)
+
+
+def test_model_terms_reproduce_the_renderer_float64():
+    r = synth(size=16, shots=5, seed=3, bumpy=True, layout="near")
+    cap = r.capture.to(dtype=torch.float64)
+    tex = r.truth["texture"].double()
+    s = torch.tensor([0.3, 0.6, 1.2], dtype=torch.float64)
+    alpha = torch.tensor([5.0, 60.0, 900.0], dtype=torch.float64)
+    obs = build_observations(cap)
+    assert obs.dtype == torch.float64
+    a, b, _ = model_terms(obs, alpha.view(1, 3))
+    got = (a * tex.reshape(1, 3, -1) + s.view(1, 3, 1) * b).reshape(5, 3, 16, 16)
+    torch.testing.assert_close(got, _render64(cap, tex, s, alpha), rtol=1e-10, atol=1e-13)
+
+
+def test_chunking_does_not_change_anything():
+    cap = synth(size=20, shots=4, seed=1).capture
+    ref = Reference(torch.tensor([[0.5, 0.5, 0.5]], dtype=torch.float64), torch.tensor([[30.0, 40.0, 50.0]], dtype=torch.float64))
+    wt = Weighting(sigma=torch.tensor([0.01, 0.01, 0.01]), outlier_k=3.0)
+    big = build_observations(cap, chunk=4096, ref=ref, weighting=wt, want_tmin=True)
+    small = build_observations(cap, chunk=7, ref=ref, weighting=wt, want_tmin=True)
+    assert len(small.chunks) > len(big.chunks)
+    for name in ("g", "u", "L", "valid", "saa", "d0", "A", "Y", "n", "fallback", "tmin"):
+        torch.testing.assert_close(getattr(small, name), getattr(big, name), rtol=1e-6, atol=1e-9)
+
+
+def test_strided_grid_is_a_subsample_of_the_full_grid():
+    cap = synth(size=21, shots=3, seed=2).capture
+    full = build_observations(cap)
+    sub = build_observations(cap, stride=4)
+    off = 2
+    idx = (torch.arange(off, 21, 4).view(-1, 1) * 21 + torch.arange(off, 21, 4).view(1, -1)).reshape(-1)
+    assert sub.height == sub.width == len(range(off, 21, 4))
+    torch.testing.assert_close(sub.L, full.L[:, :, idx])
+    torch.testing.assert_close(sub.d0, full.d0[:, idx])
+    assert grid_stride(1024, 1024, 1 << 16) == 4 and grid_stride(10, 10, 1 << 16) == 1
+
+
+def test_shot_subset_matches_capture_subset():
+    cap = synth(size=12, shots=5, seed=4).capture
+    a = build_observations(cap, shots=[0, 3])
+    b = build_observations(cap.subset([0, 3]))
+    torch.testing.assert_close(a.g, b.g)
+    torch.testing.assert_close(a.d0, b.d0)
+
+
+def test_validity_mask_saturation_and_shadow():
+    cap = synth(size=12, shots=4, seed=5, layout="far").capture
+    mask = torch.ones_like(cap.mask)
+    mask[:, :3] = False
+    sat = torch.zeros_like(cap.saturated)
+    sat[1, 0, 5, 5] = True
+    normals = cap.normals.clone()
+    normals[:, 8, 8] = torch.tensor([0.0, 0.0, -1.0])  # facing away: n·l < 0 in every shot
+    cap2 = replace(cap, mask=mask, saturated=sat, normals=normals)
+    obs = build_observations(cap2)
+    v = obs.valid.bool().view(4, 3, 12, 12)
+    assert not v[:, :, :3].any()
+    assert not v[1, 0, 5, 5] and v[1, 1, 5, 5]
+    assert not v[:, :, 8, 8].any()
+    assert float(obs.saa.view(3, 12, 12)[:, 8, 8].abs().max()) == 0.0
+
+
+def test_outliers_are_masked_at_the_reference():
+    r = synth(size=16, shots=8, seed=6)
+    cap = r.capture
+    img = cap.images.clone()
+    img[2, :, 4, 4] += 5.0  # a glint
+    cap2 = replace(cap, images=img)
+    ref = Reference(r.truth["s"].double().view(1, 3), r.truth["alpha"].double().view(1, 3))
+    obs = build_observations(cap2, ref=ref, weighting=Weighting(sigma=torch.full((3,), 1e-3), outlier_k=5.0))
+    v = obs.valid.bool().view(8, 3, 16, 16)
+    assert not v[2, :, 4, 4].any()
+    assert int((~obs.valid.bool()).sum()) == 3  # nothing else
+    d = obs.d0.view(3, 16, 16)[:, 4, 4]
+    spec_free = build_observations(cap, ref=ref, weighting=Weighting(sigma=torch.full((3,), 1e-3), outlier_k=5.0))
+    torch.testing.assert_close(d, spec_free.d0.view(3, 16, 16)[:, 4, 4], rtol=0.2, atol=0.05)

@@ -1,0 +1,289 @@
+"""Spatially varying specular: a few clusters, each with its own s, α — kept only when it helps.
+
+Pixels are grouped by k-means on per-pixel features, standardised:
+- colour of T_min = min_k I_k/(E·n·l)_k (the paper's 4.1.6 texture bound, which highlights
+  barely touch): log luminance and two chromaticities, at full resolution;
+- specular: log(s_p/s) and β_p − β of a per-pixel Gauss–Newton step away from the global fit
+  (pooled over 3×3 neighbours), on the selection subsample, sampled bilinearly elsewhere.
+:func:`choose_specular` fits the global model and K-cluster models (colour, specular or both
+feature sets) on all shots but one (on a pixel subsample) and compares their errors on the shot
+left out; clustered specular is chosen only when it lowers that error by more than
+``min_gain``. Clusters without highlight evidence keep the global s, α.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchmetal.fit.lm import solve_2x2
+from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, weighted
+from torchmetal.fit.refine import SpecFit, fit_specular, pixel_map, spec_sums, texture_map
+
+EVIDENCE_REL = 1e-3  # the specular term must explain this fraction of the diffuse-only residual…
+EVIDENCE_ABS = 1e-6  # …and this fraction of Σ w·y²
+MIN_GAIN = 0.005  # clustered must lower the held-out error by 0.5 % …
+MIN_GAIN_ABS = 1e-8  # … and by 1e-8 of the held-out mean square (-80 dB: not rounding noise)
+
+
+def colour_features(t: Tensor, eps: float) -> Tensor:
+    """(3, c) texture → (c, 3) features: log luminance and two chromaticities."""
+    t = t.clamp_min(0.0)
+    lum = t.mean(0)
+    chroma = t[:2] / (3.0 * lum + eps)
+    return torch.stack([torch.log(lum + eps), chroma[0], chroma[1]], -1)
+
+
+@dataclass
+class SpecFeatureMap:
+    """Per-pixel specular features on a coarse grid, sampled bilinearly at any pixel.
+
+    ``maps`` (2, h, w): log(s_p/s) and β_p − β of a per-pixel Gauss–Newton step from the global
+    fit (pooled over 3×3 neighbours, 0 where a pixel shows no highlight); grid pixel (r, c) is
+    full-resolution pixel (off + r·stride, off + c·stride).
+    """
+
+    maps: Tensor
+    stride: int
+    off: int
+
+    def sample(self, ij: Tensor) -> Tensor:
+        """(2, c) full-resolution (row, col) → (c, 2) features."""
+        h, w = self.maps.shape[-2:]
+        y = (ij[0] - self.off) / self.stride
+        x = (ij[1] - self.off) / self.stride
+        gx = 2.0 * x / max(w - 1, 1) - 1.0
+        gy = 2.0 * y / max(h - 1, 1) - 1.0
+        grid = torch.stack([gx, gy], -1).view(1, 1, -1, 2).to(self.maps.dtype)
+        out = F.grid_sample(self.maps.unsqueeze(0), grid, mode="bilinear", padding_mode="border", align_corners=True)
+        return out[0, :, 0].T
+
+
+def spec_feature_map(obs: Observations, fit: SpecFit, stride: int) -> SpecFeatureMap:
+    """Per-pixel specular features of ``obs`` (an h×w grid of the given stride) at the global fit."""
+    st, _, _ = spec_sums(obs, fit.alpha[:1], per_pixel=True)  # (6, 3, P)
+    h, w = obs.height, obs.width
+    st = F.avg_pool2d(st.reshape(18, 1, h, w).double(), 3, stride=1, padding=1, count_include_pad=False).reshape(6, 3, h * w)
+    B, C, Bc, Cc, Yc, _ = st.unbind(0)
+    s = fit.s[0].view(3, 1).double().clamp_min(1e-12)
+    # per-pixel Gauss–Newton step on (s, β) from the global terms: H [δs, δβ] = Jᵀr
+    ds, db = solve_2x2(C, s * Bc, s * s * Cc, -(B - s * C), -(s * (Yc - s * Bc)))
+    energy = s * s * C
+    ref = energy[energy > 0].median() if bool((energy > 0).any()) else energy.new_ones(())
+    wgt = (energy / ref.clamp_min(1e-300)).clamp(0.0, 1.0)  # evidence weight per pixel and channel
+    wsum = wgt.sum(0).clamp_min(1e-12)
+    f_s = (wgt * torch.log((s + ds).clamp_min(0.05 * s) / s).clamp(-2.0, 2.0)).sum(0) / wsum
+    f_b = (wgt * db.clamp(-2.0, 2.0)).sum(0) / wsum
+    keep = wgt.amax(0) > 1e-3
+    maps = torch.stack([torch.where(keep, f_s, torch.zeros_like(f_s)), torch.where(keep, f_b, torch.zeros_like(f_b))])
+    off = stride // 2 if stride > 1 else 0
+    return SpecFeatureMap(maps.reshape(2, h, w).to(obs.dtype), stride, off)
+
+
+FEATURE_SETS = {"colour": (0, 1, 2), "specular": (3, 4), "both": (0, 1, 2, 3, 4)}
+
+
+@dataclass
+class Labeler:
+    """Nearest-centroid labels; callable on (T_min (3, c), pixel coordinates (2, c)) → (c,) int64.
+
+    Features: colour of T_min (3) and the specular feature map sampled at the pixel (2),
+    standardised with ``mean``/``std``; only ``dims`` take part.
+    """
+
+    centroids: Tensor  # (K, len(dims))
+    mean: Tensor  # (5,)
+    std: Tensor  # (5,)
+    dims: tuple[int, ...]
+    eps: float
+    spec: SpecFeatureMap | None = None
+    name: str = "colour"
+
+    @property
+    def k(self) -> int:
+        return int(self.centroids.shape[0])
+
+    def features(self, tmin: Tensor, ij: Tensor) -> Tensor:
+        f = colour_features(tmin, self.eps)
+        sp = self.spec.sample(ij) if self.spec is not None else torch.zeros(f.shape[0], 2, dtype=f.dtype, device=f.device)
+        return torch.cat([f, sp.to(f.dtype)], -1)
+
+    def __call__(self, tmin: Tensor, ij: Tensor) -> Tensor:
+        f = (self.features(tmin, ij).to(self.centroids.dtype) - self.mean) / self.std
+        return torch.cdist(f[:, list(self.dims)], self.centroids).argmin(-1)
+
+
+def kmeans(x: Tensor, k: int, *, iters: int = 30, seed: int = 0) -> tuple[Tensor, Tensor]:
+    """Lloyd's k-means with k-means++ seeding. x (P, F) → centroids (K, F), labels (P,)."""
+    gen = torch.Generator(device=x.device).manual_seed(seed)
+    p = x.shape[0]
+    cent = x[torch.randint(p, (1,), generator=gen, device=x.device)]
+    for _ in range(1, k):
+        d2 = torch.cdist(x, cent).amin(-1) ** 2
+        if float(d2.sum()) <= 0:
+            break
+        pick = torch.multinomial(d2 / d2.sum(), 1, generator=gen)
+        cent = torch.cat([cent, x[pick]])
+    labels = torch.cdist(x, cent).argmin(-1)
+    for _ in range(iters):
+        kk = cent.shape[0]
+        cnt = torch.bincount(labels, minlength=kk).to(x.dtype)
+        sums = torch.zeros(kk, x.shape[1], dtype=x.dtype, device=x.device).index_add_(0, labels, x)
+        cent = torch.where(cnt[:, None] > 0, sums / cnt.clamp_min(1)[:, None], cent)
+        new = torch.cdist(x, cent).argmin(-1)
+        if bool((new == labels).all()):
+            break
+        labels = new
+    return cent, labels
+
+
+def grid_coords(obs_h: int, obs_w: int, stride: int, device: torch.device) -> Tensor:
+    """(2, h·w) full-resolution (row, col) of the pixels of a strided grid."""
+    off = stride // 2 if stride > 1 else 0
+    r = off + torch.arange(obs_h, device=device) * stride
+    c = off + torch.arange(obs_w, device=device) * stride
+    rr, cc = torch.meshgrid(r, c, indexing="ij")
+    return torch.stack([rr.reshape(-1), cc.reshape(-1)])
+
+
+def make_labeler(tmin: Tensor, ij: Tensor, usable: Tensor, k: int, *, spec: SpecFeatureMap | None,
+                 features: str = "colour", seed: int = 0) -> Labeler:
+    """Fit a K-cluster :class:`Labeler` on the pixels ``usable`` (P,) of T_min (3, P) at ``ij`` (2, P)."""
+    sel = usable if bool(usable.any()) else torch.ones_like(usable)
+    t, pos = tmin[:, sel], ij[:, sel]
+    eps = 0.05 * float(t.clamp_min(0).mean(0).median()) + 1e-12
+    lab = Labeler(torch.zeros(k, 1), torch.zeros(5), torch.ones(5), FEATURE_SETS[features], eps, spec, features)
+    f = lab.features(t, pos.to(t.dtype)).double()
+    mean = f.mean(0) if f.shape[0] > 1 else torch.zeros(5, dtype=f.dtype, device=f.device)
+    std = f.std(0).clamp_min(1e-6) if f.shape[0] > 1 else torch.ones(5, dtype=f.dtype, device=f.device)
+    z = ((f - mean) / std)[:, list(lab.dims)]
+    if z.shape[0] > 20000:  # k-means on a fixed-size sample; labels come from the centroids
+        z = z[:: z.shape[0] // 20000 + 1]
+    cent, _ = kmeans(z, k, seed=seed)
+    lab.centroids, lab.mean, lab.std = cent, mean, std
+    return lab
+
+
+def evidence(fit: SpecFit) -> Tensor:
+    """(K, 3) bool: the element's specular term explains enough of the residual to be kept."""
+    gain = fit.A - fit.cost
+    return (fit.s > 0) & (fit.explained() > EVIDENCE_REL) & (gain > EVIDENCE_ABS * fit.Y)
+
+
+def fit_clustered(obs: Observations, labeler: Labeler, glob: SpecFit, *, tol: float, max_iters: int) -> SpecFit:
+    """K-cluster fit on ``obs`` (labels set from its T_min); clusters without evidence keep ``glob``."""
+    k = labeler.k
+    if obs.labels is None:
+        raise ValueError("fit_clustered: observations need labels (build them with the labeler)")
+    beta0 = torch.log(glob.alpha.expand(k, 3)).clone()
+    fit = fit_specular(obs, beta0, tol=tol, max_iters=max_iters)
+    ok = evidence(fit)
+    if bool(ok.all()):
+        return fit
+    s_fix = torch.where(ok, torch.full_like(fit.s, math.nan), glob.s.expand(k, 3))
+    b_fix = torch.where(ok, torch.full_like(fit.s, math.nan), torch.log(glob.alpha).expand(k, 3))
+    fit = fit_specular(obs, torch.where(ok, torch.log(fit.alpha), b_fix), tol=tol, max_iters=max_iters,
+                       s_fixed=s_fix, beta_fixed=b_fix)
+    fit.pinned = ~ok
+    return fit
+
+
+def mean_square(hold: Observations) -> float:
+    """Mean of y² over the valid held-out observations."""
+    return float(hold.Y.double().sum()) / max(1.0, float(hold.n.double().sum()))
+
+
+def heldout_mse(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor, labels: Tensor | None) -> float:
+    """Mean squared error of rendering the held-out observations with (texture (3, P), s, α (K, 3))."""
+    lab = labels if s.shape[0] > 1 else None
+    s_pix = pixel_map(s.to(hold.dtype), lab)
+    a_pix = pixel_map(alpha.to(hold.dtype), lab)
+    sse = torch.zeros((), dtype=torch.float64, device=texture.device)
+    cnt = 0.0
+    for j, (p0, p1) in enumerate(hold.chunks):
+        y, g, u, L, w, inten = hold.chunk(j)
+        sp = s_pix if s_pix.shape[1] == 1 else s_pix[:, p0:p1]
+        ap = a_pix if a_pix.shape[1] == 1 else a_pix[:, p0:p1]
+        r = y - inten * g * texture[:, p0:p1] - sp * (inten * u) * torch.exp(ap * L)
+        sse += (weighted(r, w) * r).double().sum()
+        cnt += float(w.sum())
+    return float(sse) / max(cnt, 1.0)
+
+
+@dataclass
+class Selection:
+    """Outcome of the held-out comparison: k = 1 means global specular."""
+
+    k: int
+    labeler: Labeler | None
+    hold: int  # -1: no held-out shot
+    mse: dict = field(default_factory=dict)  # "global" / "K=2" … → held-out MSE
+    reason: str = ""
+
+
+def choose_specular(
+    capture,
+    glob: SpecFit,
+    *,
+    candidates: tuple[int, ...],
+    stride: int,
+    hold: int | None,
+    force: bool,
+    tol: float,
+    max_iters: int,
+    dtype: torch.dtype,
+    chunk: int,
+    weighting: Weighting | None,
+    seed: int = 0,
+    min_gain: float = MIN_GAIN,
+    feature_sets: tuple[str, ...] = ("colour", "specular", "both"),
+) -> Selection:
+    """Fit global and K-cluster specular on all shots but ``hold``; keep the best on ``hold``.
+
+    ``force`` picks the best K even when global is better (specular="clustered"); ``hold=None``
+    (too few shots) ranks the candidates by in-sample error and always picks one.
+    """
+    n = int(capture.images.shape[0])
+    fit_shots = [i for i in range(n) if i != hold]
+    ref = Reference(glob.s, glob.alpha)
+    obs = build_observations(capture, stride=stride, shots=fit_shots, dtype=dtype, chunk=chunk, ref=ref,
+                             weighting=weighting, want_tmin=True)
+    g = fit_specular(obs, torch.log(glob.alpha), tol=tol, max_iters=max_iters)
+    if hold is None:  # no shot to spare: in-sample error (only to rank candidates when forced)
+        ho = None
+        score = lambda fit, labels: float(fit.cost.sum()) / max(1.0, float(obs.n.double().sum()))  # noqa: E731
+    else:
+        ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk)
+        score = lambda fit, labels: heldout_mse(ho, texture_map(obs, fit.s, fit.eb), fit.s, fit.alpha, labels)  # noqa: E731
+    mse = {"global": score(g, None)}
+    usable = obs.n.sum(0) > 0
+    spec = spec_feature_map(obs, g, stride)
+    ij = grid_coords(obs.height, obs.width, stride, obs.g.device).to(obs.dtype)
+    best_k, best_mse, best_lab = 1, math.inf, None
+    for feats in feature_sets:
+        for k in candidates:
+            if k < 2 or k > int(usable.sum()):
+                continue
+            lab = make_labeler(obs.tmin, ij, usable, k, spec=spec, features=feats, seed=seed)
+            obs.labels = lab(obs.tmin, ij)
+            if int(obs.labels.unique().numel()) < 2:
+                continue
+            fit = fit_clustered(obs, lab, g, tol=tol, max_iters=max_iters)
+            m = score(fit, obs.labels)
+            mse[f"{feats}:K={k}"] = m
+            if m < best_mse:
+                best_k, best_mse, best_lab = k, m, lab
+    obs.labels = None
+    if best_lab is None:
+        return Selection(1, None, hold, mse, "no cluster candidate fits the image")
+    name = f"{best_lab.name}:K={best_k}"
+    if ho is None:
+        return Selection(best_k, best_lab, -1, mse, f"{name}: lowest in-sample error (no shot to hold out)")
+    if force or best_mse < (1.0 - min_gain) * mse["global"] - MIN_GAIN_ABS * mean_square(ho):
+        return Selection(best_k, best_lab, hold, mse, f"{name} lowers held-out MSE {mse['global']:.4g} → {best_mse:.4g}")
+    return Selection(1, None, hold, mse, f"held-out shot {hold}: global MSE {mse['global']:.4g} vs best clustered "
+                     f"{best_mse:.4g} ({name}), gain below {min_gain:.1%}")

@@ -1,0 +1,380 @@
+"""The observations of a Phong fit, precomputed once and processed in pixel chunks.
+
+For shot k, pixel p, channel c (DESIGN 2.2), with intensity i_kc, n·l, q = 1 − r·v, dist²:
+
+    I_kcp = a_kcp·d_cp + s_c·b_kcp(α_c),   a = i·g,   b = i·u·exp(α·L)
+    g_kp = max(n·l, 0)/dist²,   u_kp = [n·l > 0]/dist²,   L_kp = log max(r·v, 0) = log1p(−q)
+
+The fit never needs more geometry than (g, u, L): three (N, 1, P) tensors, computed once with
+:func:`torchmetal.geometry.shading_geometry` and :func:`torchmetal.phong.log1p_exact` (the
+renderer's own functions) and reused by every iteration. Pixels are flattened to P = h·w on a
+(possibly strided) grid and processed in chunks of ``chunk`` pixels, so temporaries stay
+(N, 3, chunk) whatever the image size. Per chunk and shot, ``lmax`` keeps the largest L: when
+α·lmax < −40 the lobe is below e⁻⁴⁰ on every pixel of the chunk, and passes skip that work.
+
+Weights: ``valid`` (N, 3, P) uint8 0/1 = inside the mask, not saturated, n·l > 0, not an
+outlier; ``weight`` (N, 3, P) holds robust IRLS weights when a robust loss is on (else None).
+Chunks see weights as floats (multiplying by a 0/1 float mask is ~6× cheaper than ``where``
+on a bool mask on CPU, and uint8 → float ~4× cheaper than bool → float). Per-pixel
+constants for the current weights: Σ w·a² (``saa``), the diffuse-only solution ``d0``, its exact
+residual energy ``A`` = Σ w·(y − a·d0)², Σ w·y² (``Y``) and the observation count ``n``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from torchmetal.geometry import shading_geometry, surface_points
+from torchmetal.phong import log1p_exact
+
+LOG_OFF = -1.0e4  # L where r·v ≤ 0: exp(α·L) = 0 for every α ≥ 1
+ACTIVE_LOG = -40.0  # a lobe below e^-40 counts as zero
+ROBUST = ("huber", "cauchy")
+HUBER_C = 1.345
+CAUCHY_C = 2.385
+
+
+def compute_dtype(x: Tensor) -> torch.dtype:
+    """float64 for float64 input, else float32 (float16/bfloat16 captures compute in float32)."""
+    return torch.float64 if x.dtype == torch.float64 else torch.float32
+
+
+def chunk_ranges(p: int, chunk: int) -> list[tuple[int, int]]:
+    chunk = max(1, int(chunk))
+    return [(p0, min(p, p0 + chunk)) for p0 in range(0, p, chunk)]
+
+
+def grid_stride(height: int, width: int, max_pixels: int) -> int:
+    """Smallest stride s with ⌈H/s⌉·⌈W/s⌉ ≤ max_pixels."""
+    s = max(1, int(math.floor(math.sqrt(height * width / max(1, max_pixels)))))
+    while math.ceil(height / s) * math.ceil(width / s) > max_pixels:
+        s += 1
+    return s
+
+
+@dataclass
+class Reference:
+    """A specular model to take residuals at: s, α (K, 3); with K > 1 a labeler maps pixels to K."""
+
+    s: Tensor
+    alpha: Tensor
+
+    @property
+    def k(self) -> int:
+        return int(self.s.shape[0])
+
+    def maps(self, labels: Tensor | None, n: int) -> tuple[Tensor, Tensor]:
+        """(3, n) or (3, 1) s and α for pixels with ``labels`` (n,)."""
+        if self.k == 1 or labels is None:
+            return self.s[0].view(3, 1), self.alpha[0].view(3, 1)
+        return self.s[labels].T, self.alpha[labels].T
+
+
+@dataclass
+class Weighting:
+    """How residuals become weights: scale σ (3,), robust loss, outlier cut k·σ, IRLS rounds."""
+
+    sigma: Tensor
+    robust: str | None = None
+    outlier_k: float | None = None
+    rounds: int = 3
+
+    def __call__(self, res: Tensor) -> Tensor:
+        """Weights in [0, 1] for residuals (n, 3, c)."""
+        z = res.abs() / self.sigma.to(res.dtype).view(1, 3, 1)
+        w = torch.ones_like(z)
+        if self.robust == "huber":
+            w = HUBER_C / z.clamp_min(HUBER_C)
+        elif self.robust == "cauchy":
+            w = 1.0 / (1.0 + (z / CAUCHY_C) ** 2)
+        if self.outlier_k is not None:
+            w = torch.where(z > self.outlier_k, torch.zeros_like(w), w)
+        return w
+
+
+@dataclass
+class Observations:
+    """Flattened per-observation terms of a fit on an h×w pixel grid (see module docstring)."""
+
+    y: Tensor  # (N, 3, P) images, any float dtype (cast per chunk)
+    g: Tensor  # (N, 1, P)
+    u: Tensor  # (N, 1, P)
+    L: Tensor  # (N, 1, P)
+    inten: Tensor  # (N, 3, 1)
+    valid: Tensor  # (N, 3, P) uint8 0/1
+    weight: Tensor | None  # (N, 3, P) robust weights (0 where invalid) or None
+    chunks: list[tuple[int, int]]
+    lmax: Tensor  # (N, n_chunks)
+    saa: Tensor  # (3, P)
+    d0: Tensor  # (3, P)
+    A: Tensor  # (3, P)
+    Y: Tensor  # (3, P)
+    n: Tensor  # (3, P) count of weighted observations
+    fallback: Tensor  # (3, P) texture for pixels without any valid observation
+    labels: Tensor | None  # (P,) int64 from the labeler
+    tmin: Tensor | None  # (3, P) T_min = min_k y/a (4.1.6), when asked for
+    height: int
+    width: int
+    dtype: torch.dtype
+    first_stats: tuple[Tensor, Tensor] | None = None  # VP stats at the reference α (with_stats)
+
+    @property
+    def num_shots(self) -> int:
+        return int(self.g.shape[0])
+
+    @property
+    def num_pixels(self) -> int:
+        return int(self.g.shape[-1])
+
+    @property
+    def isaa(self) -> Tensor:
+        ok = self.saa > 0
+        return torch.where(ok, 1.0 / torch.where(ok, self.saa, torch.ones_like(self.saa)), torch.zeros_like(self.saa))
+
+    def w(self, sl: slice, shots: Tensor | None = None) -> Tensor:
+        """Float weights of a chunk (n, 3, c): 0/1 validity or robust IRLS weights."""
+        w = self.valid[:, :, sl] if self.weight is None else self.weight[:, :, sl]
+        w = w if shots is None else w.index_select(0, shots)
+        return w.to(self.dtype)
+
+    def chunk(self, j: int, shots: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """(y, g, u, L, w, inten) of chunk j, restricted to ``shots`` (index tensor) if given."""
+        p0, p1 = self.chunks[j]
+        sl = slice(p0, p1)
+        y, g, u, L = self.y[:, :, sl], self.g[:, :, sl], self.u[:, :, sl], self.L[:, :, sl]
+        inten = self.inten
+        if shots is not None:
+            y, g, u, L, inten = (t.index_select(0, shots) for t in (y, g, u, L, inten))
+        return y.to(self.dtype), g, u, L, self.w(sl, shots), inten
+
+    def active_shots(self, alpha_lo: float) -> Tensor:
+        """(N, n_chunks) bool: the lobe can exceed e^-40 somewhere in the chunk for α ≥ alpha_lo."""
+        return alpha_lo * self.lmax > ACTIVE_LOG
+
+    def element_sum(self, x: Tensor, k: int) -> Tensor:
+        """Per-pixel (3, P) → per-element (K, 3) float64 sums over pixels (by ``labels`` if K > 1)."""
+        x = x.double()
+        if k == 1:
+            return x.sum(-1).unsqueeze(0)
+        out = torch.zeros(3, k, dtype=torch.float64, device=x.device)
+        out.index_add_(1, self.labels, x)
+        return out.T.contiguous()
+
+
+def weighted(x: Tensor, w: Tensor) -> Tensor:
+    """w·x (float weights; a bool mask is converted once)."""
+    return x * (as_float(w, x.dtype) if w.dtype == torch.bool else w)
+
+
+def as_float(mask: Tensor, dtype: torch.dtype) -> Tensor:
+    """bool → 0/1 float through a free uint8 view (bool → float directly is several times slower)."""
+    return mask.view(torch.uint8).to(dtype)
+
+
+def tmin_chunk(y: Tensor, a: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """T_min = min_k y/a over weighted observations with a > 0 (4.1.6); 0 where none.
+
+    Returns (T_min (3, c), argmin shot (3, c) int64).
+    """
+    ok = (w > 0) & (a > 0)
+    ratio = torch.where(ok, y / torch.where(ok, a, torch.ones_like(a)), torch.full_like(y, math.inf))
+    t, k = ratio.min(0)
+    return torch.where(torch.isfinite(t), t, torch.zeros_like(t)), k
+
+
+def _irls_chunk(target: Tensor, a: Tensor, base: Tensor, weighting: Weighting) -> Tensor:
+    """Per-pixel IRLS of the texture against ``target`` = y − specular; float weights (n, 3, c).
+
+    ``base`` (n, 3, c) 0/1 float. Starts from the median over shots of target/a (one glint cannot
+    drag the start), and never rejects every observation of a pixel.
+    """
+    dt = a.dtype
+    zero = torch.zeros((), dtype=dt, device=a.device)
+    ok = base > 0
+    d = torch.nanmedian(torch.where(ok, target / torch.where(ok, a, torch.ones_like(a)), torch.full_like(a, math.nan)), 0).values
+    d = torch.where(torch.isnan(d), zero, d)
+    w = base
+    sigma = weighting.sigma.to(dt).view(1, 3, 1)
+    rounds = max(1, weighting.rounds if weighting.robust is not None else min(weighting.rounds, 2))
+    for i in range(rounds):
+        if i > 0:
+            wa = w * a
+            den = (wa * a).sum(0)
+            okd = den > 0
+            d = torch.where(okd, (wa * target).sum(0) / torch.where(okd, den, torch.ones_like(den)), d)
+        res = target - a * d
+        if weighting.robust is None:
+            w = base * as_float(res.abs() <= weighting.outlier_k * sigma, dt)
+        else:
+            w = base * weighting(res)
+    lost = (w.sum(0) == 0) & (base.sum(0) > 0)
+    if bool(lost.any()):
+        w = torch.where(lost.unsqueeze(0), base, w)
+    return w
+
+
+def build_observations(
+    capture,
+    *,
+    stride: int = 1,
+    shots: list[int] | None = None,
+    dtype: torch.dtype | None = None,
+    chunk: int = 4096,
+    ref: Reference | None = None,
+    weighting: Weighting | None = None,
+    labeler: Callable[[Tensor, Tensor], Tensor] | None = None,
+    want_tmin: bool = False,
+    with_stats: bool = False,
+) -> Observations:
+    """Precompute the observations of ``capture`` on a pixel grid of the given stride.
+
+    Args:
+        capture: a Capture (images (N,3,H,W), normals, mask, saturated, lights, intensities,
+            cameras, size).
+        stride: keep pixels (off + i·stride, off + j·stride), off = stride // 2 (1: all).
+        shots: shot indices to use (default all).
+        dtype: compute dtype (default float64 for float64 images, else float32).
+        chunk: pixels per chunk.
+        ref: specular model at which residuals are taken for ``weighting`` (and the fallback).
+        weighting: turn residuals at ``ref`` into weights (per-pixel IRLS of the texture,
+            ``weighting.rounds`` rounds, inside each chunk).
+        labeler: (T_min (3, c), full-resolution pixel coordinates (row, col) (2, c)) → labels
+            (c,) int64, for clustered ``ref`` and ``labels``.
+        want_tmin: keep T_min (3, P).
+        with_stats: also compute the variable-projection stats at ``ref``'s α in the same pass
+            (``first_stats``: (stats (6, K, 3), e_b (3, P)) for :func:`~torchmetal.fit.refine.fit_specular`).
+
+    Returns:
+        :class:`Observations`.
+    """
+    imgs = capture.images
+    dev = imgs.device
+    dt = dtype or compute_dtype(imgs)
+    big_h, big_w = int(imgs.shape[-2]), int(imgs.shape[-1])
+    off = stride // 2 if stride > 1 else 0
+    rows, cols = slice(off, big_h, stride), slice(off, big_w, stride)
+    idx = None if shots is None else torch.as_tensor(shots, dtype=torch.long, device=dev)
+
+    def grid(t: Tensor) -> Tensor:
+        t = t[..., rows, cols]
+        return t if idx is None else t.index_select(0, idx)
+
+    y4 = grid(imgs)
+    n_shots, _, h, w = y4.shape
+    p = h * w
+    y = y4.reshape(n_shots, 3, p)
+    sat = grid(capture.saturated).reshape(n_shots, 3, p) if capture.saturated is not None else None
+    mask = capture.mask[..., rows, cols].reshape(1, 1, p).bool() if capture.mask is not None else None
+    normals = capture.normals[:, rows, cols].reshape(3, p).to(dt)
+    points = surface_points(big_h, big_w, capture.size, dtype=dt, device=dev)[:, rows, cols].reshape(3, p)
+    lights = capture.lights.to(dt)
+    cams = capture.cameras.to(dt)
+    inten = capture.intensities.to(dt)
+    if idx is not None:
+        lights, cams, inten = lights[idx], cams[idx], inten[idx]
+    inten = inten.view(n_shots, 3, 1)
+    ones = torch.ones(n_shots, 1, dtype=dt, device=dev)
+
+    chunks = chunk_ranges(p, chunk)
+    new = lambda *shape, dtype=dt: torch.empty(*shape, dtype=dtype, device=dev)  # noqa: E731
+    g_all, u_all, l_all = new(n_shots, 1, p), new(n_shots, 1, p), new(n_shots, 1, p)
+    valid_all = new(n_shots, 3, p, dtype=torch.uint8)
+    robust = weighting is not None and weighting.robust is not None
+    wstore = torch.float16 if dt == torch.float32 else torch.float32
+    weight_all = new(n_shots, 3, p, dtype=wstore) if robust else None
+    saa, d0, A, Y, cnt, fb = (new(3, p) for _ in range(6))
+    lmax = new(n_shots, len(chunks))
+    labels = torch.zeros(p, dtype=torch.long, device=dev) if labeler is not None else None
+    tmin_all = new(3, p) if want_tmin else None
+    zero = torch.zeros((), dtype=dt, device=dev)
+    stats_acc = eb_all = None
+    if with_stats and ref is not None:
+        from torchmetal.fit.refine import chunk_stats, reduce_stats  # noqa: PLC0415 (refine imports this module)
+
+        stats_acc = torch.zeros(6, 3, ref.k, dtype=torch.float64, device=dev)
+        eb_all = new(3, p)
+
+    for j, (p0, p1) in enumerate(chunks):
+        sl = slice(p0, p1)
+        geom = shading_geometry(normals[:, sl].unsqueeze(1), lights, ones, cams, points=points[:, sl].unsqueeze(1))
+        nl, q, idist = geom.n_dot_l[:, :, 0], geom.spec_q[:, :, 0], geom.irradiance[:, :, 0]  # (n, 1, c)
+        del geom
+        lit = nl > 0
+        u = torch.where(lit, idist, zero)
+        g = nl * u
+        inside = q < 1.0
+        L = torch.where(inside, log1p_exact(-torch.where(inside, q, torch.full_like(q, 0.5))), torch.full_like(q, LOG_OFF))
+        g_all[:, :, sl], u_all[:, :, sl], l_all[:, :, sl] = g, u, L
+        yc = y[:, :, sl].to(dt)
+        a = inten * g
+        base_b = (g > 0) & (inten > 0)  # a > 0: lit and a non-zero intensity (cheap (n,1,c) & (n,3,1))
+        if mask is not None:
+            base_b = base_b & mask[:, :, sl]
+        if sat is not None:
+            base_b = base_b & ~sat[:, :, sl]
+        base = as_float(base_b, dt)
+        t_c = tmin_chunk(yc, a, base)[0] if (want_tmin or labeler is not None) else None
+        lab = None
+        if labeler is not None:
+            flat = torch.arange(p0, p1, device=dev)
+            lab = labeler(t_c, torch.stack([off + (flat // w) * stride, off + (flat % w) * stride]).to(dt))
+            labels[sl] = lab
+        if tmin_all is not None:
+            tmin_all[:, sl] = t_c
+        b = t = spec = None
+        if ref is not None:
+            s_c, al_c = ref.maps(lab, p1 - p0)
+            t = al_c.unsqueeze(0) * L
+            b = (inten * u) * torch.exp(t)
+            spec = s_c.unsqueeze(0) * b
+        wts = base
+        wa = a * wts
+        s_aa = (wa * a).sum(0)
+        if weighting is not None and spec is not None:
+            target = yc - spec
+            if robust:
+                wts = _irls_chunk(target, a, base, weighting)
+                weight_all[:, :, sl] = wts.to(wstore)
+                wts = weight_all[:, :, sl].to(dt)  # the stored (rounded) weights define the cost
+            elif weighting.outlier_k is not None:  # a least-squares pass; IRLS only where something exceeds k·σ
+                okd = s_aa > 0
+                d_ref = torch.where(okd, (wa * target).sum(0) / torch.where(okd, s_aa, torch.ones_like(s_aa)), zero)
+                sig = (weighting.outlier_k * weighting.sigma.to(dt)).view(1, 3, 1)
+                exceed = ((target - a * d_ref).abs() * base) > sig
+                cols = exceed.any(0).any(0).nonzero().squeeze(1)
+                if cols.numel():
+                    wts = base.clone()
+                    wts[:, :, cols] = _irls_chunk(target[:, :, cols], a[:, :, cols], base[:, :, cols], weighting)
+            if wts is not base:
+                wa = a * wts
+                s_aa = (wa * a).sum(0)
+        valid_all[:, :, sl] = (base_b if wts is base else wts > 0).view(torch.uint8)
+        ok = s_aa > 0
+        isaa_c = torch.where(ok, 1.0 / torch.where(ok, s_aa, torch.ones_like(s_aa)), zero)
+        dd = (wa * yc).sum(0) * isaa_c
+        r0 = yc - a * dd
+        A[:, sl] = (wts * r0 * r0).sum(0)
+        Y[:, sl] = (wts * yc * yc).sum(0)
+        cnt[:, sl] = (wts > 0).sum(0).to(dt) if robust else wts.sum(0)
+        saa[:, sl], d0[:, sl] = s_aa, dd
+        fb[:, sl] = 0.0
+        if not bool(ok.all()):  # texture where no observation is valid: all lit ones, saturated included
+            la = torch.where(a > 0, a, zero)
+            den = (la * a).sum(0)
+            tgt = yc if spec is None else yc - spec
+            fb[:, sl] = torch.where(den > 0, (la * tgt).sum(0) / torch.where(den > 0, den, torch.ones_like(den)), zero)
+        lmax[:, j] = torch.where(lit, L, torch.full_like(L, LOG_OFF)).amax(-1)[:, 0]
+        if stats_acc is not None:
+            e, st = chunk_stats(yc, a, b, t, wts, isaa_c)
+            eb_all[:, sl] = e
+            reduce_stats(st, lab, ref.k, stats_acc)
+    return Observations(
+        y=y, g=g_all, u=u_all, L=l_all, inten=inten, valid=valid_all, weight=weight_all, chunks=chunks, lmax=lmax,
+        saa=saa, d0=d0, A=A, Y=Y, n=cnt, fallback=fb, labels=labels, tmin=tmin_all, height=h, width=w, dtype=dt,
+        first_stats=None if stats_acc is None else (stats_acc.permute(0, 2, 1).contiguous(), eb_all),
+    )

@@ -1,0 +1,352 @@
+"""Joint refinement of texture and specular terms by variable projection.
+
+Given α, the model I = a·d + s·b(α) is linear in the texture d (per pixel) and in s (per
+element: channel, or channel × specular cluster). Both are eliminated in closed form, and LM
+runs on β = log α alone, one scalar per element:
+
+    d(s, α) = d0 − s·e_b,   e_b = Σ w·a·b / Σ w·a²          (per pixel, the Schur complement)
+    b⊥ = b − a·e_b,  c⊥ = ∂b/∂β − a·e_c                      (orthogonal to the texture basis)
+    s(α) = max(0, B/C),  B = Σ w·y·b⊥,  C = Σ w·b⊥²           (global sums, float64)
+    cost(α) = A − 2sB + s²C,  A = Σ w·(y − a·d0)²            (A exact, from residuals)
+    g = −s·(Σ w·y·c⊥ − s·Σ w·b⊥·c⊥),  H = s²·(Σ w·c⊥² − (Σ w·b⊥·c⊥)²/C)
+
+g and H are the Gauss–Newton terms of the projected problem (Kaufman's variable projection),
+equal to the Schur complement of the full (texture, s, β) normal equations at the optimal
+texture. Everything per pixel is one chunked pass over the observations in the working dtype
+(orthogonalised inside the chunk, so no normal-equation cancellation); only the per-element sums
+are float64. Chunks × shots whose lobe is below e⁻⁴⁰ for the smallest α are skipped.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from torchmetal.fit.lm import LMEval, levenberg_marquardt
+from torchmetal.fit.problem import Observations
+
+ALPHA_MIN = 1.0
+ALPHA_MAX = 1.0e4
+BETA_MIN = 0.0
+BETA_MAX = math.log(ALPHA_MAX)
+IDENT_REL = 1e-9  # C below this fraction of Σ w·b² → s and the texture are not separable
+STATS = ("B", "C", "Bc", "Cc", "Yc", "Sbb")
+
+
+@dataclass
+class SpecFit:
+    """Specular terms of a fit on one set of observations.
+
+    Attributes:
+        s, alpha: (K, 3) per element.
+        eb: (3, P) e_b at ``alpha``; the texture is d0 − s·e_b.
+        cost: (K, 3) float64 cost per element; ``A`` the diffuse-only cost, ``Y`` Σ w·y².
+        iterations, status: of the LM.
+        active: fraction of (shot, pixel) observations the last pass processed.
+    """
+
+    s: Tensor
+    alpha: Tensor
+    eb: Tensor
+    cost: Tensor
+    A: Tensor
+    Y: Tensor
+    iterations: int = 0
+    status: str = "converged"
+    active: float = 1.0
+    pinned: Tensor | None = None  # (K, 3) bool: elements held at given (global) terms
+
+    @property
+    def k(self) -> int:
+        return int(self.s.shape[0])
+
+    def explained(self) -> Tensor:
+        """(K, 3) fraction of the diffuse-only residual energy the specular term explains."""
+        return ((self.A - self.cost) / self.A.clamp_min(1e-300)).clamp(0.0, 1.0)
+
+
+def pixel_map(x: Tensor, labels: Tensor | None) -> Tensor:
+    """Per-element (K, 3) → per pixel (3, P), or (3, 1) for K = 1."""
+    if x.shape[0] == 1 or labels is None:
+        return x[0].view(3, 1)
+    return x[labels].T
+
+
+def chunk_stats(y: Tensor, a: Tensor, b: Tensor, t: Tensor, w: Tensor, isaa: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-pixel projected sums of one chunk.
+
+    Args:
+        y (n, 3, c) data; a = i·g (n, 3, c) texture basis; b = i·u·exp(t) (n, 3, c) lobe;
+        t = α·L (n, 3, c), so ∂b/∂β = t·b; w (n, 3, c) float weights (0/1 validity or IRLS);
+        isaa (3, c) = 1/Σ w·a² (0 where none).
+
+    Returns:
+        e_b (3, c) and the stats (6, 3, c): B, C, Bc, Cc, Yc, Sbb (see module docstring).
+    """
+    wa = w * a
+    wab = wa * b
+    eb = wab.sum(0) * isaa
+    ec = (wab * t).sum(0) * isaa
+    bp = b - a * eb
+    cp = b * t - a * ec
+    wbp = w * bp
+    wcp = w * cp
+    C = (wbp * bp).sum(0)
+    sbb = C + eb * eb * (wa * a).sum(0)  # Σ w·b² = Σ w·b⊥² + e_b²·Σ w·a² (b⊥ ⊥ a)
+    stats = torch.stack([(wbp * y).sum(0), C, (wbp * cp).sum(0), (wcp * cp).sum(0), (wcp * y).sum(0), sbb])
+    return eb, stats
+
+
+def lobe_terms(g: Tensor, u: Tensor, L: Tensor, inten: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """a = i·g, t = α·L, b = i·u·exp(t), all (n, 3, c); alpha (1, 3, 1) or (1, 3, c)."""
+    t = alpha * L
+    return inten * g, (inten * u) * torch.exp(t), t
+
+
+def spec_sums(obs: Observations, alpha: Tensor, *, per_pixel: bool = False) -> tuple[Tensor, Tensor, float]:
+    """One pass: per-element stats (6, K, 3) float64 and e_b (3, P) for α (K, 3).
+
+    With ``per_pixel`` the stats are returned per pixel instead, (6, 3, P) in the working dtype.
+
+    Returns (stats, e_b, fraction of observations processed).
+    """
+    k = int(alpha.shape[0])
+    p = obs.num_pixels
+    eb = torch.zeros(3, p, dtype=obs.dtype, device=alpha.device)
+    acc = torch.zeros(6, 3, k, dtype=torch.float64, device=alpha.device)
+    pix = torch.zeros(6, 3, p, dtype=obs.dtype, device=alpha.device) if per_pixel else None
+    isaa = obs.isaa
+    active = obs.active_shots(float(alpha.min()))
+    done = 0
+    a_glob = alpha[0].to(obs.dtype).view(1, 3, 1)
+    for j, (p0, p1) in enumerate(obs.chunks):
+        act = active[:, j]
+        n_act = int(act.sum())
+        if n_act == 0:
+            continue
+        shots = None if n_act == obs.num_shots else act.nonzero().squeeze(1)
+        y, g, u, L, w, inten = obs.chunk(j, shots)
+        lab = obs.labels[p0:p1] if (k > 1 and obs.labels is not None) else None
+        al = a_glob if lab is None else alpha[lab].T.to(obs.dtype).unsqueeze(0)
+        a, b, t = lobe_terms(g, u, L, inten, al)
+        e, st = chunk_stats(y, a, b, t, w, isaa[:, p0:p1])
+        eb[:, p0:p1] = e
+        if pix is not None:
+            pix[:, :, p0:p1] = st
+            continue
+        reduce_stats(st, lab, k, acc)
+        done += n_act * (p1 - p0)
+    frac = done / max(1, obs.num_shots * p)
+    return (pix if pix is not None else acc.permute(0, 2, 1).contiguous()), eb, frac
+
+
+def reduce_stats(st: Tensor, labels: Tensor | None, k: int, out: Tensor) -> None:
+    """Add per-pixel stats (6, 3, c) into per-element sums ``out`` (6, 3, K) float64."""
+    st = st.double()
+    if labels is None or k == 1:
+        out[:, :, 0] += st.sum(-1)
+    else:
+        out.index_add_(2, labels, st)
+
+
+def element_terms(stats: Tensor, A: Tensor, s_fixed: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Optimal s, cost, g, H per element from the stats (6, K, 3) and A (K, 3).
+
+    ``s_fixed`` (K, 3) pins s where finite (NaN = free).
+    """
+    B, C, Bc, Cc, Yc, Sbb = stats.unbind(0)
+    ident = C > IDENT_REL * Sbb
+    safe_c = torch.where(ident, C, torch.ones_like(C))
+    s = torch.where(ident & (B > 0), B / safe_c, torch.zeros_like(B))
+    reduced = torch.where(ident, (Cc - Bc * Bc / safe_c).clamp_min(0.0), torch.zeros_like(Cc))
+    if s_fixed is not None:
+        fixed = ~torch.isnan(s_fixed)
+        s = torch.where(fixed, s_fixed, s)
+        reduced = torch.where(fixed, Cc, reduced)  # s not eliminated: plain Gauss–Newton term
+    cost = (A - 2.0 * s * B + s * s * C).clamp_min(0.0)
+    grad = -s * (Yc - s * Bc)
+    hess = s * s * reduced
+    return s, cost, grad, hess
+
+
+def fit_specular(
+    obs: Observations,
+    beta0: Tensor,
+    *,
+    tol: float = 1e-6,
+    max_iters: int = 100,
+    on_iter: Callable[[int, float, float], None] | None = None,
+    s_fixed: Tensor | None = None,
+    beta_fixed: Tensor | None = None,
+    first: tuple[Tensor, Tensor] | None = None,
+) -> SpecFit:
+    """LM on β = log α (K, 3) with texture and s projected out; K from ``beta0``.
+
+    Args:
+        obs: observations (``obs.labels`` (P,) in [0, K) when K > 1).
+        beta0: (K, 3) start.
+        tol: relative cost change / β step at which an element stops.
+        max_iters: LM iteration cap.
+        on_iter: (iteration, rmse, active fraction) after each iteration.
+        s_fixed, beta_fixed: (K, 3), finite entries pin s / β of that element (NaN = free).
+        first: (stats (6, K, 3), e_b (3, P)) already computed at ``beta0`` (e.g. by
+            :func:`~torchmetal.fit.problem.build_observations`), saving one pass.
+    """
+    k = int(beta0.shape[0])
+    A = obs.element_sum(obs.A, k)
+    Y = obs.element_sum(obs.Y, k)
+    n_total = float(obs.n.double().sum().clamp_min(1.0))
+    labels = obs.labels if k > 1 else None
+    state = {"active": 1.0}
+    floor = (0.01 * torch.finfo(obs.dtype).eps * A).reshape(-1)  # cost resolution of the working dtype
+
+    def evaluate(stats: Tensor, eb: Tensor) -> LMEval:
+        s, cost, g, h = element_terms(stats, A, s_fixed=s_fixed)
+        return LMEval(cost.reshape(-1), g.reshape(-1, 1), h.reshape(-1, 1, 1), aux=(eb, s.reshape(-1)), floor=floor)
+
+    def oracle(x: Tensor) -> LMEval:
+        stats, eb, frac = spec_sums(obs, torch.exp(x.view(k, 3)))
+        state["active"] = frac
+        return evaluate(stats, eb)
+
+    def merge(new, old, accepted: Tensor):
+        acc_pix = pixel_map(accepted.view(k, 3).to(torch.uint8), labels).bool()
+        return torch.where(acc_pix, new[0], old[0]), torch.where(accepted, new[1], old[1])
+
+    def report(it: int, x: Tensor, ev: LMEval, done: Tensor) -> None:
+        if on_iter is not None:
+            on_iter(it, math.sqrt(float(ev.cost.sum()) / n_total), state["active"])
+
+    lo = torch.full((k * 3, 1), BETA_MIN, dtype=torch.float64, device=beta0.device)
+    hi = torch.full_like(lo, BETA_MAX)
+    if beta_fixed is not None:
+        bf = beta_fixed.reshape(-1, 1).to(torch.float64)
+        pin = ~torch.isnan(bf)
+        lo, hi = torch.where(pin, bf, lo), torch.where(pin, bf, hi)
+    x0 = torch.minimum(torch.maximum(beta0.reshape(-1, 1).to(torch.float64), lo), hi)
+    if first is not None and bool((x0 == beta0.reshape(-1, 1).to(torch.float64)).all()):
+        ev0 = evaluate(first[0].to(A.device), first[1])
+    else:
+        ev0 = oracle(x0)
+    report(0, x0, ev0, torch.zeros(0))
+    res = levenberg_marquardt(oracle, x0, lower=lo, upper=hi, tol=tol, xtol=tol, max_iters=max_iters,
+                              merge=merge, first=ev0, on_iter=report)
+    eb, s = res.eval.aux
+    return SpecFit(
+        s=s.view(k, 3), alpha=torch.exp(res.x.view(k, 3)), eb=eb, cost=res.eval.cost.view(k, 3), A=A, Y=Y,
+        iterations=res.iterations, status=res.status, active=state["active"],
+    )
+
+
+def evaluate_specular(obs: Observations, s: Tensor | None, alpha: Tensor) -> SpecFit:
+    """Cost and e_b at fixed α (K, 3); s optimal per element, or fixed where ``s`` is given."""
+    k = int(alpha.shape[0])
+    A = obs.element_sum(obs.A, k)
+    stats, eb, frac = spec_sums(obs, alpha.to(torch.float64))
+    s_opt, cost, _, _ = element_terms(stats, A, s_fixed=s)
+    return SpecFit(s=s_opt, alpha=alpha.to(torch.float64), eb=eb, cost=cost, A=A, Y=obs.element_sum(obs.Y, k), active=frac)
+
+
+def grid_beta(
+    obs: Observations, k: int, extra: Tensor | None = None, grid: tuple[float, ...] = (1, 4, 16, 64, 256, 1024, 4096)
+) -> Tensor:
+    """Best β per element (K, 3) over a coarse α grid (plus ``extra`` (K, 3) α candidates)."""
+    dev = obs.g.device
+    cands = [torch.full((k, 3), float(a), dtype=torch.float64, device=dev) for a in grid]
+    if extra is not None:
+        cands.append(extra.to(torch.float64).clamp(ALPHA_MIN, ALPHA_MAX))
+    best_cost = torch.full((k, 3), math.inf, dtype=torch.float64, device=dev)
+    best = cands[0]
+    for alpha in cands:
+        fit = evaluate_specular(obs, None, alpha)
+        better = fit.cost < best_cost
+        best_cost = torch.where(better, fit.cost, best_cost)
+        best = torch.where(better, alpha, best)
+    return torch.log(best)
+
+
+def texture_map(obs: Observations, s: Tensor, eb: Tensor) -> Tensor:
+    """Texture (3, P): d0 − s·e_b, and the fallback where a pixel has no valid observation."""
+    d = obs.d0 - pixel_map(s.to(obs.dtype), obs.labels if s.shape[0] > 1 else None) * eb
+    return torch.where(obs.saa > 0, d, obs.fallback)
+
+
+def residual_scale(obs: Observations, s: Tensor, alpha: Tensor, eb: Tensor, max_samples: int = 1 << 20) -> Tensor:
+    """Robust residual scale σ (3,) = 1.4826·median |r| over valid observations (subsampled)."""
+    d = texture_map(obs, s, eb)
+    labels = obs.labels if s.shape[0] > 1 else None
+    s_pix = pixel_map(s.to(obs.dtype), labels)
+    a_pix = pixel_map(alpha.to(obs.dtype), labels)
+    parts: list[list[Tensor]] = [[], [], []]
+    budget = max(1, max_samples // max(1, len(obs.chunks)))
+    for j, (p0, p1) in enumerate(obs.chunks):
+        y, g, u, L, w, inten = obs.chunk(j)
+        sp = s_pix if s_pix.shape[1] == 1 else s_pix[:, p0:p1]
+        ap = a_pix if a_pix.shape[1] == 1 else a_pix[:, p0:p1]
+        r = y - inten * g * d[:, p0:p1] - sp * (inten * u) * torch.exp(ap * L)
+        ok = w > 0
+        for c in range(3):
+            v = r[:, c][ok[:, c]].abs()
+            if v.numel() > budget:
+                v = v[:: max(1, v.numel() // budget)]
+            parts[c].append(v)
+    out = []
+    for c in range(3):
+        v = torch.cat(parts[c]) if parts[c] else torch.zeros(0, dtype=obs.dtype, device=d.device)
+        out.append(1.4826 * v.median() if v.numel() else torch.zeros((), dtype=obs.dtype, device=d.device))
+    return torch.stack(out)
+
+
+def model_terms(obs: Observations, alpha: Tensor, labels: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Dense per-observation model terms (N, 3, P) — the analytic Jacobian of I = a·d + s·b(β):
+
+    ∂I/∂d = a,  ∂I/∂s = b,  ∂I/∂β = s·α·L·b (returned without the factor s).
+    For small problems (tests, diagnostics); α (K, 3) with ``labels`` (P,) when K > 1.
+    """
+    a_pix = pixel_map(alpha.to(obs.dtype), labels if alpha.shape[0] > 1 else None).unsqueeze(0)
+    t = a_pix * obs.L
+    a = obs.inten * obs.g
+    b = obs.inten * obs.u * torch.exp(t)
+    return a, b, t * b
+
+
+WEAK_REL = 1e-3  # Σ w·a² below 1e-3 of the median pixel: the texture is not observed (grazing only)
+
+
+def unobserved(obs: Observations, inside: Tensor) -> Tensor:
+    """(3, P) bool: pixels inside the mask whose texture the observations do not determine.
+
+    No valid observation, or only grazing ones: Σ w·a² < 1e-3 × its median over observed pixels.
+    """
+    seen = obs.saa > 0
+    med = torch.stack([obs.saa[c][seen[c]].median() if bool(seen[c].any()) else obs.saa.new_zeros(()) for c in range(3)])
+    return inside.view(1, -1) & (obs.saa < WEAK_REL * med.view(3, 1))
+
+
+def fill_unobserved(tex: Tensor, bad: Tensor, max_iters: int = 64) -> Tensor:
+    """Inpaint ``bad`` (3, H, W) texels from observed neighbours (normalised 3×3 box filter, grown
+    ring by ring), then the per-channel median; tex (3, H, W)."""
+    if not bool(bad.any()):
+        return tex
+    import torch.nn.functional as F
+
+    tex = tex.clone()
+    known = (~bad).to(tex.dtype)
+    for _ in range(max_iters):
+        if bool((known > 0).all()):
+            break
+        num = F.avg_pool2d((tex * known).unsqueeze(0), 3, stride=1, padding=1)[0]
+        den = F.avg_pool2d(known.unsqueeze(0), 3, stride=1, padding=1)[0]
+        grow = (known == 0) & (den > 0)
+        tex = torch.where(grow, num / den.clamp_min(1e-12), tex)
+        known = torch.where(grow, torch.ones_like(known), known)
+    for c in range(3):
+        rest = known[c] == 0
+        if bool(rest.any()):
+            ref = tex[c][known[c] > 0]
+            tex[c][rest] = ref.median() if ref.numel() else 0.0
+    return tex
