@@ -6,7 +6,10 @@ flake's centre, ellipse, colour and normal tilt from the :class:`FlakeModel`. In
 in int64 (masked to 32 bits) is bit-identical on every device and runtime — no RNG ops.
 
 The field depends on the material only, not on the light, so it is built once (and baked into
-the ONNX renderer). The light enters through the glint term
+the ONNX renderer). Footprints are anti-aliased ellipses whose weights sum to the drawn area (px²), so detected
+flux/peak areas measure the model's area directly.
+
+The light enters through the glint term
 
     sparkle = E · [n·l > 0] · w(p) · c(p) · exp(−|m(p) − h|² / (2 σ_g²)),
 
@@ -119,6 +122,11 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
     aspect = (model.aspect_mean + model.aspect_std * z_aspect).clamp(0.2, 1.0)
     a = torch.sqrt(area / (math.pi * aspect))  # semi-major axis (px)
     b = aspect * a
+    # the 1-px anti-aliasing ramp adds π/(12·aspect) px² to the footprint; shrinking both
+    # axes by k = √(1 − 1/(12 b²)) makes Σ weight = area (exact for b ≳ 0.4 px)
+    k = torch.sqrt((1.0 - 1.0 / (12.0 * b * b)).clamp_min(0.25))
+    a = a * k
+    b = b * k
     a = a.clamp(max=0.5 * c)  # a flake never leaves its cell
     b = torch.minimum(b, a)
     margin = a.clamp(max=0.5 * c)

@@ -1,0 +1,76 @@
+"""Pictures and summaries of the flake stage: detections drawn on a shot, a stats summary."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchmetal.checks import check_shape
+from torchmetal.errors import InputError
+from torchmetal.flakes.detect import Particles, srgb_encode
+from torchmetal.flakes.model import FlakeModel
+
+
+def overlay_detections(
+    image: Tensor,
+    particles: Particles,
+    *,
+    gain: float = 1.0,
+    color: tuple[int, int, int] = (255, 40, 40),
+    min_radius: float = 2.5,
+) -> np.ndarray:
+    """Draw detected particles (ellipses at their moments) on a linear image.
+
+    Args:
+        image: (3, H, W) linear RGB; shown sRGB-encoded after multiplying by ``gain``.
+        particles: the particles to draw (e.g. ``stage.particles.for_shot(k)``).
+        gain: exposure factor; color: RGB of the outlines; min_radius: smallest drawn semi-axis (px).
+
+    Returns:
+        (H, W, 3) uint8 RGB picture.
+    """
+    import cv2
+
+    check_shape(image, (3, "H", "W"), "image")
+    rgb = (srgb_encode(image.detach().float().cpu() * gain) * 255 + 0.5).to(torch.uint8)
+    canvas = np.ascontiguousarray(rgb.permute(1, 2, 0).numpy()[:, :, ::-1])  # BGR for cv2
+    bgr = (int(color[2]), int(color[1]), int(color[0]))
+    p = particles.to("cpu")
+    for cy, cx, major, minor, angle in zip(p.cy.tolist(), p.cx.tolist(), p.major.tolist(), p.minor.tolist(), p.angle.tolist()):
+        axes = (max(min_radius, 0.5 * major), max(min_radius, 0.5 * minor))
+        centre = (int(round(cx * 16 - 8)), int(round(cy * 16 - 8)))  # pixel centres → 4-bit fixed point
+        ang = -math.degrees(angle)  # our angle is towards image up; cv2's is clockwise in rows-down
+        cv2.ellipse(canvas, centre, (int(axes[0] * 16), int(axes[1] * 16)), ang, 0, 360, bgr, 1, cv2.LINE_AA, 4)
+    return np.ascontiguousarray(canvas[:, :, ::-1])
+
+
+def save_detection_overlay(path: str | Path, image: Tensor, particles: Particles, **kwargs) -> Path:
+    """Write :func:`overlay_detections` as a PNG; returns the path."""
+    import cv2
+
+    path = Path(path)
+    pic = overlay_detections(image, particles, **kwargs)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), pic[:, :, ::-1]):
+        raise InputError(f"path: expected a writable .png path, found {str(path)!r}")
+    return path
+
+
+def summarize(model: FlakeModel | None, report: dict) -> str:
+    """A few human-readable lines about a fitted flake model and its stage report."""
+    if model is None:
+        return f"flakes: none ({report.get('skipped', 'skipped')})"
+    se = report.get("std_err", {})
+    lines = [
+        f"flakes: density {model.density:.4g}/px ({report.get('flakes_detected', '?')} seen in "
+        f"{report.get('particles', '?')} detections, {100 * report.get('detected_fraction', float('nan')):.0f}% of all flakes)",
+        f"  area: median {model.median_area:.3g} px² (log-std {model.area_log_std:.2f}); aspect {model.aspect_mean:.2f} ± {model.aspect_std:.2f}",
+        "  colour (glint reflectance): " + ", ".join(f"{c:.3f}" for c in model.color_mean),
+        f"  tilt σ {model.tilt_sigma:.3f} rad (±{100 * se.get('log_tilt_sigma', float('nan')):.0f}%), "
+        f"glint σ {model.glint_sigma:.4f} rad (±{100 * se.get('log_glint_sigma', float('nan')):.0f}%)",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,93 @@
+"""The flake stage of the pipeline: detect → associate → fit statistics, in one call.
+
+``flake_stage(capture, phong_images)`` is what :func:`torchmetal.pipeline.fit_material` runs
+after the Phong fit. It returns the fitted :class:`FlakeModel` (or None when the detections are
+consistent with noise alone — the stage is then skipped and the material stores
+``flakes: null``), the particle table of every shot, and a report with the time of each
+sub-step, the counts, the fitted values with their standard errors, and the skip reason.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from torchmetal.checks import check_shape
+from torchmetal.flakes.detect import Particles, detect_flakes
+from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.stats import Geometry, flake_statistics
+from torchmetal.geometry import direction_to, surface_points
+
+
+@dataclass
+class FlakeStageResult:
+    """model: fitted FlakeModel or None (skipped); particles: per-shot detections;
+    report: times (s) per sub-step, counts, fitted values, ``skipped`` reason when skipped;
+    flake_id: (P,) associated flake of each particle (−1 when the stage stopped before)."""
+
+    model: FlakeModel | None
+    particles: Particles
+    report: dict = field(default_factory=dict)
+    flake_id: Tensor | None = None
+
+
+def irradiance_maps(capture, *, dtype: torch.dtype = torch.float32) -> Tensor:
+    """Irradiance E of every shot, (N, 3, H, W): intensity/dist² (point) or intensity."""
+    n, _, h, w = capture.images.shape
+    pts = surface_points(h, w, capture.size, dtype=dtype, device=capture.images.device)
+    _, dist2 = direction_to(pts, capture.lights.to(dtype))
+    return capture.intensities.to(dtype)[:, :, None, None] / dist2
+
+
+def flake_stage(
+    capture,
+    phong_images: Tensor,
+    *,
+    seed: int = 0,
+    detect: dict | None = None,
+    stats: dict | None = None,
+) -> FlakeStageResult:
+    """Fit the flake model of a capture, given the Phong renders of its shots.
+
+    Args:
+        capture: a :class:`~torchmetal.io.capture.Capture` (images, normals, mask, lights,
+            intensities, cameras, size, saturated).
+        phong_images: (N, 3, H, W) Phong render of every shot (same geometry as the photos).
+        seed: hash seed stored in the fitted model (the render's flake field).
+        detect: extra keyword arguments of :func:`~torchmetal.flakes.detect.detect_flakes`
+            (k_hi, k_lo, tile, background, close, open, min_area, cc_backend, chunk).
+        stats: extra keyword arguments of :func:`~torchmetal.flakes.stats.flake_statistics`
+            (assoc_radius, min_flakes, max_cells, max_flakes).
+
+    Returns:
+        :class:`FlakeStageResult`.
+    """
+    images = capture.images
+    n, _, h, w = images.shape
+    check_shape(phong_images, (n, 3, h, w), "phong_images")
+    if phong_images.dtype != images.dtype:
+        phong_images = phong_images.to(images.dtype)
+    t0 = time.perf_counter()
+    irr = irradiance_maps(capture, dtype=images.dtype)
+    valid = capture.mask.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)
+    t1 = time.perf_counter()
+    det = detect_flakes(images, phong_images, irr, valid=valid, **(detect or {}))
+    del irr
+    t2 = time.perf_counter()
+    geo = Geometry(capture.normals, capture.lights, capture.intensities, capture.cameras, capture.size)
+    res = flake_statistics(det, geo, seed=seed, **(stats or {}))
+    t3 = time.perf_counter()
+    report = dict(res.report)
+    times = {"irradiance": t1 - t0, "detect": t2 - t1}
+    times.update({f"detect.{k}": v for k, v in det.times.items()})
+    times["statistics"] = t3 - t2
+    times.update({f"statistics.{k}": v for k, v in report.pop("times", {}).items()})
+    times["total"] = t3 - t0
+    report["times"] = times
+    report["particles_per_shot"] = torch.bincount(det.particles.shot, minlength=n).tolist()
+    if res.model is None and "skipped" not in report:
+        report["skipped"] = "no flake model"
+    return FlakeStageResult(res.model, det.particles, report, res.flake_id)

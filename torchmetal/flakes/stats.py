@@ -1,0 +1,729 @@
+"""Flake statistics across shots: association, glint likelihood, and the fitted FlakeModel.
+
+A flake is flat: it glints in shot k only when its normal m lies close to the half vector
+h_k(p) at its position, with glint strength g_k = exp(−|m − h_k|²/(2σ_g²)) =
+exp(−(1 − m·h_k)/σ_g²). Its slope μ (m ∝ n + μ₁t₁ + μ₂t₂, the :func:`flake_field` draw) is
+N(0, τ²I); its peak glint amplitude A (channel mean, reflectance units) is log-normal.
+The detector fires when A·g_k exceeds T_k = k_hi·σ_k(p); with pixel noise σ_k that happens
+with probability Φ(A·g_k/σ_k − k_hi) (used in its logistic form σ(1.702·z)).
+
+Detections of one flake in several shots are associated by position. Each associated flake j
+contributes its detection pattern b_jk and the amplitude â_j of its brightest detection
+(the anchor shot k*). Given (A, m) on the sphere, the anchor amplitude pins m to a ring
+1 − m·h_k* = σ_g² ln(A/â) around h_k*; the density of â there is σ_g²/â (exact change of
+variables), so
+
+    f_j = σ_g²/â_j ∫dA f_A(A) ∮dφ  p_τ(m) · Π_{k≠k*} P(b_jk | m, A),
+
+with p_τ(m) the slope density N(μ; 0, τ²I) times the gnomonic Jacobian 1/(m·n)³. Flakes that
+never glint are accounted for by the selection probability
+
+    P_any(p) = ∫dA f_A(A) ∫dΩ p_τ(m) · [1 − Π_k (1 − P_k(m, A))],
+
+integrated cap by cap with a partition of unity. The true density is profiled out in closed form
+(ρ̂ = J / ∫P_any dp) and (τ, σ_g, log-A mean and spread) maximise
+Σ_j log f_j − J log ∫P_any dp (L-BFGS, float64, weak log-normal priors that only matter when
+the shots cannot separate them). σ_g is identified by flakes seen in more than one shot, τ by
+how the glint rate falls off as h moves away from the normal; ``report["identified"]`` says
+when either is not.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchmetal.errors import InputError
+from torchmetal.flakes import regions
+from torchmetal.flakes.detect import Detection, Particles
+from torchmetal.flakes.model import FlakeModel
+from torchmetal.geometry import shading_geometry, surface_points
+
+_LOG2PI = math.log(2.0 * math.pi)
+
+
+# ---------------------------------------------------------------- association + measurement
+
+
+def _components(n: int, src: Tensor, dst: Tensor) -> tuple[Tensor, int]:
+    """Connected components of an undirected graph on n nodes (min-label propagation)."""
+    lab = torch.arange(n, device=src.device)
+    if src.numel():
+        while True:
+            m = torch.minimum(lab[src], lab[dst])
+            new = lab.clone()
+            new.scatter_reduce_(0, src, m, reduce="amin")
+            new.scatter_reduce_(0, dst, m, reduce="amin")
+            new = new[new]  # pointer jumping
+            if torch.equal(new, lab):
+                break
+            lab = new
+    uniq, inv = torch.unique(lab, return_inverse=True)
+    return inv, int(uniq.numel())
+
+
+def associate(particles: Particles, height: int, width: int, radius: float = 1.5) -> tuple[Tensor, int]:
+    """Group detections of the same flake across shots.
+
+    Two detections from different shots whose centroids lie within ``radius`` px are linked;
+    detections of one shot are never linked directly (they are different flakes); flakes are
+    the connected components of the links. Candidate pairs come from a bucket grid, so the
+    cost is O(P log P).
+
+    Returns:
+        flake id (P,) int64 in 0..J−1, and J.
+    """
+    p = len(particles)
+    dev = particles.shot.device
+    if p == 0:
+        return torch.zeros(0, dtype=torch.int64, device=dev), 0
+    cell = max(1.0, float(radius))
+    bi = torch.floor(particles.cy / cell).long() + 1
+    bj = torch.floor(particles.cx / cell).long() + 1
+    nbj = int(width / cell) + 4
+    key = bi * nbj + bj
+    order = torch.argsort(key)
+    skey = key[order]
+    counts = torch.unique_consecutive(skey, return_counts=True)[1]
+    kmax = int(counts.max())
+    src, dst = [], []
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            nk = key + di * nbj + dj
+            lo = torch.searchsorted(skey, nk)
+            for t in range(kmax):
+                idx = (lo + t).clamp(max=p - 1)
+                hit = (lo + t < p) & (skey[idx] == nk)
+                other = order[idx]
+                mine = torch.arange(p, device=dev)
+                ok = hit & (other > mine)
+                src.append(mine[ok])
+                dst.append(other[ok])
+    src_t = torch.cat(src)
+    dst_t = torch.cat(dst)
+    d2 = (particles.cy[src_t] - particles.cy[dst_t]) ** 2 + (particles.cx[src_t] - particles.cx[dst_t]) ** 2
+    keep = (d2 <= radius * radius) & (particles.shot[src_t] != particles.shot[dst_t])
+    return _components(p, src_t[keep], dst_t[keep])
+
+
+@dataclass
+class FlakeObservations:
+    """Per associated flake j (J rows), over N shots.
+
+    row, col (J,) int64 anchor pixel; anchor (J,) shot of the brightest detection;
+    amp (J,) its peak amplitude (channel-mean reflectance units); detected (J, N) bool;
+    sigma (J, N) local pixel noise σ at the flake; area (J,) flux/peak area (px²) of the
+    anchor; aspect (J,) minor/major of the anchor ellipse; major (J,) its semi-major axis (px);
+    chroma (J, 3) anchor colour / its channel mean; snr (J,) anchor amp/σ;
+    half (J, N, 3), normal (J, 3): unit half vectors and surface normal at the flake.
+    """
+
+    row: Tensor
+    col: Tensor
+    anchor: Tensor
+    amp: Tensor
+    detected: Tensor
+    sigma: Tensor
+    area: Tensor
+    aspect: Tensor
+    major: Tensor
+    chroma: Tensor
+    snr: Tensor
+    half: Tensor
+    normal: Tensor
+
+    def __len__(self) -> int:
+        return int(self.row.numel())
+
+
+def observe(det: Detection, flake_id: Tensor, count: int, geometry: "Geometry") -> FlakeObservations:
+    """Measure every associated flake in its anchor shot and collect its detection pattern."""
+    p = det.particles
+    n_shots = det.signal.shape[0]
+    anchor_p = regions.segment_argmax(flake_id, p.snr.double(), count)
+    a = p.select(anchor_p)
+    row = a.cy.floor().long()
+    col = a.cx.floor().long()
+    detected = torch.zeros(count, n_shots, dtype=torch.bool, device=row.device)
+    detected[flake_id, p.shot] = True
+    # flux/peak area on the anchor, with a ring background around the particle (radius 5 patch)
+    r = 4
+    sig = regions.patches(det.signal, a.shot, row, col, r)[:, 0]
+    lab = regions.patches(det.labels.unsqueeze(1).double(), a.shot, row, col, r)[:, 0]
+    own = lab == (anchor_p + 1).view(-1, 1, 1).double()
+    other = (lab > 0) & ~own
+    own_d = F.max_pool2d(own.double().unsqueeze(1), 3, 1, 1)[:, 0] > 0
+    ring = ~F.max_pool2d((own_d | other).double().unsqueeze(1), 3, 1, 1)[:, 0].bool()
+    bg = (sig * ring).sum((-2, -1)) / ring.sum((-2, -1)).clamp_min(1)
+    flux = ((sig - bg.view(-1, 1, 1)) * own_d).sum((-2, -1))
+    area = (flux / a.amp.clamp_min(1e-12)).clamp_min(0.25)
+    sigma = det.sigma[:, 0, row, col].t()  # (J, N)
+    lam1 = (a.major / 4) ** 2 - 1.0 / 12.0
+    lam2 = (a.minor / 4) ** 2 - 1.0 / 12.0
+    aspect = torch.sqrt(lam2.clamp_min(1e-3) / lam1.clamp_min(1e-3)).clamp(0.05, 1.0)
+    chroma = a.rgb / a.rgb.mean(1, keepdim=True).clamp_min(1e-12)
+    half, normal = geometry.at_pixels(row, col)
+    return FlakeObservations(
+        row=row, col=col, anchor=a.shot, amp=a.amp, detected=detected, sigma=sigma, area=area,
+        aspect=aspect, major=0.5 * a.major, chroma=chroma, snr=a.snr, half=half, normal=normal,
+    )
+
+
+# ---------------------------------------------------------------- geometry on the sphere
+
+
+@dataclass
+class Geometry:
+    """Shot geometry: normals (3, H, W), lights (N, 4), intensities (N, 3), cameras (N, 4), size."""
+
+    normals: Tensor
+    lights: Tensor
+    intensities: Tensor
+    cameras: Tensor
+    size: tuple[float, float]
+
+    def _half(self, normals: Tensor, points: Tensor) -> Tensor:
+        g = shading_geometry(normals, self.lights, self.intensities, self.cameras, points=points)
+        return g.half  # (N, 3, h, w)
+
+    def at_pixels(self, row: Tensor, col: Tensor) -> tuple[Tensor, Tensor]:
+        """Unit half vectors (J, N, 3) and normals (J, 3) at pixel centres."""
+        h, w = self.normals.shape[-2:]
+        dt = torch.float64
+        y = (0.5 - (row.to(dt) + 0.5) / h) * self.size[1]
+        x = ((col.to(dt) + 0.5) / w - 0.5) * self.size[0]
+        pts = torch.stack([x, y, torch.zeros_like(x)]).unsqueeze(1)  # (3, 1, J)
+        n = self.normals[:, row, col].to(dt).unsqueeze(1)
+        half = self._half(n, pts)[:, :, 0].permute(2, 0, 1)  # (J, N, 3)
+        return half, n[:, 0].t()
+
+    def on_grid(self, gh: int, gw: int) -> tuple[Tensor, Tensor]:
+        """Half vectors (G, N, 3) and normals (G, 3) at the centre pixels of a gh×gw grid of cells.
+
+        The normal is the centre pixel's own (not a cell average, which would flatten bumps).
+        """
+        h, w = self.normals.shape[-2:]
+        rows = ((torch.arange(gh, device=self.normals.device) + 0.5) * h / gh).long().clamp(max=h - 1)
+        cols = ((torch.arange(gw, device=self.normals.device) + 0.5) * w / gw).long().clamp(max=w - 1)
+        rr, cc = torch.meshgrid(rows, cols, indexing="ij")
+        return self.at_pixels(rr.flatten(), cc.flatten())
+
+
+def _frame(v: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit vectors orthogonal to unit v (..., 3) and to each other."""
+    ex = torch.zeros_like(v)
+    ex[..., 0] = 1.0
+    ey = torch.zeros_like(v)
+    ey[..., 1] = 1.0
+    ref = torch.where(v[..., :1].abs() < 0.9, ex, ey)
+    t1 = ref - (ref * v).sum(-1, keepdim=True) * v
+    t1 = t1 / t1.norm(dim=-1, keepdim=True)
+    return t1, torch.cross(v, t1, dim=-1)
+
+
+def _log_slope_density(m: Tensor, n: Tensor, t1: Tensor, t2: Tensor, tau: Tensor) -> Tensor:
+    """log of N(μ; 0, τ²I)/(m·n)³ for unit m (..., 3); −inf where m·n ≤ 0.05."""
+    mn = (m * n).sum(-1)
+    ok = mn > 0.05
+    mn_s = torch.where(ok, mn, torch.ones_like(mn))
+    mu1 = (m * t1).sum(-1) / mn_s
+    mu2 = (m * t2).sum(-1) / mn_s
+    val = -(mu1 * mu1 + mu2 * mu2) / (2 * tau * tau) - _LOG2PI - 2 * torch.log(tau) - 3 * torch.log(mn_s)
+    return torch.where(ok, val, torch.full_like(val, -1e4))
+
+
+_PROBIT = 1.702  # logistic ≈ probit: |σ(1.702 z) − Φ(z)| < 0.01, and far cheaper than log_ndtr
+
+
+def _log_detect(a_over_sigma: Tensor, k_hi: float, detected: Tensor, outlier: float = 0.0) -> Tensor:
+    """log P(detected or not), P(detected) = Φ(A·g/σ − k_hi) in its logistic form.
+
+    With ``outlier`` = ε the probability is mixed with a coin flip, (1 − ε)·P + ε/2, so one
+    mis-associated or merged detection costs at most log(2/ε) instead of dominating the fit.
+    """
+    z = _PROBIT * (a_over_sigma - k_hi)
+    lp = F.logsigmoid(torch.where(detected, z, -z))
+    if outlier > 0:
+        lp = torch.logaddexp(lp + math.log1p(-outlier), torch.full_like(lp, math.log(0.5 * outlier)))
+    return lp
+
+
+# ---------------------------------------------------------------- likelihood
+
+
+@dataclass
+class GlintData:
+    """Tensors the likelihood needs (float64)."""
+
+    half: Tensor  # (J, N, 3)
+    normal: Tensor  # (J, 3)
+    anchor: Tensor  # (J,)
+    amp: Tensor  # (J,)
+    detected: Tensor  # (J, N)
+    sigma: Tensor  # (J, N)
+    grid_half: Tensor  # (G, N, 3)
+    grid_normal: Tensor  # (G, 3)
+    grid_sigma: Tensor  # (G, N)
+    grid_area: Tensor  # (G,) valid pixels per cell
+    k_hi: float
+    count: int  # all associated flakes (the numerator may use a subsample)
+
+
+def nearest_shots(half: Tensor, first: Tensor, k: int, prefer: Tensor | None = None) -> Tensor:
+    """Indices (..., k) of the shots whose half vectors are closest to shot ``first``.
+
+    Args:
+        half: (..., N, 3) unit half vectors; first: (...,) shot that comes first (itself);
+        k: how many; prefer: optional (..., N) bool, shots taken before any other (e.g. those
+            where the flake was detected).
+    """
+    h0 = half.gather(-2, first[..., None, None].expand(*first.shape, 1, 3))
+    dist = 1.0 - (half * h0).sum(-1)  # (..., N)
+    if prefer is not None:
+        dist = dist - 10.0 * prefer.to(dist.dtype)
+    dist = dist.scatter(-1, first[..., None], -100.0)
+    return dist.topk(min(k, half.shape[-2]), dim=-1, largest=False).indices
+
+
+def _gather_shots(x: Tensor, idx: Tensor) -> Tensor:
+    """x (R, N[, 3]) gathered at idx (R, K) along the shot axis."""
+    if x.dim() == 3:
+        return x.gather(1, idx[..., None].expand(-1, -1, x.shape[-1]))
+    return x.gather(1, idx)
+
+
+def _overlap_count(centres: Tensor, half: Tensor, angle: float) -> int:
+    """Largest number of shots (of half (R, N, 3)) within ``angle`` of a centre (R, M, 3)."""
+    cos = torch.einsum("rmc,rnc->rmn", centres, half)
+    return max(1, int((cos > math.cos(min(angle, math.pi))).sum(-1).max()))
+
+
+def _cap_radius(sg: Tensor, log_a_max: float, sigma_min: float, level: float) -> float:
+    """Largest angular radius of a glint cap: 1 − cos β = σ_g² ln(A_max / (level·σ_min))."""
+    u = float(sg.detach()) ** 2 * max(0.0, log_a_max - math.log(level * sigma_min))
+    return math.acos(max(-1.0, 1.0 - min(u, 1.9)))
+
+
+def _ring_nodes(n_a: int, n_phi: int, dtype, device) -> tuple[Tensor, Tensor]:
+    qa = (torch.arange(n_a, dtype=dtype, device=device) + 0.5) / n_a
+    phi = 2 * math.pi * (torch.arange(n_phi, dtype=dtype, device=device) + 0.5) / n_phi
+    return qa, phi
+
+
+def log_numerator(
+    d: GlintData, tau: Tensor, sg: Tensor, la: Tensor, va: Tensor, *, n_a: int = 8, n_phi: int = 24, outlier: float = 0.02,
+) -> Tensor:
+    """log f_j of every flake (J,) (see the module docstring); ``outlier``: see :func:`_log_detect`."""
+    dt, dev = d.half.dtype, d.half.device
+    j = d.amp.shape[0]
+    qa, phi = _ring_nodes(n_a, n_phi, dt, dev)
+    h_star = d.half[torch.arange(j, device=dev), d.anchor]  # (J, 3)
+    # only shots whose caps can reach the ring matter: keep those (detected first), anchor first
+    beta = _cap_radius(sg, float((la + 3 * va).detach()), float(d.sigma.min()), max(0.5, d.k_hi - 3.0))
+    kk = _overlap_count(h_star.unsqueeze(1), d.half, 2.2 * beta + 1e-3)
+    kk = max(kk, int(d.detected.sum(1).max()))  # every detected shot stays in the pattern
+    if kk < d.half.shape[1]:
+        idx = nearest_shots(d.half, d.anchor, kk, prefer=d.detected)
+        d = GlintData(
+            _gather_shots(d.half, idx), d.normal, torch.zeros_like(d.anchor), d.amp, _gather_shots(d.detected, idx),
+            _gather_shots(d.sigma, idx), d.grid_half, d.grid_normal, d.grid_sigma, d.grid_area, d.k_hi, d.count,
+        )
+    e1, e2 = _frame(h_star)
+    t1, t2 = _frame(d.normal)
+    log_amp = torch.log(d.amp.clamp_min(1e-12))
+    # A nodes: quantiles of the log-normal truncated to A > â (small tensors: float64)
+    z0 = ((log_amp.double() - la.double()) / va.double())
+    log_tail = torch.special.log_ndtr(-z0)  # log(1 − F(â))
+    # u_i = F(â) + (1 − F(â))·q_i, written through the upper tail to keep precision near 1
+    tail = torch.exp(log_tail).unsqueeze(1) * (1 - qa.double())  # 1 − u_i
+    z = -torch.special.ndtri(tail.clamp(1e-300, 1.0))
+    z = torch.maximum(z, z0.unsqueeze(1))
+    log_a = (la.double() + va.double() * z).to(dt)  # (J, nA)
+    log_tail = log_tail.to(dt)
+    cap = sg * sg * (log_a - log_amp.unsqueeze(1))  # 1 − cos β ≥ 0
+    inside = cap < 1.9
+    cap = cap.clamp(1e-9, 1.9)
+    cosb = 1 - cap
+    sinb = torch.sqrt(cap * (2 - cap))
+    ring = torch.cos(phi).view(1, 1, -1, 1) * e1.view(j, 1, 1, 3) + torch.sin(phi).view(1, 1, -1, 1) * e2.view(j, 1, 1, 3)
+    m = cosb.view(j, n_a, 1, 1) * h_star.view(j, 1, 1, 3) + sinb.view(j, n_a, 1, 1) * ring  # (J, nA, nφ, 3)
+    logp = _log_slope_density(m, d.normal.view(j, 1, 1, 3), t1.view(j, 1, 1, 3), t2.view(j, 1, 1, 3), tau)
+    # other shots: detection pattern
+    mh = torch.einsum("japc,jkc->japk", m, d.half)  # (J, nA, nφ, N)
+    log_g = -(1 - mh) / (sg * sg)
+    a_over_s = torch.exp(log_a.view(j, n_a, 1, 1) + log_g) / d.sigma.view(j, 1, 1, -1)
+    ld = _log_detect(a_over_s, d.k_hi, d.detected.view(j, 1, 1, -1), outlier)
+    not_anchor = torch.ones_like(d.detected, dtype=dt)
+    not_anchor[torch.arange(j, device=dev), d.anchor] = 0.0
+    ld = (ld * not_anchor.view(j, 1, 1, -1)).sum(-1)
+    logw = log_tail.view(j, 1, 1) - math.log(n_a) + math.log(2 * math.pi / n_phi)
+    total = logp + ld + logw
+    total = torch.where(inside.view(j, n_a, 1), total, torch.full_like(total, -1e4))
+    lse = torch.logsumexp(total.flatten(1), dim=1)
+    return lse + 2 * torch.log(sg) - log_amp
+
+
+def _gauss_legendre(n: int, dtype, device) -> tuple[Tensor, Tensor]:
+    """Gauss–Legendre nodes and weights on [0, 1]."""
+    import numpy as np
+
+    x, w = np.polynomial.legendre.leggauss(n)
+    return torch.tensor(0.5 * (x + 1), dtype=dtype, device=device), torch.tensor(0.5 * w, dtype=dtype, device=device)
+
+
+def p_any(
+    d: GlintData, tau: Tensor, sg: Tensor, la: Tensor, va: Tensor, *,
+    n_a: int = 5, n_in: int = 2, n_band: int = 3, n_phi: int = 10, margin: float = 3.0,
+) -> Tensor:
+    """Probability (G,) that a flake in each grid cell is detected in at least one shot.
+
+    Cap k of shot k (A fixed) is integrated in u = 1 − m·h_k and φ: Gauss–Legendre in u on
+    the interior, where A·g ≥ (k_hi + margin)·σ and detection is certain, and on the edge band
+    down to (k_hi − margin)·σ, where the detection probability falls from 1 to 0; the
+    trapezoid rule in φ. Overlapping caps share each point through a partition of unity
+    P_k / Σ_j P_j, so the union is counted once.
+    """
+    dt, dev = d.grid_half.dtype, d.grid_half.device
+    g, n = d.grid_sigma.shape
+    qa, phi = _ring_nodes(n_a, n_phi, dt, dev)
+    x_in, w_in = _gauss_legendre(n_in, dt, dev)
+    x_bd, w_bd = _gauss_legendre(n_band, dt, dev)
+    log_a = la + va * torch.special.ndtri(qa)  # (nA,)
+    lsig = torch.log(d.grid_sigma).view(g, 1, n)
+
+    def ucap(level: float) -> Tensor:  # 1 − m·h where A·g = level·σ, (G, nA, N)
+        return (sg * sg * (log_a.view(1, -1, 1) - lsig - math.log(level))).clamp(0.0, 1.9)
+
+    u_lo = ucap(d.k_hi + margin)
+    u_hi = ucap(max(0.5, d.k_hi - margin))
+    uu = torch.cat([u_lo.unsqueeze(-1) * x_in, u_lo.unsqueeze(-1) + (u_hi - u_lo).unsqueeze(-1) * x_bd], -1)
+    wu = torch.cat([u_lo.unsqueeze(-1) * w_in, (u_hi - u_lo).unsqueeze(-1) * w_bd], -1)  # (G, nA, N, nR)
+    uu = uu.clamp_min(1e-9)
+    e1, e2 = _frame(d.grid_half)  # (G, N, 3)
+    t1, t2 = _frame(d.grid_normal)
+    cosb = 1 - uu
+    sinb = torch.sqrt(uu * (2 - uu))
+    ring = torch.cos(phi).view(-1, 1) * e1.view(g, 1, n, 1, 1, 3) + torch.sin(phi).view(-1, 1) * e2.view(g, 1, n, 1, 1, 3)  # (G,1,N,1,nφ,3)
+    m = cosb.unsqueeze(-1).unsqueeze(-1) * d.grid_half.view(g, 1, n, 1, 1, 3) + sinb.unsqueeze(-1).unsqueeze(-1) * ring  # (G,nA,N,nR,nφ,3)
+    logp = _log_slope_density(m, d.grid_normal.view(g, 1, 1, 1, 1, 3), t1.view(g, 1, 1, 1, 1, 3), t2.view(g, 1, 1, 1, 1, 3), tau)
+    # shots whose caps may overlap cap k (own shot first): caps farther apart never meet
+    beta = _cap_radius(sg, float(log_a.max().detach()), float(d.grid_sigma.min()), max(0.5, d.k_hi - margin))
+    kk = _overlap_count(d.grid_half, d.grid_half, 2.2 * beta + 1e-3)
+    first = torch.arange(n, device=dev).expand(g, n)
+    near = nearest_shots(d.grid_half.unsqueeze(1).expand(g, n, n, 3), first, kk)  # (G, N, K)
+    hn = d.grid_half.gather(1, near.flatten(1)[..., None].expand(-1, -1, 3)).view(g, n, -1, 3)  # (G, N, K, 3)
+    sn = d.grid_sigma.gather(1, near.flatten(1)).view(g, n, -1)  # (G, N, K)
+    mh = torch.einsum("gaqrpc,gqkc->gaqrpk", m, hn)  # (G, nA, N, nR, nφ, K)
+    a_over_s = torch.exp(log_a.view(1, -1, 1, 1, 1, 1) - (1 - mh) / (sg * sg)) / sn.view(g, 1, n, 1, 1, -1)
+    zk = _PROBIT * (a_over_s - d.k_hi)
+    pk = torch.sigmoid(zk)
+    any_ = 1.0 - (1.0 - pk).prod(-1)
+    own = pk[..., 0]  # (G, nA, N, nR, nφ): P_k at the nodes of cap k
+    share = own * any_ / pk.sum(-1).clamp_min(1e-30)
+    wts = (wu * (2 * math.pi / n_phi)).unsqueeze(-1)
+    val = (torch.exp(logp) * share * wts).sum((2, 3, 4))  # (G, nA)
+    return val.mean(1)
+
+
+def _objective(d: GlintData, sub: GlintData, theta: Tensor, prior: tuple[Tensor, Tensor], nodes: dict) -> tuple[Tensor, Tensor]:
+    """Negative penalised profile log-likelihood (float64) and the expected detected count.
+
+    ``d`` holds the grid, ``sub`` the flakes in the numerator sum (both in the work dtype).
+    """
+    wd = d.grid_half.dtype
+    tau, sg, la, va = torch.exp(theta[0]).to(wd), torch.exp(theta[1]).to(wd), theta[2].to(wd), torch.exp(theta[3]).to(wd)
+    lnum = log_numerator(sub, tau, sg, la, va, **nodes.get("num", {})).double()
+    pa = p_any(d, tau, sg, la, va, **nodes.get("any", {})).double()
+    expected = (pa * d.grid_area.double()).sum()
+    ll = lnum.sum() * (d.count / max(1, sub.amp.numel())) - d.count * torch.log(expected.clamp_min(1e-300))
+    mean, sd = prior
+    pen = 0.5 * (((theta - mean) / sd) ** 2).sum()
+    return -(ll - pen), expected
+
+
+@dataclass
+class GlintFit:
+    tilt_sigma: float
+    glint_sigma: float
+    log_amp_mean: float
+    log_amp_std: float
+    density: float
+    expected_fraction: float
+    loglik: float
+    std_err: dict
+    identified: dict
+    iterations: int
+
+
+def fit_glints(
+    d: GlintData,
+    *,
+    max_flakes: int = 300,
+    max_iter: int = 30,
+    init: dict | None = None,
+    nodes: dict | None = None,
+    work_dtype: torch.dtype = torch.float32,
+    uncertainty: bool = True,
+) -> GlintFit:
+    """Maximum-likelihood (τ, σ_g, A distribution) and the profiled true density.
+
+    Args:
+        d: likelihood data; max_flakes: flakes in the numerator sum (an even subsample);
+        max_iter: L-BFGS iterations; init: starting values (tau, glint_sigma, log_amp,
+        log_amp_std); nodes: quadrature sizes {"num": {...}, "any": {...}}; work_dtype: dtype
+        of the quadrature tensors (sums and parameters stay float64); uncertainty: compute
+        standard errors and identifiability from the curvature (4 extra gradients).
+    """
+    dev = d.half.device
+    nodes = nodes or {}
+    j = d.amp.shape[0]
+    step = max(1, math.ceil(j / max_flakes))
+    num_idx = torch.arange(0, j, step, device=dev)
+    wd = work_dtype
+    sub = GlintData(
+        d.half[num_idx].to(wd), d.normal[num_idx].to(wd), d.anchor[num_idx], d.amp[num_idx].to(wd),
+        d.detected[num_idx], d.sigma[num_idx].to(wd), d.grid_half, d.grid_normal, d.grid_sigma, d.grid_area, d.k_hi, d.count,
+    )
+    d = GlintData(
+        d.half, d.normal, d.anchor, d.amp, d.detected, d.sigma, d.grid_half.to(wd), d.grid_normal.to(wd),
+        d.grid_sigma.to(wd), d.grid_area, d.k_hi, d.count,
+    )
+    init = init or {}
+    if "tau" not in init:  # detected flakes have m ≈ h*: the RMS slope of h* is a fair start
+        h_star = d.half[torch.arange(j, device=dev), d.anchor]
+        t1, t2 = _frame(d.normal)
+        hn = (h_star * d.normal).sum(-1).clamp_min(0.05)
+        sl2 = (((h_star * t1).sum(-1) / hn) ** 2 + ((h_star * t2).sum(-1) / hn) ** 2).mean()
+        init["tau"] = float(torch.sqrt(0.5 * sl2).clamp(0.02, 1.0))
+    tau0 = init["tau"]
+    sg0 = init.get("glint_sigma", 0.03)
+    la0 = init.get("log_amp", float(torch.log(d.amp).median()) + 0.7)
+    va0 = init.get("log_amp_std", 0.3)
+    prior_mean = torch.tensor([math.log(0.15), math.log(0.03), la0, math.log(0.3)], dtype=torch.float64, device=dev)
+    prior_sd = torch.tensor([2.0, 2.0, 5.0, 2.0], dtype=torch.float64, device=dev)
+    prior = (prior_mean, prior_sd)
+
+    def run(start: Tensor, data_sub: GlintData, iters: int, tol: float) -> tuple[Tensor, float, int]:
+        theta = start.clone().requires_grad_(True)
+        opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe", tolerance_grad=1e-5, tolerance_change=tol)
+
+        def closure():
+            opt.zero_grad()
+            loss, _ = _objective(d, data_sub, theta, prior, nodes)
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        with torch.no_grad():
+            loss, _ = _objective(d, data_sub, theta, prior, nodes)
+        return theta.detach(), float(loss), int(opt.state[opt._params[0]].get("n_iter", 0))
+
+    # σ_g trades against density in single shots; a few short starts keep L-BFGS out of the
+    # poor basins, then one full run from the best
+    sg_starts = [sg0] if "glint_sigma" in init else [0.5 * sg0, sg0, 2.0 * sg0]
+    quick = GlintData(*[getattr(sub, f.name)[:: max(1, sub.amp.numel() // 120)] if f.name in ("half", "normal", "anchor", "amp", "detected", "sigma") else getattr(sub, f.name) for f in fields(GlintData)])
+    best = None
+    for sgs in sg_starts:
+        start = torch.tensor([math.log(tau0), math.log(sgs), la0, math.log(va0)], dtype=torch.float64, device=dev)
+        if len(sg_starts) > 1:
+            start, loss, _ = run(start, quick, 6, 1e-3)
+        else:
+            loss = 0.0
+        if best is None or loss < best[1]:
+            best = (start, loss)
+    th, _, iters = run(best[0], sub, max_iter, 1e-6)
+
+    # curvature → standard errors of log τ, log σ_g, ℓ, log v (forward differences of the gradient)
+    def grad_at(t: Tensor) -> Tensor:
+        t = t.clone().requires_grad_(True)
+        loss, _ = _objective(d, sub, t, (prior_mean, prior_sd), nodes)
+        return torch.autograd.grad(loss, t)[0]
+
+    prior_h = torch.diag(1.0 / prior_sd**2)
+    se = torch.full((4,), float("nan"), dtype=th.dtype, device=dev)
+    data_h = torch.full((4,), float("nan"), dtype=th.dtype, device=dev)
+    if uncertainty:
+        eps = 1e-2
+        eye = torch.eye(4, dtype=th.dtype, device=dev)
+        g0 = grad_at(th)
+        hess = torch.stack([(grad_at(th + eps * eye[i]) - g0) / eps for i in range(4)])
+        hess = 0.5 * (hess + hess.t())
+        cov, info = torch.linalg.inv_ex(hess)
+        if int(info) == 0 and bool(torch.isfinite(cov).all()):
+            se = torch.sqrt(torch.diagonal(cov).clamp_min(0.0))
+        data_h = torch.diagonal(hess - prior_h)
+    with torch.no_grad():
+        loss, expected = _objective(d, sub, th, (prior_mean, prior_sd), nodes)
+        total_area = float(d.grid_area.sum())
+    names = ("log_tilt_sigma", "log_glint_sigma", "log_amp_mean", "log_amp_std")
+    # a parameter is identified when the data, not the prior, sets its curvature
+    ident = {nm: bool(data_h[i] > 4.0 * prior_h[i, i]) and bool(se[i] < 0.15) for i, nm in enumerate(names)}
+    return GlintFit(
+        tilt_sigma=float(torch.exp(th[0])), glint_sigma=float(torch.exp(th[1])), log_amp_mean=float(th[2]),
+        log_amp_std=float(torch.exp(th[3])), density=d.count / float(expected),
+        expected_fraction=float(expected) / max(total_area, 1.0), loglik=-float(loss),
+        std_err={nm: float(se[i]) for i, nm in enumerate(names)}, identified=ident, iterations=iters,
+    )
+
+
+# ---------------------------------------------------------------- shape, size, colour
+
+
+def fit_shapes(obs: FlakeObservations, *, min_snr: float = 8.0) -> dict:
+    """Area log-normal, aspect normal and the paper's limit lines from the anchor detections.
+
+    Uses flakes whose anchor SNR ≥ ``min_snr`` (all flakes when fewer than 20 pass).
+    The flux/peak area of the rendered footprint is unbiased; its noise variance is removed
+    from the log-area spread.
+    """
+    sel = obs.snr >= min_snr
+    if int(sel.sum()) < 20:
+        sel = torch.ones_like(sel)
+    area = obs.area[sel].double()
+    la = torch.log(area)
+    # noise of flux/peak ≈ σ·√(n_pix)/amp with n_pix ≈ area + 3·√area (1-px dilation)
+    npix = area + 3 * torch.sqrt(area) + 4
+    noise_rel2 = npix / (obs.snr[sel].double() ** 2 * area**2)
+    med = float(la.median())
+    mad = float((la - med).abs().median()) * 1.4826
+    var = max(mad**2 - float(noise_rel2.median()), 1e-4)
+    asp = obs.aspect[sel].double()
+    semi_major = obs.major[sel].double()
+    x = torch.sqrt(area)
+    A = torch.stack([torch.ones_like(x), x], 1)
+    coef = torch.linalg.lstsq(A, semi_major.unsqueeze(1)).solution[:, 0]
+    resid = semi_major - A @ coef
+    q = torch.quantile(resid, torch.tensor([0.05, 0.95], dtype=resid.dtype))
+    lines = (float(coef[0] + q[0]), float(coef[1]), float(coef[0] + q[1]), float(coef[1]))
+    return {
+        "area_log_mean": med, "area_log_std": math.sqrt(var),
+        "aspect_mean": float(asp.mean().clamp(0.05, 1.0)), "aspect_std": float(asp.std().clamp(0.0, 1.0)) if asp.numel() > 1 else 0.0,
+        "shape_lines": lines, "n": int(sel.sum()),
+    }
+
+
+def fit_colour(obs: FlakeObservations, fit: GlintFit, *, min_snr: float = 8.0) -> tuple[tuple, tuple]:
+    """Colour mean and covariance of the glint reflectance.
+
+    The peak glint of a detection is A·g with g ≤ 1, so raw peaks underestimate the flake's
+    colour; the glint falloff is corrected through the fitted amplitude distribution:
+    mean = E[A] × mean chroma (chroma = colour / channel mean is independent of g).
+    """
+    sel = obs.snr >= min_snr
+    if int(sel.sum()) < 10:
+        sel = torch.ones_like(sel)
+    ch = obs.chroma[sel].double()
+    mean_a = math.exp(fit.log_amp_mean + 0.5 * fit.log_amp_std**2)
+    var_a = (math.exp(fit.log_amp_std**2) - 1.0) * mean_a**2
+    cm = ch.mean(0)
+    mean = (mean_a * cm).clamp_min(0.0)
+    # chroma covariance minus its measurement noise (per channel ≈ √3·σ/(amp·√area)), PSD-clipped
+    cov_ch = torch.cov(ch.t()) if ch.shape[0] > 1 else torch.zeros(3, 3, dtype=ch.dtype)
+    noise = (3.0 / (obs.snr[sel].double() ** 2 * obs.area[sel].double().clamp_min(1.0))).median()
+    cov_ch = cov_ch - noise * torch.eye(3, dtype=ch.dtype)
+    ev, evec = torch.linalg.eigh(cov_ch)
+    cov_ch = evec @ torch.diag(ev.clamp_min(0.0)) @ evec.t()
+    cov = mean_a**2 * cov_ch + var_a * torch.outer(cm, cm)
+    return tuple(float(v) for v in mean), tuple(tuple(float(v) for v in r) for r in cov)
+
+
+# ---------------------------------------------------------------- all together
+
+
+@dataclass
+class StatsResult:
+    """model: the fitted FlakeModel or None; observations; flake_id (P,); report dict."""
+
+    model: FlakeModel | None
+    observations: FlakeObservations | None
+    flake_id: Tensor
+    report: dict = field(default_factory=dict)
+
+
+def _grid(det: Detection, geometry: Geometry, max_cells: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    n, _, h, w = det.sigma.shape
+    side = max(1, int(math.sqrt(max_cells)))
+    gh = min(side, h)
+    gw = min(side, w)
+    valid = det.valid.expand(n, -1, -1, -1)[:1].double() if det.valid.shape[0] == 1 else det.valid.double()
+    lsig = F.adaptive_avg_pool2d(torch.log(det.sigma.double()), (gh, gw))  # (N, 1, gh, gw)
+    vfrac = F.adaptive_avg_pool2d(valid, (gh, gw)).mean(0)[0]  # (gh, gw) mean over shots
+    area = vfrac.flatten() * (h * w) / (gh * gw)
+    half, normal = geometry.on_grid(gh, gw)
+    return half, normal, torch.exp(lsig).flatten(1).t(), area
+
+
+def flake_statistics(
+    det: Detection,
+    geometry: Geometry,
+    *,
+    seed: int = 0,
+    assoc_radius: float = 1.5,
+    min_flakes: int = 20,
+    max_cells: int = 36,
+    max_flakes: int = 300,
+) -> StatsResult:
+    """Fit a :class:`FlakeModel` to the detections of a capture (None when they look like noise).
+
+    Args:
+        det: detector output for N shots; geometry: the shots' normals/lights/cameras.
+        seed: seed stored in the model (the render field's hash seed).
+        assoc_radius: association radius in px (raise it for poorly registered shots).
+        min_flakes: fewer associated flakes than this (or than 5× the Gaussian false-alarm
+            expectation) means "consistent with noise" and the stage is skipped.
+        max_cells, max_flakes: work limits of the likelihood (grid cells, flakes in the sum).
+    """
+    import time
+
+    times = {}
+    t0 = time.perf_counter()
+    n, _, h, w = det.signal.shape
+    if geometry.lights.shape[0] != n:
+        raise InputError(f"geometry: expected {n} shots to match the detection, found {geometry.lights.shape[0]}")
+    p = det.particles
+    flake_id, count = associate(p, h, w, assoc_radius)
+    times["associate"] = time.perf_counter() - t0
+    valid_px = float(det.valid.expand(n, -1, -1, -1).sum()) if det.valid.shape[0] == 1 else float(det.valid.sum())
+    false_alarms = valid_px * 0.5 * math.erfc(det.k_hi / math.sqrt(2))
+    report = {"particles": len(p), "flakes_detected": count, "expected_false_alarms": false_alarms}
+    threshold = max(min_flakes, 5.0 * false_alarms)
+    if count < threshold:
+        report["skipped"] = f"{count} associated detections, fewer than {threshold:.3g} expected from real flakes (consistent with noise)"
+        report["times"] = times
+        return StatsResult(None, None, flake_id, report)
+    t1 = time.perf_counter()
+    obs = observe(det, flake_id, count, geometry)
+    times["measure"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    g_half, g_normal, g_sigma, g_area = _grid(det, geometry, max_cells)
+    data = GlintData(
+        half=obs.half.double(), normal=obs.normal.double(), anchor=obs.anchor, amp=obs.amp.double(),
+        detected=obs.detected, sigma=obs.sigma.double(), grid_half=g_half, grid_normal=g_normal,
+        grid_sigma=g_sigma, grid_area=g_area, k_hi=det.k_hi, count=count,
+    )
+    gfit = fit_glints(data, max_flakes=max_flakes)
+    times["likelihood"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    shapes = fit_shapes(obs)
+    cmean, ccov = fit_colour(obs, gfit)
+    times["shape_colour"] = time.perf_counter() - t3
+    density = min(gfit.density, 1.0)
+    report.update({
+        "density": density, "tilt_sigma": gfit.tilt_sigma, "glint_sigma": gfit.glint_sigma,
+        "detected_fraction": count / max(1.0, density * float(g_area.sum())),
+        "std_err": gfit.std_err, "identified": gfit.identified, "iterations": gfit.iterations,
+        "multi_shot_flakes": int((obs.detected.sum(1) > 1).sum()), "times": times,
+    })
+    model = FlakeModel(
+        density=density, area_log_mean=shapes["area_log_mean"], area_log_std=min(shapes["area_log_std"], 5.0),
+        aspect_mean=shapes["aspect_mean"], aspect_std=shapes["aspect_std"], color_mean=cmean, color_cov=ccov,
+        tilt_sigma=min(gfit.tilt_sigma, 1.5), glint_sigma=min(max(gfit.glint_sigma, 1e-4), 1.5),
+        shape_lines=shapes["shape_lines"], seed=seed,
+        extra={"flakes_detected": count, "log_amp_mean": gfit.log_amp_mean, "log_amp_std": gfit.log_amp_std,
+               "std_err": gfit.std_err, "identified": gfit.identified},
+    )
+    return StatsResult(model, obs, flake_id, report)
