@@ -24,6 +24,11 @@ and for a small ONNX graph (DESIGN 2.4):
   the Phong image. If the footprint covers more than a quarter of the texture, dense maps are
   used instead.
 
+- **No per-pixel selects.** The lobe's log is clipped instead of masked (a lobe ≤ 1e-38 past the
+  horizon when every α ≥ 1; materials with some α < 1 get an exact mask), "point vs directional
+  light" is folded into the separable sums, and sparkles are scatter-added into the specular
+  term so that the last op writes the output.
+
 All state lives in buffers, so ``.to()``, ``state_dict`` and ONNX export need no extra code.
 The specular lobe uses the same Kahan ``log1p`` form as :func:`torchmetal.phong.specular_lobe`
 and only ops that export bit-for-bit or within a few ulp (no ``log1p``, no RNG, no ``pow``).
@@ -99,11 +104,18 @@ class MaterialRenderer(nn.Module):
             self.register_buffer("cluster_s", m.cluster_s.detach().to(f32).t().contiguous())  # (3, K)
             self.register_buffer("cluster_alpha", m.cluster_alpha.detach().to(f32).t().contiguous())
             s_map, a_map = self._gather_specular()
-            self.register_buffer("_s_map", s_map, persistent=False)
+            self.register_buffer("_s_map", s_map, persistent=False)  # eager-mode cache
             self.register_buffer("_alpha_map", a_map, persistent=False)
+            self.register_load_state_dict_post_hook(_refresh_specular_cache)
+            alpha_min = float(self.cluster_alpha.min())
         else:
             self.register_buffer("s", m.s.detach().to(f32).clone())
             self.register_buffer("alpha", m.alpha.detach().to(f32).clone())
+            alpha_min = float(self.alpha.min())
+        self.alpha_uniform = (not self.clustered) and bool((self.alpha == self.alpha[0]).all())
+        # With α ≥ 1 the clipped log-lobe past the horizon gives a lobe ≤ 1e-38; smaller
+        # exponents get an exact zero there (two more single-channel ops).
+        self.exact_horizon = not alpha_min >= 1.0
 
         self.has_flakes = bool(flakes and m.flakes is not None)
         self.flake_pixels = 0
@@ -131,12 +143,13 @@ class MaterialRenderer(nn.Module):
             self.register_buffer("flake_normal", f.normal.to(torch.float32).contiguous())
             return
         self.flake_pixels = n_px
-        flat_idx = torch.nonzero(keep.reshape(-1), as_tuple=False).reshape(-1)
+        flat_idx = torch.nonzero(keep.reshape(-1), as_tuple=False).reshape(-1)  # row-major order
         rows, cols = flat_idx // m.width, flat_idx % m.width
+        normal = f.normal.to(torch.float32)
         self.register_buffer("flake_index", flat_idx.to(torch.int64))  # (N,) into H·W
         self.register_buffer("flake_points", torch.stack([self.xs[cols], self.ys[rows], torch.zeros_like(self.xs[cols])]).view(3, 1, n_px))
         self.register_buffer("flake_wc", wc[:, rows, cols].reshape(3, 1, n_px).contiguous())
-        self.register_buffer("flake_normal", f.normal.to(torch.float32)[:, rows, cols].reshape(3, 1, n_px).contiguous())
+        self.register_buffer("flake_normal", normal[:, rows, cols].reshape(3, 1, n_px).contiguous())
         if not self.flat:
             self.register_buffer("flake_surface_normal", normals[:, rows, cols].reshape(3, 1, n_px).contiguous())
 
@@ -198,12 +211,18 @@ class MaterialRenderer(nn.Module):
             spec = s * torch.exp(alpha * t)
         else:
             q_spec = q_spec * self.s.view(1, 3, 1, 1)
-            spec = torch.exp(self.alpha.view(1, 3, 1, 1) * t)
-        image = self.texture * q_diffuse + spec * (q_spec * inv_d2)
-
+            if self.alpha_uniform:  # one exponent for all channels: one (B,1,H,W) exp
+                spec = torch.exp(self.alpha[0] * t)
+            else:
+                spec = torch.exp(self.alpha.view(1, 3, 1, 1) * t)
+        if self.exact_horizon:
+            inv_d2 = inv_d2 * (yq > -1.0).to(dtype)
+        spec = spec * (q_spec * inv_d2)
         if self.has_flakes:
-            image = self._add_sparkle(image, light, light_intensity, camera)
-        return image
+            # sparkles are added into the specular term, so the last op writes the output
+            # directly (onnxruntime copies a reshape that produces a graph output)
+            spec = self._add_sparkle(spec, light, light_intensity, camera)
+        return self.texture * q_diffuse + spec
 
     def _specular_maps(self) -> tuple[Tensor, Tensor]:
         if torch.compiler.is_exporting():
@@ -242,6 +261,13 @@ class MaterialRenderer(nn.Module):
                 f"batch: expected light, light_intensity and camera with the same B, found "
                 f"{light.shape[0]}, {light_intensity.shape[0]}, {camera.shape[0]}"
             )
+
+
+def _refresh_specular_cache(module: MaterialRenderer, incompatible_keys) -> None:
+    """After ``load_state_dict``: rebuild the eager (3, H, W) specular maps from the labels."""
+    s_map, a_map = module._gather_specular()
+    module._s_map.copy_(s_map)
+    module._alpha_map.copy_(a_map)
 
 
 def _flat_like(ref: Tensor) -> Tensor:
