@@ -1,0 +1,204 @@
+"""The benchmark harness: its pieces, and one ``--quick`` run end to end (what CI runs)."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torchmetal.bench.memory import PeakMemory
+from torchmetal.bench.runner import (
+    EQUAL_DB, SECTIONS, full_plan, quick_plan, run_jobs, speed_ratio, sweep_configs,
+)
+from torchmetal.bench.tasks import holdout_indices, psnr, rel_err
+from torchmetal.bench.worker import run_task
+
+QUICK_LIMIT_S = 60.0
+
+
+def _importable(mod: str) -> bool:
+    try:
+        return importlib.util.find_spec(mod) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+# ----------------------------------------------------------------------------- pieces
+
+
+def test_full_plan_sweeps_the_issue_ranges():
+    plan = full_plan()
+    cfgs = sweep_configs(plan)
+    sizes = {c["size"] for c in cfgs}
+    shots = {c["shots"] for c in cfgs}
+    assert min(sizes) == 256 and max(sizes) == 2048
+    assert min(shots) == 4 and max(shots) == 32
+    assert len({c["noise"] for c in cfgs}) >= 3 and len({c["tol"] for c in cfgs}) >= 3
+    keys = [(c["size"], c["shots"], c["noise"], c["bits"], c["tol"]) for c in cfgs]
+    assert len(keys) == len(set(keys)), "identical configurations must run once"
+    base = [c for c in cfgs if len(c["axes"]) > 1]
+    assert len(base) == 1 and set(base[0]["axes"]) == {"resolution", "shots", "noise", "tol"}
+
+
+def test_holdout_indices_are_spread_and_distinct():
+    for n, k in [(14, 2), (6, 2), (34, 2), (5, 5), (8, 3)]:
+        idx = holdout_indices(n, k)
+        assert len(idx) == k == len(set(idx))
+        assert all(0 <= i < n for i in idx)
+    assert holdout_indices(10, 0) == []
+    assert holdout_indices(14, 2) == [3, 10]
+
+
+def test_psnr_and_relative_error():
+    ref = torch.full((2, 3, 4, 4), 0.5, dtype=torch.float64)
+    ref[0, 0, 0, 0] = 1.0
+    pred = ref + 0.01
+    assert psnr(pred, ref) == pytest.approx(40.0, abs=1e-9)  # peak 1, rmse 0.01
+    valid = torch.ones_like(ref, dtype=torch.bool)
+    pred2 = pred.clone()
+    pred2[1, 2, 3, 3] = 100.0
+    valid[1, 2, 3, 3] = False
+    assert psnr(pred2, ref, valid) == pytest.approx(40.0, abs=1e-9)  # the masked outlier is ignored
+    assert psnr(ref, ref) == math.inf
+    assert rel_err([1.1, 2.0, 0.0], [1.0, 2.0, 0.0]) == pytest.approx(0.1)
+    assert math.isnan(rel_err(np.ones((3, 4)), [1.0, 1.0, 1.0]))
+
+
+def test_speed_ratio_only_at_equal_or_better_error():
+    tm = {"wall_s": 2.0, "psnr_holdout": 50.0}
+    ratio, txt = speed_ratio(tm, {"wall_s": 20.0, "psnr_holdout": 49.0})
+    assert ratio == pytest.approx(10.0) and txt == "10.0×"
+    ratio, _ = speed_ratio(tm, {"wall_s": 20.0, "psnr_holdout": 50.0 + EQUAL_DB / 2})
+    assert ratio == pytest.approx(10.0)
+    ratio, txt = speed_ratio(tm, {"wall_s": 20.0, "psnr_holdout": 51.0})
+    assert ratio is None and "worse" in txt
+    assert speed_ratio({"error": "x"}, {"wall_s": 1.0, "psnr_holdout": 1.0})[0] is None
+
+
+def test_peak_memory_sees_numpy_allocations():
+    with PeakMemory() as small:
+        x = np.ones(1000)
+    with PeakMemory() as big:
+        y = np.ones(160 * 2**20 // 8)  # 160 MiB, touched
+        y[::512] = 2.0
+        del y
+    assert big.peak >= 140 * 2**20
+    assert small.peak < 40 * 2**20
+    assert big.peak_abs >= big.peak
+    del x
+
+
+def test_children_isolate_memory_and_report_failures():
+    res = run_jobs(
+        [("selftest", {"mib": 120}), ("selftest", {}), ("selftest", {"fail": "boom"}),
+         ("selftest", {"missing": "torchmetal.no_such_stage"})],
+        isolate=True, timeout=60,
+    )
+    assert res[0]["peak_bytes"] >= 100 * 2**20
+    assert res[1]["peak_bytes"] < 40 * 2**20  # a fresh process: the first child's peak does not leak in
+    assert res[0]["pid"] != res[1]["pid"]
+    assert res[2]["error"].startswith("RuntimeError: boom")
+    assert "torchmetal.no_such_stage" in res[3]["not_available"]
+
+
+def test_thread_count_reaches_the_children():
+    one = run_jobs([("selftest", {})], isolate=True, timeout=60, threads=1)[0]
+    shared = run_jobs([("selftest", {})], isolate=False, timeout=60, threads=1)[0]
+    assert one["torch_threads"] == 1 and shared["torch_threads"] == 1
+    assert quick_plan().threads == 1
+
+
+def test_a_hanging_child_is_stopped():
+    t0 = time.perf_counter()
+    res = run_jobs([("selftest", {"sleep": 30})], isolate=True, timeout=3)
+    assert time.perf_counter() - t0 < 20
+    assert "timed out" in res[0]["error"]
+
+
+def test_unknown_task_config_is_an_error_entry_not_a_crash():
+    r = run_task("method", {"path": "/nonexistent/capture.pt", "method": "paper-numpy"})
+    assert "error" in r and "FileNotFoundError" in r["error"]
+
+
+def test_cli_rejects_unknown_sections(capsys):
+    from torchmetal.bench.__main__ import main
+
+    assert main(["--quick", "--sections", "sweep,nonsense"]) == 2
+    assert "nonsense" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- end to end
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    from torchmetal.bench.__main__ import main
+
+    out = tmp_path_factory.mktemp("bench")
+    t0 = time.perf_counter()
+    rc = main(["--quick", "--quiet", "--out", str(out)])
+    return rc, out, time.perf_counter() - t0
+
+
+def test_quick_run_writes_every_output(quick_run):
+    rc, out, wall = quick_run
+    assert rc == 0
+    assert wall < QUICK_LIMIT_S * 1.5, f"--quick took {wall:.0f} s (budget {QUICK_LIMIT_S:.0f} s; shared CPU slack 1.5×)"
+    md = (out / "results.md").read_text()
+    for title in ("Sweep", "Capture load", "Phong fit", "Skip evidence", "Flake detection", "ONNX renderer", "Real captures"):
+        assert f"## {title}" in md
+    assert len(SECTIONS) == 7
+    png = (out / "time_vs_error.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+    assert "traceback" not in md.lower()
+
+
+def test_quick_run_baselines_have_numbers(quick_run):
+    _, out, _ = quick_run
+    rows = list(csv.DictReader(open(out / "results.csv")))
+    by_method = {}
+    for r in rows:
+        by_method.setdefault(r["method"], []).append(r)
+    for m in ("paper-numpy", "adam"):
+        assert by_method.get(m), f"no {m} rows"
+        for r in by_method[m]:
+            p = float(r["psnr_holdout"])
+            assert math.isfinite(p) and p > 30.0, (m, p)
+            assert float(r["wall_s"]) > 0 and float(r["peak_bytes"]) >= 0
+            assert abs(p - float(r["psnr_holdout_truth"])) < 6.0  # near the noise ceiling (quick: few Adam steps)
+    if _importable("torchmetal.fit"):
+        assert by_method.get("torchmetal"), "torchmetal.fit exists but the sweep has no torchmetal rows"
+        for r in by_method["torchmetal"]:
+            assert math.isfinite(float(r["psnr_holdout"]))
+
+
+def test_quick_run_sections_report_numbers_or_a_reason(quick_run):
+    """Each section prints its numbers, or 'not available: <reason>' — never an unexplained error."""
+    _, out, _ = quick_run
+    md = (out / "results.md").read_text()
+    assert "error:" not in md, [ln for ln in md.splitlines() if "error:" in ln][:5]
+    load = md.split("## Capture load")[1].split("\n## ")[0]
+    if _importable("torchmetal.io.capture"):
+        assert "load_capture s" in load and "not available" not in load
+
+
+def test_shared_server_survives_a_timeout():
+    """--quick runs every job on one worker: a hung job is stopped and the next one still runs."""
+    res = run_jobs([("selftest", {}), ("selftest", {"sleep": 30}), ("selftest", {}), ("selftest", {})],
+                   isolate=False, timeout=4)
+    assert "peak_bytes" in res[0] and "timed out" in res[1]["error"]
+    assert "peak_bytes" in res[2] and "peak_bytes" in res[3]
+    assert res[2]["pid"] == res[3]["pid"] != res[0]["pid"]  # restarted once, then reused
+
+
+def test_torchmetal_bench_verb_forwards_options(capsys):
+    from torchmetal.cli import main
+
+    assert main(["bench", "--quick", "--sections", "bogus"]) == 2
+    assert "bogus" in capsys.readouterr().err
