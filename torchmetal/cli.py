@@ -129,6 +129,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return bench_main(args.rest)
 
 
+def _bench_argv(argv: list[str]) -> list[str] | None:
+    """Arguments after the ``bench`` verb, verbatim (argparse's REMAINDER drops leading options)."""
+    return argv[1:] if argv and argv[0] == "bench" else None
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchmetal", description="Photos of a coated surface → Phong + metallic-flake material → ONNX renderer.")
     sub = p.add_subparsers(dest="verb", required=True, metavar="VERB")
@@ -192,7 +197,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    rest = _bench_argv(argv)
+    args = build_parser().parse_args(argv if rest is None else ["bench"])
+    if rest is not None:
+        args.rest = rest
     try:
         return int(args.func(args) or 0)
     except TorchmetalError as e:

@@ -1,0 +1,78 @@
+"""The command line end to end, and its one-line errors."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from torchmetal.cli import main
+
+
+def run_cli(*args, cwd=None):
+    """Run ``python -m torchmetal ARGS`` in a subprocess; returns the CompletedProcess."""
+    return subprocess.run([sys.executable, "-m", "torchmetal", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+def assert_one_line_error(proc, expected):
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert expected in lines[0]
+
+
+@pytest.mark.parametrize("verb", ["demo", "fit", "render", "export", "synth", "bench"])
+def test_help_everywhere(verb):
+    proc = run_cli(verb, "--help")
+    assert proc.returncode == 0
+    assert "usage" in proc.stdout.lower()
+
+
+def test_synth_fit_render_export(tmp_path):
+    cap, mat = tmp_path / "cap", tmp_path / "mat"
+    assert main(["synth", "-o", str(cap), "--size", "48", "--shots", "6", "--flakes", "--noise", "0.005"]) == 0
+    assert (cap / "capture.json").is_file() and (cap / "truth" / "truth.json").is_file()
+    assert main(["fit", str(cap), "-o", str(mat), "-q"]) == 0
+    meta = json.loads((mat / "material.json").read_text())
+    assert meta["format"] == "torchmetal-material" and "stage_times" in meta["fit"]
+    assert all(np.isfinite(meta["phong"]["alpha"]))
+    assert main(["render", str(mat), "--light", "0 0.05 0.3 1", "--camera", "0 0 0.3 1", "-o", str(tmp_path / "r.npy")]) == 0
+    img = np.load(tmp_path / "r.npy")
+    assert img.shape == (48, 48, 3) and np.isfinite(img).all() and img.max() > 0
+    assert main(["render", str(mat), "--light", "0 0.05 0.3 1", "--camera", "0 0 0.3 1", "-o", str(tmp_path / "r.png")]) == 0
+    assert (tmp_path / "r.png").stat().st_size > 0
+    assert main(["export", str(mat)]) == 0
+    assert (mat / "renderer.onnx").is_file()
+
+
+@pytest.mark.parametrize(
+    "args, expected",
+    [
+        (["fit", "{missing}", "-o", "{tmp}/m"], "capture.json"),
+        (["render", "{missing}", "--light", "0 0 1 0", "--camera", "0 0 1 0", "-o", "{tmp}/x.png"], "material.json"),
+        (["render", "{mat}", "--light", "0 0 -1 1", "--camera", "0 0 1 0", "-o", "{tmp}/x.png"], "light"),
+        (["render", "{mat}", "--light", "0 0 1 0.5", "--camera", "0 0 1 0", "-o", "{tmp}/x.png"], "w"),
+        (["export", "{missing}"], "material.json"),
+    ],
+)
+def test_bad_input_one_line(tmp_path, args, expected):
+    from torchmetal.material import Material, save_material
+    import torch
+
+    save_material(Material(torch.rand(3, 4, 4), torch.zeros(3), torch.ones(3), (1.0, 1.0)), tmp_path / "mat")
+    fmt = {"missing": tmp_path / "nope", "tmp": tmp_path, "mat": tmp_path / "mat"}
+    proc = run_cli(*[a.format(**fmt) for a in args])
+    assert_one_line_error(proc, expected)
+
+
+def test_bad_vector_argument_is_usage_error():
+    proc = run_cli("render", "m", "--light", "0 0 1", "--camera", "0 0 1 0", "-o", "x.png")
+    assert proc.returncode == 2 and "expected 4 numbers" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_malformed_capture_json(tmp_path):
+    (tmp_path / "cap").mkdir()
+    (tmp_path / "cap" / "capture.json").write_text("{\"format\": ")
+    assert_one_line_error(run_cli("fit", tmp_path / "cap", "-o", tmp_path / "m"), "JSON")
