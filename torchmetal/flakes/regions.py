@@ -145,6 +145,8 @@ def region_moments(px: PixelList, weight: Tensor) -> dict[str, Tensor]:
     l2 = (half_tr - disc).clamp_min(0.0)
     # up = −row, so the xy moment in the (x, up) frame is −mxy
     angle = 0.5 * torch.atan2(-2.0 * mxy, mxx - myy)
+    # atan2(−0, x < 0) = −π: fold −π/2 onto π/2 so that the range is (−π/2, π/2] as documented
+    angle = torch.where(angle <= -0.5 * torch.pi, angle + torch.pi, angle)
     return {
         "area": area, "cy": cy, "cx": cx, "mu_yy": myy, "mu_xx": mxx, "mu_xy": mxy,
         "major": 4.0 * torch.sqrt(l1), "minor": 4.0 * torch.sqrt(l2), "angle": angle,
