@@ -156,3 +156,88 @@ def true_flakes(model: FlakeModel, h: int, w: int, normals: torch.Tensor) -> dic
     m = normalize(n + model.tilt_sigma * (sx * t1 + sy * t2), dim=0)
     p = present
     return {"row": row[p], "col": col[p], "normal": m[:, p].t(), "color": color[:, p].t(), "area": area[p], "count": int(p.sum())}
+
+
+@dataclass
+class ResidualScene:
+    """Photos = Phong + known Gaussian glints + brightness-dependent noise (see :func:`residual_scene`)."""
+
+    photos: torch.Tensor  # (N, 3, H, W)
+    phong: torch.Tensor  # (N, 3, H, W) the Phong estimate handed to the detector
+    irradiance: torch.Tensor  # (N, 3, 1, 1)
+    sigma: torch.Tensor  # (N, 1, H, W) true per-pixel noise σ of each photo channel
+    shot: torch.Tensor  # (F,) int64 shot of each true glint
+    row: torch.Tensor  # (F,) glint centre, pixel-centre coordinates (row + 0.5 at a pixel centre)
+    col: torch.Tensor  # (F,)
+    peak: torch.Tensor  # (F,) peak of the channel-mean glint in photo units
+    bright: torch.Tensor  # (F,) bool, glint lies on the bright half of the texture
+
+
+def residual_scene(
+    h: int = 128,
+    w: int = 128,
+    *,
+    shots: int = 2,
+    noise: float = 0.004,
+    snr: tuple[float, float] = (10.0, 16.0),
+    spacing: int = 16,
+    bright: float = 0.5,
+    dark: float = 0.02,
+    edge_margin: int = 40,
+    seed: int = 0,
+) -> ResidualScene:
+    """A detector test scene with known glints on a bright (left) and a dark (right) texture half.
+
+    The photo noise is shot-noise-like, σ ∝ √(Phong), so the bright half is ~√(bright/dark)
+    times noisier; each glint's channel-mean peak is ``snr``× the *local* σ of that mean, so a
+    single global threshold cannot find the dark-half glints without flooding the bright half
+    with false alarms. Glints sit on a jittered ``spacing`` grid, at least 12 px from the image
+    border and ``edge_margin`` px from the texture edge (the detector's noise map is smoothed
+    over ~1.5 tiles, so next to a sharp noise step the dark side's σ reads high), as isotropic
+    Gaussians (σ 0.6–1.2 px, random colour).
+    The Phong estimate carries a smooth additive error (0.5 % of the bright level, ~250 px
+    wavelength), as a real fit would.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    half = w // 2
+    tex = torch.full((3, h, w), dark)
+    tex[:, :, :half] = bright
+    tex = tex * torch.tensor([1.0, 0.9, 0.8]).view(3, 1, 1)
+    e = 1.0 + 0.5 * torch.rand(shots, 1, 1, 1, generator=gen)
+    phong = e * tex.unsqueeze(0).expand(shots, -1, -1, -1)
+    sigma = noise * torch.sqrt(phong.mean(1, keepdim=True) / bright)  # per channel
+    sigma_mean = sigma / math.sqrt(3.0)  # σ of the channel mean
+    shot, rows, cols, on_bright = [], [], [], []
+    for k in range(shots):
+        for r0 in range(12, h - 12, spacing):
+            for c0 in range(12, w - 12, spacing):
+                if abs(c0 + 1 - half) < edge_margin:
+                    continue
+                shot.append(k), rows.append(r0), cols.append(c0), on_bright.append(c0 < half)
+    n = len(shot)
+    shot_t = torch.tensor(shot, dtype=torch.int64)
+    row = torch.tensor(rows, dtype=torch.float32) + 2.0 * torch.rand(n, generator=gen) + 0.5
+    col = torch.tensor(cols, dtype=torch.float32) + 2.0 * torch.rand(n, generator=gen) + 0.5
+    width = 0.6 + 0.6 * torch.rand(n, generator=gen)
+    z = snr[0] + (snr[1] - snr[0]) * torch.rand(n, generator=gen)
+    colour = 0.6 + 0.8 * torch.rand(n, 3, generator=gen)
+    colour = colour / colour.mean(1, keepdim=True)
+    peak = z * sigma_mean[shot_t, 0, row.long(), col.long()]
+    # each glint drawn on its 11×11 neighbourhood (the Gaussian is < 1e-8 of its peak beyond)
+    d = torch.arange(-5, 6)
+    ii = (row.long().view(-1, 1, 1) + d.view(1, -1, 1)).expand(-1, 11, 11)
+    jj = (col.long().view(-1, 1, 1) + d.view(1, 1, -1)).expand(-1, 11, 11)
+    blob = torch.exp(-((ii + 0.5 - row.view(-1, 1, 1)) ** 2 + (jj + 0.5 - col.view(-1, 1, 1)) ** 2) / (2 * width.view(-1, 1, 1) ** 2))
+    glints = torch.zeros(shots, h, w, 3)
+    kk = shot_t.view(-1, 1, 1).expand_as(ii)
+    glints.index_put_((kk, ii, jj), (peak.view(-1, 1, 1) * blob).unsqueeze(-1) * colour.view(-1, 1, 1, 3), accumulate=True)
+    glints = glints.permute(0, 3, 1, 2)
+    yy = torch.arange(h, dtype=torch.float32).view(-1, 1) + 0.5
+    xx = torch.arange(w, dtype=torch.float32).view(1, -1) + 0.5
+    yy01, xx01 = yy / h, xx / w
+    error = 0.005 * bright * e * torch.sin(2 * math.pi * (0.7 * xx01 + 0.4 * yy01))
+    photos = phong + glints + sigma * torch.randn(phong.shape, generator=gen)
+    return ResidualScene(
+        photos, (phong + error).contiguous(), e.expand(-1, 3, -1, -1).contiguous(), sigma,
+        shot_t, row, col, peak, torch.tensor(on_bright, dtype=torch.bool),
+    )
