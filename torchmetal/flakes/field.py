@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchmetal.errors import InputError
 from torchmetal.flakes.model import FlakeModel
 from torchmetal.geometry import ShadingGeometry, normalize, shading_geometry
 
@@ -34,8 +35,14 @@ _MIN_CELL = 3
 
 
 def hash32(x: Tensor) -> Tensor:
-    """lowbias32 integer hash on int64 tensors holding 32-bit values."""
-    x = x & _MASK32
+    """lowbias32 integer hash of the low 32 bits of an integer tensor, as int64 in [0, 2³²).
+
+    Any integer dtype gives the same bits for the same values (int32/int16/uint8 inputs are
+    widened to int64 first: 32-bit products would wrap before the mask); floats are rejected.
+    """
+    if x.is_floating_point() or x.is_complex() or x.dtype == torch.bool:
+        raise InputError(f"hash32: expected an integer tensor, found dtype {x.dtype}")
+    x = x.to(torch.int64) & _MASK32
     x = x ^ (x >> 16)
     x = (x * 0x7FEB352D) & _MASK32
     x = x ^ (x >> 15)
@@ -45,7 +52,13 @@ def hash32(x: Tensor) -> Tensor:
 
 
 def hash_uniform(ci: Tensor, cj: Tensor, seed: int, draw: int, dtype: torch.dtype) -> Tensor:
-    """Uniform (0, 1) value for each cell and draw index, from chained hashes."""
+    """Uniform (0, 1) value for each cell and draw index, from chained hashes.
+
+    Only the low 32 bits of ``seed`` and ``draw`` matter (so any Python int works and never
+    overflows int64); float32 values are the float64 ones rounded to nearest.
+    """
+    seed, draw = int(seed) & _MASK32, int(draw) & _MASK32
+    ci, cj = ci.to(torch.int64), cj.to(torch.int64)
     h = hash32(ci * 0x9E3779B1 + seed * 0x85EBCA77 + draw * 0xC2B2AE3D)
     h = hash32(h ^ (cj * 0x27D4EB2F))
     return ((h >> 8).to(dtype) + 0.5) * (1.0 / 16777216.0)
