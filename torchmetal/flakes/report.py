@@ -49,13 +49,25 @@ def overlay_detections(
 
 
 def save_detection_overlay(path: str | Path, image: Tensor, particles: Particles, **kwargs) -> Path:
-    """Write :func:`overlay_detections` as a PNG; returns the path."""
+    """Write :func:`overlay_detections` as a PNG; returns the path.
+
+    Raises:
+        InputError: the path does not end in ``.png`` or cannot be written (one line, no cv2
+            traceback).
+    """
     import cv2
 
     path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise InputError(f"path: expected a .png path, found {str(path)!r}")
     pic = overlay_detections(image, particles, **kwargs)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), pic[:, :, ::-1]):
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        ok = cv2.imwrite(str(path), np.ascontiguousarray(pic[:, :, ::-1]))
+    except (OSError, cv2.error) as e:
+        reason = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+        raise InputError(f"path: expected a writable .png path, found {str(path)!r} ({reason})") from None
+    if not ok:
         raise InputError(f"path: expected a writable .png path, found {str(path)!r}")
     return path
 
