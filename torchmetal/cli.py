@@ -35,7 +35,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     capture = load_capture(args.capture)
     result = fit_material(
         capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
-        tol=args.tol, max_iters=args.max_iters, seed=args.seed, progress=not args.quiet,
+        tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
+        progress=not args.quiet,
     )
     extra = {}
     if args.export:
@@ -150,6 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--scheme", choices=["refine", "paper"], default="refine")
     f.add_argument("--specular", choices=["auto", "global", "clustered", "none"], default="auto")
     f.add_argument("--flakes", choices=["auto", "on", "off"], default="auto")
+    f.add_argument("--robust", choices=["auto", "none", "huber", "cauchy"], default="auto",
+                   help="IRLS weights of the Phong fit (auto: huber when the flake stage runs)")
     f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
     f.add_argument("--max-iters", type=int, default=100)
     f.add_argument("--seed", type=int, default=0, help="seed of the flake field")

@@ -3,12 +3,17 @@
 Each stage is skipped when the scene does not need it, and the report says so:
 no highlights → no specular fit (inside :func:`~torchmetal.fit.fit_phong`), no flakes → the flake
 stage returns no model and the material stores ``flakes: null``.
+
+With the flake stage on, the Phong fit uses Huber weights (glints are outliers of the Phong
+model) and, before the flake statistics, the texture under a first round of detections is
+re-solved without the shots where it glints (:mod:`torchmetal.flakes.texture`): otherwise the
+per-pixel texture absorbs part of every glint and the statistics see weakened glints.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -16,6 +21,7 @@ from torchmetal.errors import InputError
 from torchmetal.material import Material
 
 FLAKE_MODES = ("auto", "on", "off")
+ROBUST_AUTO = "huber"  # the refine scheme's weights when the flake stage runs (robust="auto")
 
 
 @dataclass
@@ -37,6 +43,21 @@ def render_shots(fit, capture, *, chunk: int = 4) -> torch.Tensor:
     return torch.cat(parts)
 
 
+def _texture_without_glints(capture, texture: torch.Tensor, phong_images: torch.Tensor):
+    """One round of detection, then the texture re-solved under it: (texture, phong_images)."""
+    from torchmetal.flakes.detect import detect_flakes
+    from torchmetal.flakes.stage import irradiance_maps
+    from torchmetal.flakes.texture import texture_without_glints
+
+    valid = capture.mask.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)
+    det = detect_flakes(capture.images, phong_images.to(capture.images.dtype), irradiance_maps(capture, dtype=capture.images.dtype),
+                        valid=valid)
+    if len(det.particles) == 0:
+        return texture, phong_images
+    new, phong_images, _ = texture_without_glints(capture, texture, phong_images.to(texture.dtype), det.labels)
+    return new, phong_images
+
+
 def fit_material(
     capture,
     *,
@@ -45,6 +66,7 @@ def fit_material(
     flakes: str = "auto",
     tol: float = 1e-6,
     max_iters: int = 100,
+    robust: str | None = "auto",
     seed: int = 0,
     progress: bool = False,
 ) -> PipelineResult:
@@ -55,6 +77,8 @@ def fit_material(
         scheme, specular, tol, max_iters: passed to :func:`~torchmetal.fit.fit_phong`.
         flakes: "auto" (fit a flake model when detections exceed noise), "on" (same, and the
             report says when none was found), "off" (skip the stage).
+        robust: IRLS weights of the Phong fit (see :func:`~torchmetal.fit.fit_phong`); "auto" is
+            Huber for scheme="refine" with the flake stage on, else plain least squares.
         seed: seed of the material's flake field.
         progress: show progress bars.
 
@@ -66,8 +90,11 @@ def fit_material(
 
     if flakes not in FLAKE_MODES:
         raise InputError(f"flakes: expected one of {FLAKE_MODES}, found {flakes!r}")
+    if robust == "auto":
+        robust = ROBUST_AUTO if (scheme == "refine" and flakes != "off") else None
     t0 = time.perf_counter()
-    fit = fit_phong(capture, scheme=scheme, specular=specular, tol=tol, max_iters=max_iters, progress=progress)
+    fit = fit_phong(capture, scheme=scheme, specular=specular, tol=tol, max_iters=max_iters, robust=robust,
+                    progress=progress)
     stage_times = {f"phong.{k}": v for k, v in fit.stage_times.items()}
     skipped = list(fit.skipped)
     flake_result = None
@@ -80,11 +107,15 @@ def fit_material(
 
         t = time.perf_counter()
         phong_images = render_shots(fit, capture)
+        texture, phong_images = _texture_without_glints(capture, fit.texture, phong_images)
+        stage_times["flakes.texture"] = time.perf_counter() - t
         flake_result = flake_stage(capture, phong_images, seed=seed)
         del phong_images
         stage_times["flakes"] = time.perf_counter() - t
         flake_model = flake_result.model
-        if flake_model is None:
+        if flake_model is not None:
+            fit = replace(fit, texture=texture)  # the sparkles now carry the glints
+        else:
             reason = flake_result.report.get("skipped", "detections consistent with noise")
             skipped.append(f"flakes: {reason}")
     report = {
