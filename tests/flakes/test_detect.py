@@ -171,6 +171,23 @@ class TestDetectFlakes:
         assert len(p) == 0 and p.rgb.shape == (0, 3) and p.shot.dtype == torch.int64
         assert int(det.labels.abs().sum()) == 0
 
+    @pytest.mark.parametrize("shape", [(1, 3, 1, 1), (1, 3, 5, 7), (2, 3, 16, 16), (1, 3, 40, 3)])
+    def test_tiny_images_and_float64(self, shape):
+        gen = torch.Generator().manual_seed(0)
+        phong = torch.full(shape, 0.2, dtype=torch.float64)
+        photos = phong + 0.01 * torch.randn(shape, generator=gen, dtype=torch.float64)
+        i, j = shape[-2] // 2, shape[-1] // 2
+        photos[..., i, j] += 0.5
+        det = detect_flakes(photos, phong, torch.ones(shape[0], 3, 1, 1, dtype=torch.float64))
+        p = det.particles
+        assert p.amp.dtype == p.cy.dtype == torch.float64 and det.signal.dtype == torch.float64
+        if shape[-1] * shape[-2] == 1:
+            assert len(p) == 0  # a lone pixel has no background to stand out from
+        else:
+            assert len(p) == shape[0]
+            assert p.cy.tolist() == pytest.approx([i + 0.5] * shape[0], abs=0.05)
+            assert p.cx.tolist() == pytest.approx([j + 0.5] * shape[0], abs=0.05)
+
     def test_invalid_and_saturated_pixels_ignored(self):
         sc = residual_scene(128, 256, shots=2, noise=0.004, seed=2)
         photos = sc.photos.clone()
