@@ -287,16 +287,18 @@ class TestSparkle:
             d = torch.randn(3, generator=gen, dtype=torch.float64) * 0.05
             assert glint(l_star + d) < peak
 
-    def test_continuity_under_small_light_move(self):
-        # 0.1° light move: every pixel changes by at most the glint lobe's steepest slope
-        # (e^-½/σ_g per radian of half-vector change) times its flux — glints fade, never jump
+    @pytest.mark.parametrize("moving", ["light", "camera"])
+    def test_continuity_under_small_move(self, moving):
+        # 0.1° light (or camera) move: every pixel changes by at most the glint lobe's steepest
+        # slope (e^-½/σ_g per radian of half-vector change) times its flux — glints fade, never jump
         f, n = self._setup(h=96, w=96, dtype=torch.float64, tilt_sigma=0.15)
         inten = torch.full((1, 3), 4.0, dtype=torch.float64)
-        cam = torch.tensor([[0.0, 0.0, 2.5, 1.0]], dtype=torch.float64)
+        cam0 = torch.tensor([[0.0, 0.0, 2.5, 1.0]], dtype=torch.float64)
         light0 = torch.tensor([[0.4, 0.1, 2.0, 1.0]], dtype=torch.float64)
-        steps = [rotate_y(light0, 0.1 * k) for k in range(60)]
+        steps = [rotate_y(light0 if moving == "light" else cam0, 0.1 * k) for k in range(60)]
         imgs, geoms = [], []
-        for light in steps:
+        for x in steps:
+            light, cam = (x, cam0) if moving == "light" else (light0, x)
             geoms.append(shading_geometry(n, light, inten, cam, (1.0, 1.0)))
             imgs.append(sparkle_shading(f, geoms[-1]))
         flux = f.weight * f.color
