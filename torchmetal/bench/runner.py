@@ -15,6 +15,8 @@ skip      per-stage times and the skipped list: flake-free, specular-free and fu
 flakes    flake detection + statistics time on one 1024² shot
 onnx      ONNX renderer of a 1024² material: frame time (onnxruntime and torch) and file size
 real      leave-one-out PSNR on the real captures in shared/data (when present)
+realflakes  cards_blue: flake statistics, MD and PSNR of a left-out shot with and without the
+          flake term, detections drawn on a shot (``flakes_<capture>.png``)
 ========  ==================================================================================
 
 Outputs in ``--out`` (default ``bench-results/``): ``results.md``, ``results.csv``,
@@ -34,7 +36,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-SECTIONS = ("sweep", "load", "fit1024", "skip", "flakes", "onnx", "real")
+SECTIONS = ("sweep", "load", "fit1024", "skip", "flakes", "onnx", "real", "realflakes")
 METHODS = ("torchmetal", "torchmetal-paper", "paper-numpy", "adam")
 EQUAL_DB = 0.1  # "equal error": held-out PSNR within this many dB
 MiB = 2**20
@@ -68,6 +70,7 @@ class Plan:
     real_captures: tuple[str, ...] = ("cards_blue", "uw_gray_sphere")
     real_max_shots: int | None = None
     real_speculars: tuple[str, ...] = ("global", "clustered")
+    realflakes_captures: tuple[str, ...] = ("cards_blue",)
     isolate: bool = True
     timeout_s: float = 1800.0
     holdout: int = 2
@@ -104,7 +107,7 @@ def quick_plan() -> Plan:
         adam_budget_s=0.0,
         load_size=64, load_shots=4, fit_size=48, fit_shots=4, skip_size=32, skip_shots=6,
         flake_size=64, onnx_size=32, real_downsample=8, real_captures=("uw_gray_sphere",), real_max_shots=5,
-        real_speculars=("global",), isolate=False, timeout_s=120.0, threads=1,
+        real_speculars=("global",), realflakes_captures=("uw_gray_sphere",), isolate=False, timeout_s=120.0, threads=1,
     )
 
 
@@ -707,6 +710,35 @@ class Bench:
         self.add(md_table(["capture", "specular", "mean PSNR dB", "per left-out shot (dB)", "seconds"], rows))
         if p.real_downsample > 1 or p.real_max_shots:
             self.add(f"\n(quick mode: captures box-downsampled {p.real_downsample}×, first {p.real_max_shots} shots)")
+
+    def run_realflakes(self) -> None:
+        p = self.plan
+        self.section("Real captures: flake statistics, MD and PSNR of a left-out shot with and without the flake term")
+        dirs = [self.data_dir / name for name in p.realflakes_captures] if self.data_dir is not None else []
+        dirs = [d for d in dirs if (d / "capture.json").is_file()]
+        if not dirs:
+            self.add(f"not available: no capture of {list(p.realflakes_captures)} in {self.data_dir}")
+            return
+        res = self.jobs([("realflakes", {"dir": str(d), "downsample": p.real_downsample,
+                                         "overlay": str(self.out / f"flakes_{d.name}.png")}) for d in dirs])
+        self.raw["realflakes"] = res
+        rows = []
+        for d, r in zip(dirs, res):
+            msg = problem(r)
+            if msg:
+                rows.append([d.name, msg] + [""] * 8)
+                continue
+            m = r["model"]
+            stats = "none (" + str(r["skipped"]) + ")" if m is None else (
+                f"density {m['density']:.3g}/px, median area {math.exp(m['area_log_mean']):.2f} px², aspect "
+                f"{m['aspect_mean']:.2f}, colour {', '.join(f'{c:.3f}' for c in m['color_mean'])}, tilt σ "
+                f"{m['tilt_sigma']:.3f} rad, glint σ {m['glint_sigma']:.3f} rad")
+            rows.append([f"{d.name} ({r['size'][0]}×{r['size'][1]}, {r['shots_fitted']} shots fitted, shot {r['heldout']} left out)",
+                         str(r["particles"]), stats, fmt(r["md_with"], ".2f"), fmt(r["md_without"], ".2f"),
+                         fmt(r["psnr_with"], ".2f"), fmt(r["psnr_without"], ".2f"), fmt(r["fit_s"], ".1f"),
+                         fmt(r.get("flake_stage_s"), ".2f"), Path(r.get("overlay", "")).name or "–"])
+        self.add(md_table(["capture", "detections", "fitted flake model", "MD with flakes", "MD without", "PSNR with dB",
+                           "PSNR without dB", "fit s", "flake stage s", "overlay"], rows))
 
     # -- output ---------------------------------------------------------------------------
 
