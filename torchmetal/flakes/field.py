@@ -126,8 +126,13 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
     ci = (ii // c).view(-1, 1).expand(height, width)
     cj = (jj // c).view(1, -1).expand(height, width)
 
+    # hash once per cell, then gather to the pixels (c² times fewer integer ops, same bits)
+    gi = torch.arange(-(-height // c), device=device).view(-1, 1)
+    gj = torch.arange(-(-width // c), device=device).view(1, -1)
+    gi, gj = gi.expand(gi.shape[0], gj.shape[1]), gj.expand(gi.shape[0], gj.shape[1])
+
     def u(k: int) -> Tensor:
-        return hash_uniform(ci, cj, model.seed, k, dtype)
+        return hash_uniform(gi, gj, model.seed, k, dtype)[ci, cj]
 
     present = u(0) < presence
     z_area, z_aspect = _normal_pair(u(3), u(4))
