@@ -81,7 +81,7 @@ class TestHash:
         assert torch.equal(hash32(x), hash32(x.clone()))
 
     def test_uniform_range_and_statistics(self):
-        ci, cj = torch.meshgrid(torch.arange(200), torch.arange(200), indexing="ij")
+        ci, cj = torch.meshgrid(torch.arange(120), torch.arange(120), indexing="ij")
         u = hash_uniform(ci, cj, 7, 0, torch.float64)
         assert float(u.min()) > 0 and float(u.max()) < 1
         n = u.numel()
@@ -97,7 +97,7 @@ class TestHash:
             assert abs(float(r)) < 4 / math.sqrt(n)
 
     def test_uniform_float32_is_float64_rounded(self):
-        ci, cj = torch.meshgrid(torch.arange(300), torch.arange(300), indexing="ij")
+        ci, cj = torch.meshgrid(torch.arange(128), torch.arange(128), indexing="ij")
         for draw in range(3):
             u64 = hash_uniform(ci, cj, 3, draw, torch.float64)
             u32 = hash_uniform(ci, cj, 3, draw, torch.float32)
@@ -153,11 +153,11 @@ class TestFlakeField:
         overlap = float(((a.weight > 0) & (b.weight > 0)).float().sum() / (a.weight > 0).float().sum())
         assert overlap < 0.3
 
-    @pytest.mark.parametrize("density", [0.001, 0.004, 0.01, 0.025])
+    @pytest.mark.parametrize("density", [0.001, 0.005, 0.025])
     def test_density_matches_model(self, density):
         m = FlakeModel(density=density, seed=5, area_log_mean=math.log(2.0))
         c = cell_size(density)
-        side = c * (240 // c)  # whole cells, so the expectation is exactly density·area
+        side = c * (200 // c)  # whole cells, so the expectation is exactly density·area
         f = flake_field(m, side, side)
         cells = (side // c) ** 2
         p = density * c * c
@@ -291,7 +291,7 @@ class TestSparkle:
     def test_continuity_under_small_move(self, moving):
         # 0.1° light (or camera) move: every pixel changes by at most the glint lobe's steepest
         # slope (e^-½/σ_g per radian of half-vector change) times its flux — glints fade, never jump
-        f, n = self._setup(h=96, w=96, dtype=torch.float64, tilt_sigma=0.15)
+        f, n = self._setup(h=64, w=64, dtype=torch.float64, tilt_sigma=0.15)
         inten = torch.full((1, 3), 4.0, dtype=torch.float64)
         cam0 = torch.tensor([[0.0, 0.0, 2.5, 1.0]], dtype=torch.float64)
         light0 = torch.tensor([[0.4, 0.1, 2.0, 1.0]], dtype=torch.float64)
