@@ -303,6 +303,12 @@ class TestDetectBadInput:
         self._raises("k_lo", k_lo=0.0)
         self._raises("close", close=4)
         self._raises("open", open=2)
+        self._raises("valid", valid=torch.ones(2, 1, 16, 16))  # float mask
+        self._raises("valid", valid=torch.ones(1, 1, 16, 16, dtype=torch.uint8))
+        self._raises("tile", tile=0)
+        self._raises("background", background=0)
+        self._raises("min_area", min_area=-1)
+        self._raises("chunk", chunk=0)
 
 
 class TestHelpers:

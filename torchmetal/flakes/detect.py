@@ -180,6 +180,8 @@ def _check_inputs(photos: Tensor, phong: Tensor, irradiance: Tensor, valid: Tens
         check_shape(valid, ("*", 1, h, w), "valid")
         if valid.dim() != 4 or valid.shape[0] not in (1, n):
             raise InputError(f"valid: expected shape ({n}|1, 1, {h}, {w}), found {tuple(valid.shape)}")
+        if valid.dtype != torch.bool:
+            raise InputError(f"valid: expected a bool tensor, found dtype {valid.dtype}")
     check_finite(photos, "photos")
     check_finite(phong, "phong")
     if bool((irradiance <= 0).any()) or not bool(torch.isfinite(irradiance).all()):
@@ -336,6 +338,9 @@ def detect_flakes(
     for name, k in (("close", close), ("open", open)):
         if k > 1 and k % 2 == 0:
             raise InputError(f"{name}: expected an odd kernel size, found {k}")
+    for name, k, lo in (("tile", tile, 2), ("background", background, 1), ("min_area", min_area, 0), ("chunk", chunk, 1)):
+        if not isinstance(k, int) or isinstance(k, bool) or k < lo:
+            raise InputError(f"{name}: expected an integer >= {lo}, found {k!r}")
     n, _, h, w = photos.shape
     if valid is None:
         valid = torch.ones(1, 1, h, w, dtype=torch.bool, device=photos.device)
