@@ -241,3 +241,14 @@ def residual_scene(
         photos, (phong + error).contiguous(), e.expand(-1, 3, -1, -1).contiguous(), sigma,
         shot_t, row, col, peak, torch.tensor(on_bright, dtype=torch.bool),
     )
+
+
+def capture_of(scene: Scene):
+    """The :class:`~torchmetal.io.capture.Capture` of a :func:`make_scene` scene (its photos,
+    normals, lights, cameras and size; saturated where the photo clipped)."""
+    from torchmetal.io.capture import Capture
+
+    return Capture(
+        images=scene.photos, normals=scene.normals, lights=scene.lights, intensities=scene.intensities,
+        cameras=scene.cameras, size=scene.size, saturated=(scene.photos >= 1.0),
+    )

@@ -249,11 +249,16 @@ def _log_detect(a_over_sigma: Tensor, k_hi: float, detected: Tensor, outlier: fl
 
     With ``outlier`` = ε the probability is mixed with a coin flip, (1 − ε)·P + ε/2, so one
     mis-associated or merged detection costs at most log(2/ε) instead of dominating the fit.
+    Non-detections are divided by their value at P = 0, 1 − ε/2, so a shot whose cap is far
+    from the flake adds exactly 0: which far shots the caller includes (a choice that moves
+    with the parameters) then cannot make the likelihood jump. (Detected shots are always
+    included, so their constant does not depend on the parameters.)
     """
     z = _PROBIT * (a_over_sigma - k_hi)
     lp = F.logsigmoid(torch.where(detected, z, -z))
     if outlier > 0:
         lp = torch.logaddexp(lp + math.log1p(-outlier), torch.full_like(lp, math.log(0.5 * outlier)))
+        lp = torch.where(detected, lp, lp - math.log1p(-0.5 * outlier))
     return lp
 
 
@@ -391,7 +396,7 @@ def _gauss_legendre(n: int, dtype, device) -> tuple[Tensor, Tensor]:
 
 def p_any(
     d: GlintData, tau: Tensor, sg: Tensor, la: Tensor, va: Tensor, *,
-    n_a: int = 5, n_in: int = 2, n_band: int = 3, n_phi: int = 10, margin: float = 3.0,
+    n_a: int = 4, n_in: int = 2, n_band: int = 3, n_phi: int = 8, margin: float = 3.0,
 ) -> Tensor:
     """Probability (G,) that a flake in each grid cell is detected in at least one shot.
 
@@ -472,7 +477,7 @@ def _objective(d: GlintData, sub: GlintData, theta: Tensor, prior: tuple[Tensor,
 class GlintFit:
     """Result of :func:`fit_glints`: fitted values, profiled density, loglik at the optimum,
     standard errors and identifiability (by log-parameter name), L-BFGS iterations and
-    objective evaluations (coarse + fine + curvature)."""
+    objective evaluations (L-BFGS runs + curvature)."""
 
     tilt_sigma: float
     glint_sigma: float
@@ -532,13 +537,14 @@ def _one_thread():
         torch.set_num_threads(prev)
 
 
+@_one_thread()
 def fit_glints(
     d: GlintData,
     *,
     max_flakes: int = 300,
-    curvature_flakes: int = 100,
     max_iter: int = 30,
     tol: float = 1e-3,
+    restarts: int = 2,
     init: dict | None = None,
     nodes: dict | None = None,
     work_dtype: torch.dtype = torch.float32,
@@ -546,15 +552,15 @@ def fit_glints(
 ) -> GlintFit:
     """Maximum-likelihood (τ, σ_g, A distribution) and the profiled true density.
 
-    One L-BFGS run (strong Wolfe) from the moment start below; the curvature for the standard
-    errors is 4 forward differences of the gradient on an even subsample of
-    ``curvature_flakes`` flakes (the objective scales the numerator sum to all flakes, so its
-    curvature is that of the full sum up to subsampling noise, at a third of the cost).
+    L-BFGS (strong Wolfe) from the start below, restarted from its best point while that still
+    gains; the curvature for the standard errors is 4 forward differences of the gradient.
 
     Args:
         d: likelihood data; max_flakes: flakes in the numerator sum (an even subsample);
-        curvature_flakes: flakes in the curvature estimate; max_iter: L-BFGS iterations;
+        max_iter: L-BFGS iterations per run;
         tol: L-BFGS stops when the loss or the (log-)parameters change less than this;
+        restarts: at most this many fresh L-BFGS runs from the best point, while a run still
+            gains ≥ 0.05 in log-likelihood;
         init: starting values (tau, glint_sigma, log_amp, log_amp_std; not modified);
         nodes: quadrature sizes {"num": {...}, "any": {...}}; work_dtype: dtype of the
         quadrature tensors (sums and parameters stay float64); uncertainty: compute standard
@@ -592,33 +598,38 @@ def fit_glints(
         evals[0] += 1
         return loss.detach(), expected.detach(), torch.autograd.grad(loss, t)[0]
 
-    curv = _recast(d, _even_subsample(j, min(curvature_flakes, max_flakes), dev), wd, flakes=True, grid=False)
-
-    def hessian(t: Tensor) -> Tensor:  # forward differences of the gradient on the curvature subsample
+    def hessian(t: Tensor) -> Tensor:  # forward differences of the gradient
         eps = 1e-2
         eye = torch.eye(4, dtype=t.dtype, device=dev)
-        g0 = value_grad(t, curv)[2]
-        hess = torch.stack([(value_grad(t + eps * eye[i], curv)[2] - g0) / eps for i in range(4)])
+        g0 = value_grad(t, sub)[2]
+        hess = torch.stack([(value_grad(t + eps * eye[i], sub)[2] - g0) / eps for i in range(4)])
         return 0.5 * (hess + hess.t())
 
     th0 = torch.tensor([math.log(tau0), math.log(sg0), la0, math.log(va0)], dtype=torch.float64, device=dev)
-    z = torch.zeros(4, dtype=torch.float64, device=dev, requires_grad=True)
-    opt = torch.optim.LBFGS([z], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-5, tolerance_change=tol)
     best = [float("inf"), th0.clone(), None]
+    iters = 0
+    # L-BFGS may stop on one short line-search step far from the optimum: restart from the best
+    # point (fresh curvature memory) until a run gains less than 0.05 in the loss
+    for _ in range(restarts + 1):
+        start_loss, start = best[0], best[1]
+        z = torch.zeros(4, dtype=torch.float64, device=dev, requires_grad=True)
+        opt = torch.optim.LBFGS([z], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-5, tolerance_change=tol)
 
-    def closure():
-        opt.zero_grad()
-        theta = th0 + z
-        loss, expected = _objective(grid, sub, theta, prior, nodes)
-        evals[0] += 1
-        loss.backward()
-        if float(loss.detach()) < best[0]:  # keep the best point visited (line searches may end off it)
-            best[:] = [float(loss.detach()), theta.detach().clone(), float(expected.detach())]
-        return loss
+        def closure():
+            opt.zero_grad()
+            theta = start + z
+            loss, expected = _objective(grid, sub, theta, prior, nodes)
+            evals[0] += 1
+            loss.backward()
+            if float(loss.detach()) < best[0]:  # keep the best point visited (line searches may end off it)
+                best[:] = [float(loss.detach()), theta.detach().clone(), float(expected.detach())]
+            return loss
 
-    opt.step(closure)
+        opt.step(closure)
+        iters += int(opt.state[opt._params[0]].get("n_iter", 0))
+        if start_loss - best[0] < 0.05:
+            break
     loss, th, expected = best
-    iters = int(opt.state[opt._params[0]].get("n_iter", 0))
     prior_h = torch.diag(1.0 / prior_sd**2)
     se = torch.full((4,), float("nan"), dtype=th.dtype, device=dev)
     data_h = torch.full((4,), float("nan"), dtype=th.dtype, device=dev)
