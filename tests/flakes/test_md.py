@@ -166,6 +166,10 @@ class TestMetallicDifferenceBadInput:
         self._raises("window", x, x, window=64)
         self._raises("window", x, x, window=1)
         self._raises("reduction", x, x, reduction="sum")
+        self._raises("window", x, x, window=16.0)
+        for k in (0.0, -1.0, float("nan"), float("inf")):
+            self._raises("k", x, x, k=k)
+        self._raises("regions", x, x, regions=0)
 
 
 class TestBlockFeatures:

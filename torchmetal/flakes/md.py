@@ -21,6 +21,8 @@ worse than an image with no glitter at all. MD compares *statistics of blocks* i
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -113,8 +115,12 @@ def metallic_difference(
     b = _as_batch(img_b, "img_b")
     if a.shape != b.shape:
         raise InputError(f"img_b: expected shape {tuple(a.shape)} like img_a, found {tuple(b.shape)}")
-    if window < 2 or min(a.shape[-2:]) < window:
+    if not isinstance(window, int) or isinstance(window, bool) or window < 2 or min(a.shape[-2:]) < window:
         raise InputError(f"window: expected 2 <= window <= min(H, W) = {min(a.shape[-2:])}, found {window}")
+    if not (isinstance(k, (int, float)) and math.isfinite(k) and k > 0):
+        raise InputError(f"k: expected a finite number > 0, found {k!r}")
+    if not isinstance(regions, int) or isinstance(regions, bool) or regions < 1:
+        raise InputError(f"regions: expected an integer >= 1, found {regions!r}")
     if reduction not in ("mean", "none"):
         raise InputError(f"reduction: expected 'mean' or 'none', found {reduction!r}")
     x = torch.cat([a, b]).float()
