@@ -375,58 +375,20 @@ def task_onnx(cfg: dict) -> dict:
         nbytes = path.stat().st_size
         siblings = sorted(p.name for p in Path(d).iterdir())
         out = {"size": size, "file_bytes": nbytes, "files": siblings, "export_s": export_s, "flakes": mat.flakes is not None}
-        try:
-            time_renderer = _need("torchmetal.onnx_export", "time_renderer")
-            reps = int(cfg.get("repeats", 10))
-            t_ort = time_renderer(path, batch=1, repeats=reps, threads=2)
-            t_torch = time_renderer(mat, batch=1, repeats=max(3, reps // 2))
-            out["timing"] = {"ort_ms": float(t_ort["ms_median"]), "ort_ms_min": float(t_ort["ms_min"]),
-                             "torch_ms": float(t_torch["ms_median"]), "torch_ms_min": float(t_torch["ms_min"]),
-                             "ort_threads": t_ort.get("threads"), "torch_threads": t_torch.get("threads")}
-        except NotAvailable as e:
-            out["timing"] = {"not_available": str(e)}
-        except (TypeError, KeyError) as e:
-            out["timing"] = {**_time_onnx_fallback(path, mat, int(cfg.get("repeats", 10))), "note": f"time_renderer: {e}"}
+        time_renderer = _need("torchmetal.onnx_export", "time_renderer")
+        reps = int(cfg.get("repeats", 10))
+        t_ort = time_renderer(path, batch=1, repeats=reps, threads=2)
+        t_torch = time_renderer(mat, batch=1, repeats=max(3, reps // 2))
+        out["timing"] = {"ort_ms": float(t_ort["ms_median"]), "ort_ms_min": float(t_ort["ms_min"]),
+                         "torch_ms": float(t_torch["ms_median"]), "torch_ms_min": float(t_torch["ms_min"]),
+                         "ort_threads": t_ort.get("threads"), "torch_threads": t_torch.get("threads")}
     return out
-
-
-def _time_onnx_fallback(path: Path, mat, repeats: int) -> dict:
-    """Minimum frame time in onnxruntime (2 threads) and torch eager for one light."""
-    import onnxruntime as ort
-    import torch
-
-    from torchmetal.renderer import MaterialRenderer
-
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 2
-    sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-    feeds = {"light": np.array([[0.02, 0.03, 0.3, 1.0]], np.float32), "light_intensity": np.ones((1, 3), np.float32),
-             "camera": np.array([[0.0, 0.0, 0.3, 1.0]], np.float32)}
-    sess.run(None, feeds)
-    ort_t = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        sess.run(None, feeds)
-        ort_t.append(time.perf_counter() - t0)
-    r = MaterialRenderer(mat)
-    args = [torch.from_numpy(feeds[k]) for k in ("light", "light_intensity", "camera")]
-    with torch.inference_mode():
-        r(*args)
-        tt = []
-        for _ in range(max(3, repeats // 3)):
-            t0 = time.perf_counter()
-            r(*args)
-            tt.append(time.perf_counter() - t0)
-    return {"ort_ms": 1e3 * min(ort_t), "torch_ms": 1e3 * min(tt), "source": "bench fallback timer"}
 
 
 def task_real(cfg: dict) -> dict:
     """Leave-one-out PSNR on a real capture directory, global vs clustered specular."""
     load_capture = _need("torchmetal.io.capture", "load_capture")
-    try:
-        leave_one_out = _need("torchmetal.fit.holdout", "leave_one_out")
-    except NotAvailable:
-        leave_one_out = None
+    leave_one_out = _need("torchmetal.fit.holdout", "leave_one_out")
     cap = load_capture(cfg["dir"])
     if cfg.get("max_shots") and cap.num_shots > int(cfg["max_shots"]):
         cap = cap.subset(list(range(int(cfg["max_shots"]))))
@@ -435,10 +397,7 @@ def task_real(cfg: dict) -> dict:
     out = {"name": Path(cfg["dir"]).name, "shots": int(cap.images.shape[0]), "size": list(cap.images.shape[-2:])}
     for spec in cfg.get("speculars", ["global", "clustered"]):
         t0 = time.perf_counter()
-        if leave_one_out is not None:
-            vals = [float(v) for v in leave_one_out(cap, specular=spec)]
-        else:
-            vals = _leave_one_out_fallback(cap, spec)
+        vals = [float(v) for v in leave_one_out(cap, specular=spec)]
         out[spec] = {"psnr": vals, "mean": float(np.mean(vals)), "seconds": time.perf_counter() - t0}
     return out
 
@@ -483,22 +442,6 @@ def task_realflakes(cfg: dict) -> dict:
         out["overlay"] = str(save_detection_overlay(cfg["overlay"], fit_cap.images[k], parts, gain=min(gain, 8.0)))
         out["overlay_particles"] = len(parts)
     return out
-
-
-def _leave_one_out_fallback(cap, spec: str) -> list[float]:
-    import torch
-
-    fit_phong = _need("torchmetal.fit", "fit_phong")
-    n = int(cap.images.shape[0])
-    vals = []
-    for k in range(n):
-        keep = [i for i in range(n) if i != k]
-        fit = fit_phong(cap.subset(keep), specular=spec)
-        one = cap.subset([k])
-        with torch.no_grad():
-            pred = fit.render(one.lights, one.intensities, one.cameras)
-        vals.append(psnr(pred, one.images, valid_mask(one)))
-    return vals
 
 
 def _downsample(cap, factor: int):
