@@ -63,7 +63,7 @@ class TestDetectFlakes:
         assert set(det.times) >= {"noise", "binarise", "components", "properties"}
 
     def test_shot_indices_and_label_map(self, scene_and_detection):
-        sc, det = scene_and_detection
+        _, det = scene_and_detection
         p = det.particles
         assert set(p.shot.tolist()) == {0, 1}
         assert bool((p.shot[1:] >= p.shot[:-1]).all())  # grouped by shot
@@ -80,7 +80,7 @@ class TestDetectFlakes:
             assert len(p.for_shot(k)) == int((p.shot == k).sum())
 
     def test_particle_values(self, scene_and_detection):
-        sc, det = scene_and_detection
+        _, det = scene_and_detection
         p = det.particles
         assert bool((p.snr >= det.k_hi).all())
         assert bool((p.area >= 1).all()) and bool((p.major >= p.minor).all()) and bool((p.minor >= 0).all())
@@ -94,7 +94,7 @@ class TestDetectFlakes:
         # the residual is divided by the irradiance: amp ≈ (true peak in photo units) / E
         sc, det = scene_and_detection
         p = det.particles
-        found, matched = match(p, sc)
+        _, matched = match(p, sc)
         d = ((p.cy[:, None] - sc.row[None]) ** 2 + (p.cx[:, None] - sc.col[None]) ** 2)
         d = torch.where(p.shot[:, None] == sc.shot[None], d, torch.full_like(d, float("inf")))
         t = d.argmin(1)[matched]
@@ -207,7 +207,7 @@ class TestDetectFlakes:
             near = (p.shot == k) & (p.cy > r0 - 2) & (p.cy < r1 + 2) & (p.cx > c0 - 2) & (p.cx < c1 + 2)
             assert int(near.sum()) == 0
         # glints away from the masked pixels are all still found, with unchanged σ elsewhere
-        found, matched = match(p, sc)
+        found, _ = match(p, sc)
         far = torch.ones_like(found)
         for k, (r0, r1, c0, c1) in enumerate([(40, 56, 90, 106), (100, 103, 200, 203)]):
             far &= ~((sc.shot == k) & (sc.row > r0 - 4) & (sc.row < r1 + 4) & (sc.col > c0 - 4) & (sc.col < c1 + 4))
@@ -288,7 +288,7 @@ class TestDetectBadInput:
         self._raises("valid", valid=torch.ones(3, 1, 16, 16, dtype=torch.bool))
 
     def test_non_finite(self):
-        photos, phong, irr = self._ok()
+        photos, phong, _ = self._ok()
         photos[0, 1, 3, 3] = float("nan")
         assert "NaN" in self._raises("photos", photos=photos)
         phong = phong.clone()

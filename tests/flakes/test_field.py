@@ -205,7 +205,6 @@ class TestFlakeField:
         assert abs(float(slope.std()) - 0.1) < 0.01
         f = flake_field(m, 240, 240)
         # every pixel of a flake carries that flake's normal
-        c = cell_size(m.density)
         got = f.normal[:, t["row"], t["col"]].t()
         torch.testing.assert_close(got, t["normal"], atol=1e-6, rtol=0)
 

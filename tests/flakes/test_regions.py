@@ -174,7 +174,7 @@ class TestRegionMoments:
 
     def test_against_skimage_regionprops(self):
         img = random_ellipses(160, 160, 20, seed=1)
-        m, lab = moments_of(img > 0)
+        m, _ = moments_of(img > 0)
         props = regionprops(sk_label(img > 0, connectivity=2))
         assert len(props) == len(m["area"]) == 64
         # match components by position (label numbering is an implementation detail)
