@@ -1,0 +1,51 @@
+"""The flake stage (torchmetal.flakes.stage): one call from capture + Phong renders to a model."""
+
+import math
+
+import pytest
+import torch
+
+from tests.flakes.scenes import capture_of, make_scene
+from torchmetal.errors import InputError
+from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.stage import FlakeStageResult, flake_stage, irradiance_maps
+
+MODEL = FlakeModel(density=0.01, area_log_mean=math.log(6.0), area_log_std=0.35, tilt_sigma=0.15, glint_sigma=0.03,
+                   color_mean=(0.7, 0.6, 0.4), seed=2)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(192, 192, MODEL, shots=6, seed=2)
+
+
+@pytest.fixture(scope="module")
+def result(scene):
+    return flake_stage(capture_of(scene), scene.phong, seed=7)
+
+
+class TestFlakeStage:
+    def test_result_and_report(self, scene, result):
+        assert isinstance(result, FlakeStageResult)
+        assert result.model is not None and result.model.seed == 7
+        rep = result.report
+        for key in ("irradiance", "detect", "statistics", "statistics.likelihood", "total"):
+            assert rep["times"][key] >= 0.0
+        assert rep["times"]["total"] >= rep["times"]["detect"] + rep["times"]["statistics"] - 1e-9
+        assert sum(rep["particles_per_shot"]) == len(result.particles)
+        assert len(rep["particles_per_shot"]) == scene.photos.shape[0]
+        assert result.flake_id.shape == (len(result.particles),)
+        assert int(result.flake_id.max()) + 1 == rep["flakes_detected"]
+
+    def test_irradiance_matches_scene(self, scene):
+        torch.testing.assert_close(irradiance_maps(capture_of(scene)), scene.irradiance, rtol=1e-5, atol=1e-6)
+
+    def test_stats_options_reach_the_statistics(self, scene, result):
+        res = flake_stage(capture_of(scene), scene.phong, stats={"min_flakes": 10 * result.report["flakes_detected"]})
+        assert res.model is None
+        assert "fewer than" in res.report["skipped"]
+        assert res.report["particles_per_shot"] == result.report["particles_per_shot"]
+
+    def test_bad_phong_shape(self, scene):
+        with pytest.raises(InputError, match="phong_images"):
+            flake_stage(capture_of(scene), scene.phong[:, :, :-1])
