@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchmetal.geometry import dot, normalize, shading_geometry, surface_points
+from torchmetal.geometry import dot, grid_shading_terms, normalize, pixel_axes, shading_geometry, surface_points
 
 
 def numpy_geometry(normals, light, intensity, camera, size):
@@ -96,3 +96,30 @@ def test_half_vector_unit():
     rng = np.random.default_rng(0)
     g = shading_geometry(*(torch.from_numpy(x) for x in random_config(rng)), (0.1, 0.1))
     np.testing.assert_allclose(g.half.norm(dim=1).numpy(), 1.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("flat", [False, True])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_grid_shading_terms_match_shading_geometry(seed, flat):
+    rng = np.random.default_rng(seed)
+    n, L, I, C = (torch.from_numpy(x) for x in random_config(rng, grazing=seed == 1))
+    if flat:
+        n = torch.zeros_like(n)
+        n[2] = 1.0
+    size = (0.1, 0.08)
+    g = shading_geometry(n, L, I, C, size)
+    rows, cols = slice(1, 5, 2), slice(0, 7, 3)  # a strided sub-grid
+    x, y = pixel_axes(5, 7, size, rows=rows, cols=cols, dtype=n.dtype)
+    nl, q, dist2 = grid_shading_terms(L, C, x, y, None if flat else n[:, rows, cols])
+    assert nl.shape == q.shape == dist2.shape == (L.shape[0], 2, 3)
+    torch.testing.assert_close(nl, g.n_dot_l[:, 0, rows, cols], rtol=0, atol=1e-12)
+    torch.testing.assert_close(q, g.spec_q[:, 0, rows, cols], rtol=0, atol=1e-12)
+    torch.testing.assert_close(I[:, :, None, None] / dist2.unsqueeze(1), g.irradiance[..., rows, cols], rtol=1e-12, atol=0)
+
+
+def test_pixel_axes_are_the_surface_points():
+    p = surface_points(6, 5, (2.0, 1.0))
+    x, y = pixel_axes(6, 5, (2.0, 1.0))
+    assert torch.equal(x, p[0, 0]) and torch.equal(y, p[1, :, 0])
+    x2, y2 = pixel_axes(6, 5, (2.0, 1.0), rows=slice(1, None, 2), cols=slice(3, 4))
+    assert torch.equal(x2, x[3:4]) and torch.equal(y2, y[1::2])

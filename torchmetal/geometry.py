@@ -38,12 +38,34 @@ def surface_points(
         (3, R, W) tensor, R = r1 − r0 (H by default).
     """
     r0, r1 = rows if rows is not None else (0, height)
-    i = torch.arange(r0, r1, dtype=dtype, device=device)
-    j = torch.arange(width, dtype=dtype, device=device)
-    y = (0.5 - (i + 0.5) / height) * size[1]
-    x = ((j + 0.5) / width - 0.5) * size[0]
+    x, y = pixel_axes(height, width, size, rows=slice(r0, r1), dtype=dtype, device=device)
     yy, xx = torch.meshgrid(y, x, indexing="ij")
     return torch.stack([xx, yy, torch.zeros_like(xx)])
+
+
+def pixel_axes(
+    height: int,
+    width: int,
+    size: tuple[float, float],
+    *,
+    rows: slice = slice(None),
+    cols: slice = slice(None),
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Plane coordinates of pixel centres, separably: x of the columns, y of the rows.
+
+    Args:
+        height, width: image size H, W.
+        size: (width, height) of the surface in scene units.
+        rows, cols: slices of the rows / columns to keep (e.g. a stride or a row block).
+
+    Returns:
+        x (C,) and y (R,) for the C kept columns and R kept rows.
+    """
+    i = torch.arange(height, dtype=dtype, device=device)[rows]
+    j = torch.arange(width, dtype=dtype, device=device)[cols]
+    return ((j + 0.5) / width - 0.5) * size[0], (0.5 - (i + 0.5) / height) * size[1]
 
 
 def normalize(x: Tensor, dim: int = -3) -> Tensor:
@@ -140,3 +162,49 @@ def shading_geometry(
     spec_q = 0.5 * (rv * rv).sum(1, keepdim=True)
     irradiance = intensity[:, :, None, None] / dist2
     return ShadingGeometry(n=n, l=l, v=v, n_dot_l=dot(n, l), spec_q=spec_q, irradiance=irradiance)
+
+
+def _grid_direction(target: Tensor, x: Tensor, y: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
+    """Unit direction components from the plane points (x_j, y_i, 0) to homogeneous targets (B, 4),
+    each (B, R, C), and the squared distance (B, R, C) (1 for directions)."""
+    b = target.shape[0]
+    w = target[:, 3].view(b, 1, 1)
+    dx = target[:, 0].view(b, 1, 1) - w * x.view(1, 1, -1)  # (B, 1, C)
+    dy = target[:, 1].view(b, 1, 1) - w * y.view(1, -1, 1)  # (B, R, 1)
+    dz = target[:, 2].view(b, 1, 1)  # the plane is z = 0
+    d2 = (dx * dx + dz * dz) + dy * dy
+    norm = torch.sqrt(d2.clamp_min(_EPS * _EPS))
+    dist2 = torch.where(w > 0.5, d2, torch.ones_like(d2))
+    return (dx / norm, dy / norm, dz / norm), dist2
+
+
+def grid_shading_terms(
+    light: Tensor, camera: Tensor, x: Tensor, y: Tensor, normals: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The scalar shading terms of :func:`shading_geometry` on a grid of plane points, cheaply.
+
+    The plane points (x_j, y_i, 0) are separable, so the light and camera offsets are built per
+    row and per column and only the scalar terms are formed per pixel (no (B, 3, R, C) vectors).
+    Same formulas as :func:`shading_geometry` (q from |r − v|², not 1 − r·v).
+
+    Args:
+        light, camera: (B, 4) homogeneous light / camera.
+        x: (C,) x of the columns; y: (R,) y of the rows (see :func:`pixel_axes`).
+        normals: (3, R, C) unit normals, or None for the flat normal (0, 0, 1) everywhere.
+
+    Returns:
+        n·l (B, R, C), spec_q = |r − v|²/2 (B, R, C), squared light distance (B, R, C) (1 for a
+        directional light).
+    """
+    (lx, ly, lz), dist2 = _grid_direction(light, x, y)
+    (vx, vy, vz), _ = _grid_direction(camera, x, y)
+    if normals is None:  # r = (−l_x, −l_y, l_z)
+        nl = lz
+        ex, ey, ez = lx + vx, ly + vy, lz - vz  # −(r − v) in x, y; r − v in z
+    else:
+        nx, ny, nz = normals.unsqueeze(1).unbind(0)  # (1, R, C) each
+        nl = nx * lx + ny * ly + nz * lz
+        k = 2.0 * nl
+        ex, ey, ez = k * nx - lx - vx, k * ny - ly - vy, k * nz - lz - vz
+    spec_q = 0.5 * (ex * ex + ey * ey + ez * ez)
+    return nl, spec_q, dist2

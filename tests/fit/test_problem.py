@@ -1,5 +1,6 @@
 """Observations: the decomposition I = a·d + s·b matches the renderer; chunking, strides, masks."""
 
+import pytest
 import torch
 
 from tests.fit.helpers import replace, synth
@@ -13,8 +14,9 @@ def _render64(cap, tex, s, alpha):
                         cap.cameras.double(), cap.size)
 
 
-def test_model_terms_reproduce_the_renderer_float64():
-    r = synth(size=16, shots=5, seed=3, bumpy=True, layout="near")
+@pytest.mark.parametrize("bumpy", [True, False])  # per-pixel normals, and the flat fast path
+def test_model_terms_reproduce_the_renderer_float64(bumpy):
+    r = synth(size=16, shots=5, seed=3, bumpy=bumpy, layout="near")
     cap = r.capture.to(dtype=torch.float64)
     tex = r.truth["texture"].double()
     s = torch.tensor([0.3, 0.6, 1.2], dtype=torch.float64)

@@ -6,9 +6,9 @@ For shot k, pixel p, channel c (DESIGN 2.2), with intensity i_kc, n·l, q = 1 �
     g_kp = max(n·l, 0)/dist²,   u_kp = [n·l > 0]/dist²,   L_kp = log max(r·v, 0) = log1p(−q)
 
 The fit never needs more geometry than (g, u, L): three (N, 1, P) tensors, computed once with
-:func:`torchmetal.geometry.shading_geometry` and :func:`torchmetal.phong.log1p_exact` (the
-renderer's own functions) and reused by every iteration. Pixels are flattened to P = h·w on a
-(possibly strided) grid and processed in chunks of ``chunk`` pixels, so temporaries stay
+:func:`torchmetal.geometry.grid_shading_terms` (the renderer's formulas, built separably on the
+plane's pixel grid) and :func:`torchmetal.phong.log1p_exact`, and reused by every iteration.
+Pixels are flattened to P = h·w on a (possibly strided) grid and processed in chunks of ``chunk`` pixels, so temporaries stay
 (N, 3, chunk) whatever the image size. Per chunk and shot, ``lmax`` keeps the largest L: when
 α·lmax < −40 the lobe is below e⁻⁴⁰ on every pixel of the chunk, and passes skip that work.
 
@@ -29,7 +29,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from torchmetal.geometry import shading_geometry, surface_points
+from torchmetal.geometry import grid_shading_terms, pixel_axes
 from torchmetal.phong import log1p_exact
 
 LOG_OFF = -1.0e4  # L where r·v ≤ 0: exp(α·L) = 0 for every α ≥ 1
@@ -218,6 +218,41 @@ def _irls_chunk(target: Tensor, a: Tensor, base: Tensor, weighting: Weighting) -
     return w
 
 
+def observation_geometry(n_dot_l: Tensor, spec_q: Tensor, dist2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(g, u, L) of the module docstring from n·l, q = 1 − r·v and the squared light distance.
+
+    g = max(n·l, 0)/dist², u = [n·l > 0]/dist², L = log1p(−q) (``LOG_OFF`` where r·v ≤ 0); any
+    shapes that broadcast, e.g. (n, R, C).
+    """
+    u = torch.where(n_dot_l > 0, 1.0 / dist2, 0.0)
+    inside = spec_q < 1.0
+    L = torch.where(inside, log1p_exact(-torch.where(inside, spec_q, 0.5)), LOG_OFF)
+    return n_dot_l * u, u, L
+
+
+def grid_geometry(
+    capture, rows: slice, cols: slice, lights: Tensor, cams: Tensor, dtype: torch.dtype, block_rows: int,
+    *, out: tuple[Tensor, Tensor, Tensor],
+) -> None:
+    """Fill ``out`` = (g, u, L), each (n, 1, R·C), for the pixel grid ``rows`` × ``cols``.
+
+    lights, cams (n, 4) in ``dtype``. Works in blocks of ``block_rows`` grid rows (memory only:
+    every term is per pixel, so the values do not depend on it). Flat normals (0, 0, 1) take the
+    cheaper path of :func:`~torchmetal.geometry.grid_shading_terms`.
+    """
+    big_h, big_w = int(capture.images.shape[-2]), int(capture.images.shape[-1])
+    xs, ys = pixel_axes(big_h, big_w, capture.size, rows=rows, cols=cols, dtype=dtype, device=lights.device)
+    normals = capture.normals[:, rows, cols]
+    flat = bool((normals[:2] == 0).all() and (normals[2] == 1).all())
+    n, h, w = int(lights.shape[0]), int(ys.shape[0]), int(xs.shape[0])
+    for r0 in range(0, h, block_rows):
+        r1 = min(h, r0 + block_rows)
+        nrm = None if flat else normals[:, r0:r1].to(dtype)
+        terms = observation_geometry(*grid_shading_terms(lights, cams, xs, ys[r0:r1], nrm))
+        for dst, src in zip(out, terms):
+            dst[:, 0, r0 * w : r1 * w] = src.reshape(n, (r1 - r0) * w)
+
+
 def build_observations(
     capture,
     *,
@@ -270,15 +305,15 @@ def build_observations(
     y = y4.reshape(n_shots, 3, p)
     sat = grid(capture.saturated).reshape(n_shots, 3, p) if capture.saturated is not None else None
     mask = capture.mask[..., rows, cols].reshape(1, 1, p).bool() if capture.mask is not None else None
-    normals = capture.normals[:, rows, cols].reshape(3, p).to(dt)
-    points = surface_points(big_h, big_w, capture.size, dtype=dt, device=dev)[:, rows, cols].reshape(3, p)
     lights = capture.lights.to(dt)
     cams = capture.cameras.to(dt)
     inten = capture.intensities.to(dt)
     if idx is not None:
         lights, cams, inten = lights[idx], cams[idx], inten[idx]
     inten = inten.view(n_shots, 3, 1)
-    ones = torch.ones(n_shots, 1, dtype=dt, device=dev)
+    inten_pos = inten > 0
+    if ref is not None:  # the working dtype: a float64 s, α would promote every (n, 3, c) temporary
+        ref_dt = Reference(ref.s.to(dt), ref.alpha.to(dt))
 
     chunks = chunk_ranges(p, chunk)
     new = lambda *shape, dtype=dt: torch.empty(*shape, dtype=dtype, device=dev)  # noqa: E731
@@ -298,23 +333,17 @@ def build_observations(
 
         stats_acc = torch.zeros(6, 3, ref.k, dtype=torch.float64, device=dev)
         eb_all = new(3, p)
+    grid_geometry(capture, rows, cols, lights, cams, dt, max(1, chunk // w), out=(g_all, u_all, l_all))
 
     for j, (p0, p1) in enumerate(chunks):
         sl = slice(p0, p1)
-        geom = shading_geometry(normals[:, sl].unsqueeze(1), lights, ones, cams, points=points[:, sl].unsqueeze(1))
-        nl, q, idist = geom.n_dot_l[:, :, 0], geom.spec_q[:, :, 0], geom.irradiance[:, :, 0]  # (n, 1, c)
-        del geom
-        lit = nl > 0
-        u = torch.where(lit, idist, zero)
-        g = nl * u
-        inside = q < 1.0
-        L = torch.where(inside, log1p_exact(-torch.where(inside, q, torch.full_like(q, 0.5))), torch.full_like(q, LOG_OFF))
-        g_all[:, :, sl], u_all[:, :, sl], l_all[:, :, sl] = g, u, L
+        g, u, L = g_all[:, :, sl], u_all[:, :, sl], l_all[:, :, sl]
         yc = y[:, :, sl].to(dt)
         a = inten * g
-        base_b = (g > 0) & (inten > 0)  # a > 0: lit and a non-zero intensity (cheap (n,1,c) & (n,3,1))
+        lit_b = g > 0  # (n, 1, c); with a non-zero intensity: a > 0
         if mask is not None:
-            base_b = base_b & mask[:, :, sl]
+            lit_b = lit_b & mask[:, :, sl]
+        base_b = lit_b & inten_pos
         if sat is not None:
             base_b = base_b & ~sat[:, :, sl]
         base = as_float(base_b, dt)
@@ -326,17 +355,16 @@ def build_observations(
             labels[sl] = lab
         if tmin_all is not None:
             tmin_all[:, sl] = t_c
-        b = t = spec = None
+        b = t = s_c = None
         if ref is not None:
-            s_c, al_c = ref.maps(lab, p1 - p0)
+            s_c, al_c = ref_dt.maps(lab, p1 - p0)
             t = al_c.unsqueeze(0) * L
             b = (inten * u) * torch.exp(t)
-            spec = s_c.unsqueeze(0) * b
         wts = base
         wa = a * wts
         s_aa = (wa * a).sum(0)
-        if weighting is not None and spec is not None:
-            target = yc - spec
+        if weighting is not None and b is not None:
+            target = torch.addcmul(yc, s_c.unsqueeze(0), b, value=-1.0)  # y − s·b
             if robust:
                 wts = _irls_chunk(target, a, base, weighting)
                 weight_all[:, :, sl] = wts.to(wstore)
@@ -346,10 +374,10 @@ def build_observations(
                 d_ref = torch.where(okd, (wa * target).sum(0) / torch.where(okd, s_aa, torch.ones_like(s_aa)), zero)
                 sig = (weighting.outlier_k * weighting.sigma.to(dt)).view(1, 3, 1)
                 exceed = ((target - a * d_ref).abs() * base) > sig
-                cols = exceed.any(0).any(0).nonzero().squeeze(1)
-                if cols.numel():
+                hit = exceed.any(0).any(0).nonzero().squeeze(1)
+                if hit.numel():
                     wts = base.clone()
-                    wts[:, :, cols] = _irls_chunk(target[:, :, cols], a[:, :, cols], base[:, :, cols], weighting)
+                    wts[:, :, hit] = _irls_chunk(target[:, :, hit], a[:, :, hit], base[:, :, hit], weighting)
             if wts is not base:
                 wa = a * wts
                 s_aa = (wa * a).sum(0)
@@ -357,8 +385,9 @@ def build_observations(
         ok = s_aa > 0
         isaa_c = torch.where(ok, 1.0 / torch.where(ok, s_aa, torch.ones_like(s_aa)), zero)
         dd = (wa * yc).sum(0) * isaa_c
-        r0 = yc - a * dd
-        A[:, sl] = (wts * r0 * r0).sum(0)
+        r0 = torch.addcmul(yc, a, dd, value=-1.0)  # y − a·d0
+        wr0 = wts * r0
+        A[:, sl] = (wr0 * (wr0 if wts is base else r0)).sum(0)  # w² = w for 0/1 weights
         Y[:, sl] = (wts * yc * yc).sum(0)
         cnt[:, sl] = (wts > 0).sum(0).to(dt) if robust else wts.sum(0)
         saa[:, sl], d0[:, sl] = s_aa, dd
@@ -366,11 +395,11 @@ def build_observations(
         if not bool(ok.all()):  # texture where no observation is valid: all lit ones, saturated included
             la = torch.where(a > 0, a, zero)
             den = (la * a).sum(0)
-            tgt = yc if spec is None else yc - spec
+            tgt = yc if b is None else torch.addcmul(yc, s_c.unsqueeze(0), b, value=-1.0)
             fb[:, sl] = torch.where(den > 0, (la * tgt).sum(0) / torch.where(den > 0, den, torch.ones_like(den)), zero)
-        lmax[:, j] = torch.where(lit, L, torch.full_like(L, LOG_OFF)).amax(-1)[:, 0]
+        lmax[:, j] = torch.where(u > 0, L, LOG_OFF).amax(-1)[:, 0]  # u > 0 ⇔ lit
         if stats_acc is not None:
-            e, st = chunk_stats(yc, a, b, t, wts, isaa_c)
+            e, st = chunk_stats(yc, a, b, t, wts, isaa_c, wa=wa)
             eb_all[:, sl] = e
             reduce_stats(st, lab, ref.k, stats_acc)
     return Observations(

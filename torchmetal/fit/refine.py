@@ -76,27 +76,30 @@ def pixel_map(x: Tensor, labels: Tensor | None) -> Tensor:
     return x[labels].T
 
 
-def chunk_stats(y: Tensor, a: Tensor, b: Tensor, t: Tensor, w: Tensor, isaa: Tensor) -> tuple[Tensor, Tensor]:
+def chunk_stats(
+    y: Tensor, a: Tensor, b: Tensor, t: Tensor, w: Tensor, isaa: Tensor, wa: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """Per-pixel projected sums of one chunk.
 
     Args:
         y (n, 3, c) data; a = i·g (n, 3, c) texture basis; b = i·u·exp(t) (n, 3, c) lobe;
         t = α·L (n, 3, c), so ∂b/∂β = t·b; w (n, 3, c) float weights (0/1 validity or IRLS);
-        isaa (3, c) = 1/Σ w·a² (0 where none).
+        isaa (3, c) = 1/Σ w·a² (0 where none); wa (n, 3, c) = w·a when the caller has it.
 
     Returns:
         e_b (3, c) and the stats (6, 3, c): B, C, Bc, Cc, Yc, Sbb (see module docstring).
     """
-    wa = w * a
+    wa = w * a if wa is None else wa
     wab = wa * b
-    eb = wab.sum(0) * isaa
+    sab = wab.sum(0)
+    eb = sab * isaa
     ec = (wab * t).sum(0) * isaa
-    bp = b - a * eb
-    cp = b * t - a * ec
+    bp = torch.addcmul(b, a, eb, value=-1.0)  # b − a·e_b
+    cp = torch.addcmul(b * t, a, ec, value=-1.0)  # ∂b/∂β − a·e_c
     wbp = w * bp
     wcp = w * cp
     C = (wbp * bp).sum(0)
-    sbb = C + eb * eb * (wa * a).sum(0)  # Σ w·b² = Σ w·b⊥² + e_b²·Σ w·a² (b⊥ ⊥ a)
+    sbb = C + eb * sab  # Σ w·b² = Σ w·b⊥² + e_b²·Σ w·a² (b⊥ ⊥ a), and e_b·Σ w·a² = Σ w·a·b
     stats = torch.stack([(wbp * y).sum(0), C, (wbp * cp).sum(0), (wcp * cp).sum(0), (wcp * y).sum(0), sbb])
     return eb, stats
 
