@@ -324,26 +324,44 @@ def _ring_nodes(n_a: int, n_phi: int, dtype, device) -> tuple[Tensor, Tensor]:
     return qa, phi
 
 
+def _memo(d: GlintData, key: tuple, make):
+    """Parameter-free tensors of ``d`` (frames, projections, shot orders), computed once per
+    GlintData object (treated as immutable): the fit evaluates the likelihood ~20 times on
+    the same data."""
+    store = d.__dict__.setdefault("_memo", {})
+    if key not in store:
+        store[key] = make()
+    return store[key]
+
+
 def log_numerator(
     d: GlintData, tau: Tensor, sg: Tensor, la: Tensor, va: Tensor, *, n_a: int = 6, n_phi: int = 16, outlier: float = 0.02,
 ) -> Tensor:
     """log f_j of every flake (J,) (see the module docstring); ``outlier``: see :func:`_log_detect`."""
     dt, dev = d.half.dtype, d.half.device
     j = d.amp.shape[0]
-    qa, phi = _ring_nodes(n_a, n_phi, dt, dev)
-    h_star = d.half[torch.arange(j, device=dev), d.anchor]  # (J, 3)
+    qa, phi = _memo(d, ("nodes", n_a, n_phi), lambda: _ring_nodes(n_a, n_phi, dt, dev))
+
+    def geometry() -> tuple[Tensor, Tensor, Tensor]:
+        h_star = d.half[torch.arange(j, device=dev), d.anchor]  # (J, 3)
+        e1, e2 = _frame(h_star)
+        t1, t2 = _frame(d.normal)
+        basis = torch.stack([h_star, e1, e2], 1)  # (J, 3: h*, e1, e2, 3)
+        proj = torch.einsum("jac,jbc->jab", basis, torch.stack([d.normal, t1, t2], 1))  # onto n, t1, t2
+        to_shots = torch.einsum("jac,jkc->jak", basis, d.half)  # (J, 3, N) onto every shot's h
+        order = nearest_shots(d.half, d.anchor, d.half.shape[1], prefer=d.detected)  # (J, N)
+        return h_star, proj, to_shots, order
+
+    h_star, proj, to_shots, order = _memo(d, ("numerator",), geometry)
     # only shots whose caps can reach the ring matter: keep those (detected first), anchor first
     beta = _cap_radius(sg, float((la + 3 * va).detach()), float(d.sigma.min()), max(0.5, d.k_hi - 3.0))
     kk = _overlap_count(h_star.unsqueeze(1), d.half, 2.2 * beta + 1e-3)
     kk = max(kk, int(d.detected.sum(1).max()))  # every detected shot stays in the pattern
+    detected, sigma, anchor = d.detected, d.sigma, d.anchor
     if kk < d.half.shape[1]:
-        idx = nearest_shots(d.half, d.anchor, kk, prefer=d.detected)
-        d = GlintData(
-            _gather_shots(d.half, idx), d.normal, torch.zeros_like(d.anchor), d.amp, _gather_shots(d.detected, idx),
-            _gather_shots(d.sigma, idx), d.grid_half, d.grid_normal, d.grid_sigma, d.grid_area, d.k_hi, d.count,
-        )
-    e1, e2 = _frame(h_star)
-    t1, t2 = _frame(d.normal)
+        idx = order[:, :kk]
+        detected, sigma, anchor = _gather_shots(detected, idx), _gather_shots(sigma, idx), torch.zeros_like(anchor)
+        to_shots = to_shots.gather(2, idx.unsqueeze(1).expand(-1, 3, -1))
     log_amp = torch.log(d.amp.clamp_min(1e-12))
     # A nodes: quantiles of the log-normal truncated to A > â (small tensors: float64)
     z0 = ((log_amp.double() - la.double()) / va.double())
@@ -364,20 +382,19 @@ def log_numerator(
     cphi, sphi = torch.cos(phi), torch.sin(phi)
     cosb, sinb = cosb.view(j, n_a, 1), sinb.view(j, n_a, 1)
 
-    def dot_m(v: Tensor) -> Tensor:  # v (J, 3) → m·v (J, nA, nφ)
-        ring_v = cphi * (e1 * v).sum(-1, keepdim=True) + sphi * (e2 * v).sum(-1, keepdim=True)  # (J, nφ)
-        return cosb * (h_star * v).sum(-1).view(j, 1, 1) + sinb * ring_v.unsqueeze(1)
+    def dot_m(b: int) -> Tensor:  # m·(n, t1, t2)[b] (J, nA, nφ)
+        ring_v = cphi * proj[:, 1, b : b + 1] + sphi * proj[:, 2, b : b + 1]  # (J, nφ)
+        return cosb * proj[:, 0, b].view(j, 1, 1) + sinb * ring_v.unsqueeze(1)
 
-    total = _log_slope_from(dot_m(d.normal), dot_m(t1), dot_m(t2), tau)
-    if d.half.shape[1] > 1:  # other shots: detection pattern (none when only the anchor's cap reaches the ring)
-        hh = torch.einsum("jc,jkc->jk", h_star, d.half)  # (J, N)
-        rh = cphi.view(1, -1, 1) * torch.einsum("jc,jkc->jk", e1, d.half).unsqueeze(1) + sphi.view(1, -1, 1) * torch.einsum("jc,jkc->jk", e2, d.half).unsqueeze(1)
-        mh = cosb.unsqueeze(-1) * hh.view(j, 1, 1, -1) + sinb.unsqueeze(-1) * rh.unsqueeze(1)  # (J, nA, nφ, N)
+    total = _log_slope_from(dot_m(0), dot_m(1), dot_m(2), tau)
+    if to_shots.shape[-1] > 1:  # other shots: detection pattern (none when only the anchor's cap reaches the ring)
+        rh = cphi.view(1, -1, 1) * to_shots[:, 1].unsqueeze(1) + sphi.view(1, -1, 1) * to_shots[:, 2].unsqueeze(1)  # (J, nφ, K)
+        mh = cosb.unsqueeze(-1) * to_shots[:, 0].view(j, 1, 1, -1) + sinb.unsqueeze(-1) * rh.unsqueeze(1)  # (J, nA, nφ, K)
         log_g = -(1 - mh) / (sg * sg)
-        a_over_s = torch.exp(log_a.view(j, n_a, 1, 1) + log_g) / d.sigma.view(j, 1, 1, -1)
-        ld = _log_detect(a_over_s, d.k_hi, d.detected.view(j, 1, 1, -1), outlier)
-        not_anchor = torch.ones_like(d.detected, dtype=dt)
-        not_anchor[torch.arange(j, device=dev), d.anchor] = 0.0
+        a_over_s = torch.exp(log_a.view(j, n_a, 1, 1) + log_g) / sigma.view(j, 1, 1, -1)
+        ld = _log_detect(a_over_s, d.k_hi, detected.view(j, 1, 1, -1), outlier)
+        not_anchor = torch.ones_like(detected, dtype=dt)
+        not_anchor[torch.arange(j, device=dev), anchor] = 0.0
         total = total + (ld * not_anchor.view(j, 1, 1, -1)).sum(-1)
     logw = log_tail.view(j, 1, 1) - math.log(n_a) + math.log(2 * math.pi / n_phi)
     total = total + logw
@@ -408,11 +425,23 @@ def p_any(
     """
     dt, dev = d.grid_half.dtype, d.grid_half.device
     g, n = d.grid_sigma.shape
-    qa, phi = _ring_nodes(n_a, n_phi, dt, dev)
-    x_in, w_in = _gauss_legendre(n_in, dt, dev)
-    x_bd, w_bd = _gauss_legendre(n_band, dt, dev)
-    log_a = la + va * torch.special.ndtri(qa)  # (nA,)
-    lsig = torch.log(d.grid_sigma).view(g, 1, n)
+
+    def constants():
+        qa, phi = _ring_nodes(n_a, n_phi, dt, dev)
+        e1, e2 = _frame(d.grid_half)  # (G, N, 3)
+        t1, t2 = _frame(d.grid_normal)
+        basis = torch.stack([d.grid_half, e1, e2], 2)  # (G, N, 3: h_k, e1_k, e2_k, 3)
+        proj = torch.einsum("gnac,gbc->gnab", basis, torch.stack([d.grid_normal, t1, t2], 1))  # onto n, t1, t2
+        first = torch.arange(n, device=dev).expand(g, n)
+        order = nearest_shots(d.grid_half.unsqueeze(1).expand(g, n, n, 3), first, n)  # (G, N, N) own shot first
+        h_near = d.grid_half.gather(1, order.flatten(1)[..., None].expand(-1, -1, 3)).view(g, n, n, 3)
+        to_near = torch.einsum("gnac,gnkc->gnak", basis, h_near)  # (G, N, 3, N) onto the nearest shots' h
+        s_near = d.grid_sigma.gather(1, order.flatten(1)).view(g, n, n)
+        return (torch.special.ndtri(qa), phi, _gauss_legendre(n_in, dt, dev), _gauss_legendre(n_band, dt, dev),
+                torch.log(d.grid_sigma).view(g, 1, n), proj, to_near, s_near)
+
+    zq, phi, (x_in, w_in), (x_bd, w_bd), lsig, proj, to_near, s_near = _memo(d, ("p_any", n_a, n_in, n_band, n_phi), constants)
+    log_a = la + va * zq  # (nA,)
 
     def ucap(level: float) -> Tensor:  # 1 − m·h where A·g = level·σ, (G, nA, N)
         return (sg * sg * (log_a.view(1, -1, 1) - lsig - math.log(level))).clamp(0.0, 1.9)
@@ -422,30 +451,24 @@ def p_any(
     uu = torch.cat([u_lo.unsqueeze(-1) * x_in, u_lo.unsqueeze(-1) + (u_hi - u_lo).unsqueeze(-1) * x_bd], -1)
     wu = torch.cat([u_lo.unsqueeze(-1) * w_in, (u_hi - u_lo).unsqueeze(-1) * w_bd], -1)  # (G, nA, N, nR)
     uu = uu.clamp_min(1e-9)
-    e1, e2 = _frame(d.grid_half)  # (G, N, 3)
-    t1, t2 = _frame(d.grid_normal)
     # nodes m = cos β·h_k + sin β·(cos φ e1_k + sin φ e2_k), (G, nA, N, nR, nφ), handled through
     # their projections m·v = cos β·(h_k·v) + sin β·(cos φ e1_k·v + sin φ e2_k·v)
     cosb = (1 - uu).unsqueeze(-1)
     sinb = torch.sqrt(uu * (2 - uu)).unsqueeze(-1)
     cphi, sphi = torch.cos(phi), torch.sin(phi)
 
-    def dot_m(v: Tensor) -> Tensor:  # v (G, 3) → m·v (G, nA, N, nR, nφ)
-        hv = torch.einsum("gnc,gc->gn", d.grid_half, v)
-        rv = cphi * torch.einsum("gnc,gc->gn", e1, v).unsqueeze(-1) + sphi * torch.einsum("gnc,gc->gn", e2, v).unsqueeze(-1)
-        return cosb * hv.view(g, 1, n, 1, 1) + sinb * rv.view(g, 1, n, 1, -1)
+    def dot_m(b: int) -> Tensor:  # m·(n, t1, t2)[b] (G, nA, N, nR, nφ)
+        rv = cphi * proj[:, :, 1, b : b + 1] + sphi * proj[:, :, 2, b : b + 1]  # (G, N, nφ)
+        return cosb * proj[:, :, 0, b].view(g, 1, n, 1, 1) + sinb * rv.view(g, 1, n, 1, -1)
 
-    logp = _log_slope_from(dot_m(d.grid_normal), dot_m(t1), dot_m(t2), tau)
+    logp = _log_slope_from(dot_m(0), dot_m(1), dot_m(2), tau)
     # shots whose caps may overlap cap k (own shot first): caps farther apart never meet
     beta = _cap_radius(sg, float(log_a.max().detach()), float(d.grid_sigma.min()), max(0.5, d.k_hi - margin))
     kk = _overlap_count(d.grid_half, d.grid_half, 2.2 * beta + 1e-3)
-    first = torch.arange(n, device=dev).expand(g, n)
-    near = nearest_shots(d.grid_half.unsqueeze(1).expand(g, n, n, 3), first, kk)  # (G, N, K)
-    hn = d.grid_half.gather(1, near.flatten(1)[..., None].expand(-1, -1, 3)).view(g, n, -1, 3)  # (G, N, K, 3)
-    sn = d.grid_sigma.gather(1, near.flatten(1)).view(g, n, -1)  # (G, N, K)
-    hh = torch.einsum("gqc,gqkc->gqk", d.grid_half, hn)
-    rh = cphi.view(-1, 1) * torch.einsum("gqc,gqkc->gqk", e1, hn).unsqueeze(2) + sphi.view(-1, 1) * torch.einsum("gqc,gqkc->gqk", e2, hn).unsqueeze(2)  # (G, N, nφ, K)
-    mh = cosb.unsqueeze(-1) * hh.view(g, 1, n, 1, 1, -1) + sinb.unsqueeze(-1) * rh.view(g, 1, n, 1, -1, rh.shape[-1])  # (G, nA, N, nR, nφ, K)
+    tn = to_near[..., :kk]  # (G, N, 3, K)
+    sn = s_near[..., :kk]  # (G, N, K)
+    rh = cphi.view(-1, 1) * tn[:, :, 1].unsqueeze(2) + sphi.view(-1, 1) * tn[:, :, 2].unsqueeze(2)  # (G, N, nφ, K)
+    mh = cosb.unsqueeze(-1) * tn[:, :, 0].view(g, 1, n, 1, 1, -1) + sinb.unsqueeze(-1) * rh.view(g, 1, n, 1, -1, kk)  # (G, nA, N, nR, nφ, K)
     a_over_s = torch.exp(log_a.view(1, -1, 1, 1, 1, 1) - (1 - mh) / (sg * sg)) / sn.view(g, 1, n, 1, 1, -1)
     zk = _PROBIT * (a_over_s - d.k_hi)
     pk = torch.sigmoid(zk)
