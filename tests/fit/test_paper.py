@@ -2,11 +2,16 @@
 
 import math
 
+import pytest
 import torch
 
 from tests.fit.helpers import rel_err, synth
-from torchmetal.fit.paper import BinSums, N_BINS, bin_index, bins_of, fit_control_points, paper_pass, paper_scheme, _new_cache
+from torchmetal.fit.paper import (
+    BinSums, N_BINS, _new_cache, bin_index, bins_of, fit_control_points, grid_start, initial_approximation, paper_pass, paper_scheme,
+    tmin_control_points,
+)
 from torchmetal.fit.problem import LOG_OFF, build_observations
+from torchmetal.synth import synth_capture
 
 
 def test_bin_index_ranges():
@@ -29,6 +34,51 @@ def test_control_point_lm_recovers_exact_lobes():
     s, beta = fit_control_points((use, c, L), torch.ones(3, dtype=torch.float64), beta0)
     torch.testing.assert_close(s, s_true, rtol=1e-7, atol=0)
     torch.testing.assert_close(torch.exp(beta), a_true, rtol=1e-7, atol=0)
+
+
+def _sharp_highlight_obs(alpha: float):
+    r = synth_capture(size=16, shots=8, seed=4, s=(10.0,) * 3, alpha=(alpha,) * 3, texture="procedural")
+    return build_observations(r.capture)
+
+
+def test_control_point_lm_does_not_stick_at_s_zero_on_strong_sharp_highlights():
+    """4.1.6's control points of a strong sharp highlight, from the broad start (s = peak, α = 20):
+    the first step overshoots s below 0. A bound s ≥ 0 inside the LM parked s at 0, where
+    ∂r/∂β = −s·∂e/∂β vanishes, so the highlight was dropped ("no highlight evidence").
+    (Bins of ≥ 3 observations, the former default, give control points where that happens.)"""
+    obs = _sharp_highlight_obs(300.0)
+    cp = tmin_control_points(obs, bins_of(obs), min_count=3)[0]
+    peak = torch.where(cp[0], cp[1], torch.zeros_like(cp[1])).amax(-1)
+    s, beta = fit_control_points(cp, peak, torch.full((3,), math.log(20.0), dtype=torch.float64))
+    assert rel_err(s, torch.full((3,), 10.0)) < 1e-3
+    assert rel_err(torch.exp(beta), torch.full((3,), 300.0)) < 1e-3
+
+
+@pytest.mark.parametrize("alpha", [300.0, 5000.0])
+def test_initial_approximation_recovers_strong_sharp_highlights(alpha):
+    """From α = 20 alone, one channel of the α = 5000 scene ends in the α = 1 local minimum; the
+    grid start avoids it."""
+    obs = _sharp_highlight_obs(alpha)
+    _, s0, beta0 = initial_approximation(obs, bins_of(obs))
+    assert rel_err(s0, torch.full((3,), 10.0)) < 1e-2
+    assert rel_err(torch.exp(beta0), torch.full((3,), alpha)) < 1e-2
+
+
+def test_grid_start_picks_the_nearest_grid_exponent():
+    L = torch.log(torch.linspace(0.5, 1.0, 100, dtype=torch.float64)).expand(3, -1)
+    a_true = torch.tensor([3.0, 70.0, 3000.0], dtype=torch.float64)
+    c = 2.0 * torch.exp(a_true.view(3, 1) * L)
+    s0, beta0 = grid_start((torch.ones_like(c, dtype=torch.bool), c, L))
+    torch.testing.assert_close(torch.exp(beta0), torch.tensor([4.0, 64.0, 4096.0], dtype=torch.float64))
+    assert bool((s0 > 0).all())
+
+
+def test_control_point_lm_returns_s_at_least_zero():
+    L = torch.log(torch.linspace(0.3, 1.0, 50, dtype=torch.float64)).expand(3, -1)
+    c = -0.5 * torch.exp(40.0 * L)  # a "negative highlight": no evidence, s clamps to 0
+    s, _ = fit_control_points((torch.ones_like(c, dtype=torch.bool), c, L), torch.ones(3, dtype=torch.float64),
+                              torch.full((3,), math.log(20.0), dtype=torch.float64))
+    assert bool((s == 0).all())
 
 
 def test_bin_sums_average_per_channel():

@@ -112,17 +112,9 @@ def test_fit_alpha_1_to_5000_and_s_0_to_10(alpha, s, seed):
         assert any("specular" in k for k in fit.skipped), fit.skipped
 
 
-PAPER_STRONG_HIGHLIGHT = pytest.mark.xfail(
-    strict=True, reason="fit_phong(scheme='paper') drops strong sharp highlights (s=10, α≥300: 'no highlight "
-    "evidence', s=0, rmse 4%) where the numpy reference of the same scheme recovers s, α to 1e-5 — reported to the "
-    "fit owner; remove this marker once fixed")
-
-
 @pytest.mark.parametrize("scheme,alpha,s", [
     *[(sch, a, sv) for sch in ("paper", "refine") for a, sv in [(1.0, 10.0), (5000.0, 0.01), (1.0, 0.0)]],
-    ("refine", 300.0, 10.0), ("refine", 5000.0, 10.0),
-    pytest.param("paper", 300.0, 10.0, marks=PAPER_STRONG_HIGHLIGHT),
-    pytest.param("paper", 5000.0, 10.0, marks=PAPER_STRONG_HIGHLIGHT),
+    *[(sch, a, 10.0) for sch in ("paper", "refine") for a in (300.0, 5000.0)],
 ])
 def test_fit_extreme_corners_both_schemes(scheme, alpha, s):
     res = synth_capture(size=16, shots=8, seed=4, s=(s, s, s), alpha=(alpha, alpha, alpha), texture="procedural")

@@ -12,8 +12,11 @@ Iteration i:
   4.1.4 texture T^i = mean_k (image − specular)/(E·n·l) over the valid observations;
   4.1.5 Err_i = Σ (image − render)²; stop when |Err_{i−1} − Err_i| ≤ tol·Err_{i−1}.
 Deviations, all documented: control points come from bins (the paper's "same r·v" sets are
-empty for real data); a bin needs ``min_count`` observations; ε is relative; observations within
-~1° of grazing (n·l < 0.02) are left out of the ratios that divide by n·l.
+empty for real data; every non-empty bin is a control point, as in the numpy reference — with a
+higher ``min_count`` the few observations near the mirror direction of a sharp lobe are lost and
+α = 5000 comes out up to 0.4% low); the 4.1.6 LM starts from the best of a coarse α grid; s is free inside
+the LM and clamped to ≥ 0 after it; ε is relative; observations within ~1° of grazing
+(n·l < 0.02) are left out of the ratios that divide by n·l.
 
 One chunked pass per iteration computes T^i, Err_i and the next control points together. Chunks
 whose lobe is below e⁻⁴⁰ in every shot (for α above a floor) have a texture that does not depend
@@ -36,8 +39,9 @@ from torchmetal.fit.refine import ALPHA_MAX, ALPHA_MIN, BETA_MAX, BETA_MIN
 
 N_BINS = 254  # + mirror bin + r·v ≤ 0 bin = 256: bin indices fit in uint8
 Q_MIN = 1e-6
-MIN_COUNT = 3
+MIN_COUNT = 1
 ALPHA0 = 20.0
+ALPHA_GRID = (1.0, 4.0, 16.0, 64.0, 256.0, 1024.0, 4096.0)  # 4.1.6's LM starts from the best of these and α⁰
 DIVERGED = 10.0  # Err above 10× the best so far (plus 1e-6 of Σ y²): the iteration ran away
 NL_MIN = 0.02  # the paper divides by n·l: observations within ~1° of grazing are left out of its ratios
 
@@ -109,31 +113,64 @@ def _lobe(L: Tensor, alpha: Tensor) -> Tensor:
     return torch.exp(alpha * L)
 
 
+def control_model(cp: tuple[Tensor, ...], alpha: Tensor) -> tuple[Tensor, Tensor]:
+    """The control points' model per unit s and its β derivative, each (3, nb); alpha (3, 1).
+
+    e = (r·v)^α, or with the 4.1.6 terms e = (r·v)^α − z̄·(r·v*)^α; de = ∂e/∂β (β = log α).
+    """
+    L = cp[2]
+    e = _lobe(L, alpha)
+    de = alpha * L * e
+    if len(cp) == 5:
+        z, ls = cp[3], cp[4]
+        es = _lobe(ls, alpha)
+        e, de = e - z * es, de - z * alpha * ls * es
+    return e, de
+
+
+def grid_start(cp: tuple[Tensor, ...], alphas: tuple[float, ...] = ALPHA_GRID) -> tuple[Tensor, Tensor]:
+    """Best (s, β) per channel over a coarse α grid, s projected: max(0, Σ c̄·e / Σ e²) (3,) each."""
+    use, c = cp[0], cp[1]
+    m = use.double()
+    best_cost = torch.full((3,), math.inf, dtype=torch.float64, device=c.device)
+    best_s = torch.zeros(3, dtype=torch.float64, device=c.device)
+    best_b = torch.zeros(3, dtype=torch.float64, device=c.device)
+    for a in alphas:
+        e, _ = control_model(cp, torch.full((3, 1), float(a), dtype=torch.float64, device=c.device))
+        ee = (m * e * e).sum(-1)
+        s = torch.where(ee > 0, (m * c * e).sum(-1) / torch.where(ee > 0, ee, torch.ones_like(ee)), torch.zeros_like(ee))
+        s = s.clamp_min(0.0)
+        cost = (m * (c - s.unsqueeze(-1) * e) ** 2).sum(-1)
+        better = cost < best_cost
+        best_cost = torch.where(better, cost, best_cost)
+        best_s = torch.where(better, s, best_s)
+        best_b = torch.where(better, torch.full_like(best_b, math.log(a)), best_b)
+    return best_s, best_b
+
+
 def fit_control_points(
     cp: tuple[Tensor, ...], s0: Tensor, beta0: Tensor, *, tol: float = 1e-10, max_iters: int = 100
 ) -> tuple[Tensor, Tensor]:
     """LM on (s, β) per channel over control points (4.1.3, 4.1.6).
+
+    s is free during the LM and clamped to ≥ 0 at the end (as ``least_squares`` in the numpy
+    reference): a bound s ≥ 0 inside the LM is absorbing, since at s = 0 the β derivative
+    −s·∂e/∂β vanishes, and a first step from a broad start that overshoots s below zero would
+    leave a strong sharp highlight at s = 0.
 
     Args:
         cp: (use, c̄, L̄) or (use, c̄, L̄, z̄, L̄*) from :meth:`BinSums.control_points`, each (3, nb).
         s0, beta0: (3,) start.
 
     Returns:
-        s (3,), β (3,) float64.
+        s (3,) ≥ 0, β (3,) float64.
     """
-    use, c, L = cp[0], cp[1], cp[2]
-    star = len(cp) == 5
-    z, ls = (cp[3], cp[4]) if star else (None, None)
+    use, c = cp[0], cp[1]
     m = use.double()
 
     def oracle(x: Tensor) -> LMEval:
         s, beta = x[:, :1], x[:, 1:]
-        alpha = torch.exp(beta)
-        e = _lobe(L, alpha)
-        de = alpha * L * e
-        if star:
-            es = _lobe(ls, alpha)
-            e, de = e - z * es, de - z * alpha * ls * es
+        e, de = control_model(cp, torch.exp(beta))
         r = c - s * e
         j_s, j_b = -e, -s * de
         cost = (m * r * r).sum(-1)
@@ -144,11 +181,11 @@ def fit_control_points(
         return LMEval(cost, grad, hess)
 
     x0 = torch.stack([s0.double().clamp_min(0.0), beta0.double().clamp(BETA_MIN, BETA_MAX)], -1)
-    lo = torch.tensor([0.0, BETA_MIN], dtype=torch.float64, device=x0.device)
+    lo = torch.tensor([-math.inf, BETA_MIN], dtype=torch.float64, device=x0.device)
     hi = torch.tensor([math.inf, BETA_MAX], dtype=torch.float64, device=x0.device)
     res = levenberg_marquardt(oracle, x0, lower=lo, upper=hi, tol=tol, xtol=tol, max_iters=max_iters)
     x = torch.where(torch.isfinite(res.x), res.x, x0)
-    return x[:, 0], x[:, 1]
+    return x[:, 0].clamp_min(0.0), x[:, 1]
 
 
 def _ok(w: Tensor, g: Tensor, u: Tensor) -> Tensor:
@@ -165,15 +202,18 @@ def bins_of(obs: Observations, n_bins: int = N_BINS) -> Tensor:
     return out
 
 
-def initial_approximation(
-    obs: Observations, bidx: Tensor, *, n_bins: int = N_BINS, alpha0: float = ALPHA0
-) -> tuple[Tensor, Tensor, Tensor]:
-    """4.1.6: T_min, then s⁰, α⁰ from its control points, then T⁰ = T_min − X.
+def tmin_control_points(
+    obs: Observations, bidx: Tensor, *, n_bins: int = N_BINS, min_count: int = MIN_COUNT
+) -> tuple[tuple[Tensor, ...], Tensor, Tensor, Tensor]:
+    """4.1.6's first half: T_min and the control points of what it leaves.
 
     Args:
         bidx: (N, 1, P) bins from :func:`bins_of`.
+        min_count: observations a bin needs to be a control point.
 
-    Returns (T⁰ (3, P), s⁰ (3,), β⁰ (3,)).
+    Returns:
+        control points (use, c̄, L̄, z̄, L̄*) each (3, nb); T_min, L* and (n·l)* (3, P) (the
+        log r·v and n·l of the shot of the minimum).
     """
     dev = obs.g.device
     p = obs.num_pixels
@@ -193,10 +233,25 @@ def initial_approximation(
         tmin[:, p0:p1], lstar[:, p0:p1], nlstar[:, p0:p1] = t, ls, ns
         target = (y - t * a) / torch.where(ok, iu, torch.ones_like(iu))
         bins.add(bidx[:, :, p0:p1].long(), ok, target, L, nl / ns, ls.unsqueeze(0).expand_as(target))
-    cp = bins.control_points()
-    use, c = cp[0], cp[1]
-    peak = torch.where(use, c, torch.zeros_like(c)).amax(-1).clamp_min(1e-6)
-    s0, beta0 = fit_control_points(cp, peak, torch.full((3,), math.log(alpha0), dtype=torch.float64, device=dev))
+    return bins.control_points(min_count), tmin, lstar, nlstar
+
+
+def initial_approximation(
+    obs: Observations, bidx: Tensor, *, n_bins: int = N_BINS, alpha0: float = ALPHA0
+) -> tuple[Tensor, Tensor, Tensor]:
+    """4.1.6: T_min, then s⁰, α⁰ from its control points, then T⁰ = T_min − X.
+
+    The LM on the control points starts from the best of α⁰ and a coarse α grid
+    (:func:`grid_start`): the lobe fit is far from convex, and one fixed start can end in a
+    distant local minimum (e.g. α = 1 for a sharp α = 5000 highlight).
+
+    Args:
+        bidx: (N, 1, P) bins from :func:`bins_of`.
+
+    Returns (T⁰ (3, P), s⁰ (3,), β⁰ (3,)).
+    """
+    cp, tmin, lstar, nlstar = tmin_control_points(obs, bidx, n_bins=n_bins)
+    s0, beta0 = fit_control_points(cp, *grid_start(cp, (alpha0, *ALPHA_GRID)))
     al = torch.exp(beta0).to(obs.dtype).view(3, 1)
     x = s0.to(obs.dtype).view(3, 1) * torch.exp(al * lstar) / nlstar
     t0 = torch.where(obs.saa > 0, tmin - x, obs.fallback)
