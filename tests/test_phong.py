@@ -88,3 +88,48 @@ def test_spatially_varying_maps_broadcast_like_globals():
     tex, s, a = torch.rand(3, 5, 7), torch.tensor([0.5, 0.6, 0.7]), torch.tensor([10.0, 50.0, 200.0])
     maps = phong_render(tex, s[:, None, None].expand(3, 5, 7), a[:, None, None].expand(3, 5, 7), n, L, I, C, (0.1, 0.1))
     torch.testing.assert_close(maps, phong_render(tex, s, a, n, L, I, C, (0.1, 0.1)))
+
+
+def _overflow_geometry(dtype):
+    """2×2 pixels, one shot: left column facing the light, right column facing away; E = inf."""
+    n = torch.zeros(3, 2, 2, dtype=dtype)
+    n[2, :, 0], n[2, :, 1] = 1.0, -1.0
+    light = torch.tensor([[0.01, 0.0, 0.3, 1.0]], dtype=dtype)
+    cam = torch.tensor([[0.0, 0.0, 0.3, 1.0]], dtype=dtype)
+    geom = shading_geometry(n, light, torch.ones(1, 3, dtype=dtype), cam, (0.1, 0.1))
+    geom.irradiance = torch.full_like(geom.irradiance, float("inf"))
+    return geom
+
+
+def test_overflowed_irradiance_is_inf_where_lit_and_zero_where_dark():
+    geom = _overflow_geometry(torch.float16)
+    out = phong_shading(torch.full((3, 2, 2), 0.5, dtype=torch.float16), torch.ones(3, dtype=torch.float16),
+                        torch.full((3,), 5.0, dtype=torch.float16), geom)
+    assert out.dtype == torch.float16 and not torch.isnan(out).any()
+    assert torch.isinf(out[..., 0]).all() and (out[..., 1] == 0).all()
+
+
+def test_overflowed_irradiance_gives_finite_gradients_where_dark():
+    geom = _overflow_geometry(torch.float64)
+    dark = geom.n_dot_l[0, 0] <= 0
+    geom.n_dot_l = torch.where(dark, geom.n_dot_l, -geom.n_dot_l)  # every pixel faces away
+    tex = torch.full((3, 2, 2), 0.5, dtype=torch.float64, requires_grad=True)
+    s = torch.ones(3, dtype=torch.float64, requires_grad=True)
+    alpha = torch.full((3,), 5.0, dtype=torch.float64, requires_grad=True)
+    out = phong_shading(tex, s, alpha, geom)
+    assert (out == 0).all()
+    out.sum().backward()
+    for g in (tex.grad, s.grad, alpha.grad):
+        assert torch.isfinite(g).all()
+
+
+def test_zero_texture_keeps_its_gradient_under_finite_irradiance():
+    """The overflow guard must not touch finite irradiance: d(out)/d(texture) = E·n·l even where
+    the texture (and so the shading term) is 0."""
+    rng = np.random.default_rng(4)
+    n, L, I, C = (torch.from_numpy(x) for x in random_config(rng, b=2, h=3, w=3))
+    geom = shading_geometry(n, L, I, C, (0.1, 0.1))
+    tex = torch.zeros(3, 3, 3, dtype=torch.float64, requires_grad=True)
+    phong_shading(tex, torch.zeros(3, dtype=torch.float64), torch.ones(3, dtype=torch.float64), geom).sum().backward()
+    expected = (geom.irradiance * geom.n_dot_l.clamp_min(0.0)).sum(0)
+    torch.testing.assert_close(tex.grad, expected)

@@ -53,6 +53,10 @@ def specular_lobe(spec_q: Tensor, alpha: Tensor) -> Tensor:
 def phong_shading(texture: Tensor, s: Tensor, alpha: Tensor, geom: ShadingGeometry) -> Tensor:
     """Phong radiance for precomputed geometry.
 
+    An irradiance that overflowed (inf, e.g. float16 above 65504) stays inf where the surface
+    reflects light and gives 0 where the shading term is exactly 0 (unlit, back-facing): never
+    the NaN of inf·0, in values or gradients. Finite irradiance is untouched.
+
     Args:
         texture: (3, H, W) diffuse texture d(p), or (B, 3, H, W).
         s: (3,) or (3, H, W) specular strength; alpha: (3,) or (3, H, W) exponent.
@@ -65,7 +69,10 @@ def phong_shading(texture: Tensor, s: Tensor, alpha: Tensor, geom: ShadingGeomet
     diffuse = texture * geom.n_dot_l.clamp_min(0.0)
     spec = channel_map(s) * specular_lobe(geom.spec_q, alpha)
     spec = torch.where(lit, spec, torch.zeros_like(spec))
-    return geom.irradiance * (diffuse + spec)
+    shade = diffuse + spec
+    e = geom.irradiance
+    dark = (shade == 0) & torch.isinf(e)  # inf·0: no light leaves the surface
+    return torch.where(dark, torch.ones_like(e), e) * shade
 
 
 def phong_render(

@@ -185,8 +185,6 @@ def test_float16_inputs_match_float64_where_representable():
             assert float((half.double() - ref).abs().max()) <= 1e-2 * float(ref.abs().max())
 
 
-@pytest.mark.xfail(strict=True, reason="phong_shading multiplies an overflowed irradiance (inf) by a zero "
-                   "shading term → NaN in float16 (reported to the Phong owner; remove this marker once fixed)")
 def test_float16_irradiance_overflow_is_never_nan():
     """6e4 W/sr at 0.3 m is 6.7e5 irradiance: beyond float16. Inf is honest, NaN is not."""
     h = w = 2
