@@ -8,9 +8,10 @@ For shot k, pixel p, channel c (DESIGN 2.2), with intensity i_kc, n·l, q = 1 �
 The fit never needs more geometry than (g, u, L): three (N, 1, P) tensors, computed once with
 :func:`torchmetal.geometry.grid_shading_terms` (the renderer's formulas, built separably on the
 plane's pixel grid) and :func:`torchmetal.phong.log1p_exact`, and reused by every iteration.
-Pixels are flattened to P = h·w on a (possibly strided) grid and processed in chunks of ``chunk`` pixels, so temporaries stay
-(N, 3, chunk) whatever the image size. Per chunk and shot, ``lmax`` keeps the largest L: when
-α·lmax < −40 the lobe is below e⁻⁴⁰ on every pixel of the chunk, and passes skip that work.
+Pixels are flattened to P = h·w on a (possibly strided) grid and processed in chunks of
+``chunk`` pixels, so temporaries stay (N, 3, chunk) whatever the image size. Per chunk and
+shot, ``lmax`` keeps the largest L: when α·lmax < −40 the lobe is below e⁻⁴⁰ on every pixel of
+the chunk, and passes skip that work.
 
 Weights: ``valid`` (N, 3, P) uint8 0/1 = inside the mask, not saturated, n·l > 0, not an
 outlier; ``weight`` (N, 3, P) holds robust IRLS weights when a robust loss is on (else None).
