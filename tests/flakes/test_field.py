@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from tests.flakes.scenes import true_flakes
-from torchmetal.errors import InputError
+from torchmetal.errors import InputError, MaterialError
 from torchmetal.flakes.field import (
     FlakeField,
     cell_size,
@@ -16,7 +16,7 @@ from torchmetal.flakes.field import (
     sparkle_render,
     sparkle_shading,
 )
-from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.model import MAX_DENSITY, FlakeModel
 from torchmetal.geometry import normalize, shading_geometry
 
 M32 = 0xFFFFFFFF
@@ -172,11 +172,13 @@ class TestFlakeField:
         f = flake_field(FlakeModel(density=0.0), 32, 32)
         assert f.count == 0 and float(f.weight.abs().sum()) == 0.0
 
-    @pytest.mark.xfail(strict=True, reason="one flake per cell and cells >= 3 px: the field caps density at 1/9 per px")
-    def test_density_above_one_ninth(self):
-        m = FlakeModel(density=0.2, seed=5, area_log_mean=math.log(1.0))
+    def test_density_above_one_ninth_is_rejected(self):
+        """One flake per cell and cells >= 3 px: the field cannot draw more than 1/9 per px."""
+        with pytest.raises(MaterialError, match="density"):
+            FlakeModel(density=0.2, seed=5)
+        m = FlakeModel(density=MAX_DENSITY, seed=5, area_log_mean=math.log(1.0))
         f = flake_field(m, 240, 240)
-        assert abs(f.count / 240**2 - 0.2) < 0.01
+        assert abs(f.count / 240**2 - MAX_DENSITY) < 0.01
 
     @pytest.mark.parametrize(
         "kw",

@@ -209,3 +209,20 @@ class TestBadInput:
         geo = S.Geometry(sc.normals, sc.lights[:3], sc.intensities[:3], sc.cameras[:3], sc.size)
         with pytest.raises(InputError, match="expected 4 shots"):
             S.flake_statistics(det, geo)
+
+
+class TestDegenerateFit:
+    def test_runaway_density_is_skipped_not_rendered(self, small, monkeypatch):
+        """A likelihood that runs off (∫P_any → 0, as on flash-at-lens real captures) gives no model."""
+        det, geo = small
+        real = S.fit_glints
+
+        def runaway(*args, **kwargs):
+            fit = real(*args, **kwargs)
+            fit.density = math.inf
+            return fit
+
+        monkeypatch.setattr(S, "fit_glints", runaway)
+        res = S.flake_statistics(det, geo)
+        assert res.model is None
+        assert "degenerate" in res.report["skipped"]

@@ -26,12 +26,11 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import InputError
-from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.model import MIN_CELL, FlakeModel
 from torchmetal.geometry import ShadingGeometry, normalize, shading_geometry
 
 _MASK32 = 0xFFFFFFFF
 _TARGET_OCCUPANCY = 0.25  # fraction of cells holding a flake when the density allows it
-_MIN_CELL = 3
 
 
 def hash32(x: Tensor) -> Tensor:
@@ -73,8 +72,8 @@ def _normal_pair(u1: Tensor, u2: Tensor) -> tuple[Tensor, Tensor]:
 def cell_size(density: float) -> int:
     """Cell edge in pixels so that about a quarter of the cells hold a flake."""
     if density <= 0:
-        return _MIN_CELL
-    return max(_MIN_CELL, math.ceil(math.sqrt(_TARGET_OCCUPANCY / density)))
+        return MIN_CELL
+    return max(MIN_CELL, math.ceil(math.sqrt(_TARGET_OCCUPANCY / density)))
 
 
 @dataclass

@@ -11,13 +11,16 @@ from dataclasses import asdict, dataclass, field
 
 from torchmetal.errors import MaterialError
 
+MIN_CELL = 3  # px: the hash field holds at most one flake per MIN_CELL² cell …
+MAX_DENSITY = 1.0 / (MIN_CELL * MIN_CELL)  # … so this is the densest field it can draw (flakes/px)
+
 
 @dataclass
 class FlakeModel:
     """Distribution of metallic flakes over the sample.
 
     Attributes:
-        density: expected flakes per pixel, including flakes that never glint.
+        density: expected flakes per pixel, including flakes that never glint (≤ MAX_DENSITY).
         area_log_mean, area_log_std: area ~ LogNormal(mean, std), area in px².
         aspect_mean, aspect_std: minor/major axis ratio ~ Normal, clipped to [0.2, 1].
         color_mean: (3,) mean linear-RGB glint reflectance; color_cov: 3×3 covariance.
@@ -44,7 +47,7 @@ class FlakeModel:
 
     def __post_init__(self) -> None:
         checks = {
-            "density": (self.density, 0.0, 1.0),
+            "density": (self.density, 0.0, MAX_DENSITY),
             "area_log_std": (self.area_log_std, 0.0, 5.0),
             "aspect_mean": (self.aspect_mean, 0.0, 1.0),
             "aspect_std": (self.aspect_std, 0.0, 1.0),

@@ -41,7 +41,7 @@ from torch import Tensor
 from torchmetal.errors import InputError
 from torchmetal.flakes import regions
 from torchmetal.flakes.detect import Detection, Particles
-from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.model import MAX_DENSITY, FlakeModel
 from torchmetal.geometry import shading_geometry, surface_points
 
 _LOG2PI = math.log(2.0 * math.pi)
@@ -669,7 +669,7 @@ def fit_glints(
     ident = {nm: bool(data_h[i] > 4.0 * prior_h[i, i]) and bool(se[i] < 0.15) for i, nm in enumerate(names)}
     return GlintFit(
         tilt_sigma=float(torch.exp(th[0])), glint_sigma=float(torch.exp(th[1])), log_amp_mean=float(th[2]),
-        log_amp_std=float(torch.exp(th[3])), density=d.count / expected,
+        log_amp_std=float(torch.exp(th[3])), density=d.count / expected if expected > 0 else math.inf,
         expected_fraction=expected / max(total_area, 1.0), loglik=-loss,
         std_err={nm: float(se[i]) for i, nm in enumerate(names)}, identified=ident, iterations=iters,
         evaluations=evals[0],
@@ -815,10 +815,17 @@ def flake_statistics(
     gfit = fit_glints(data, max_flakes=max_flakes)
     times["likelihood"] = time.perf_counter() - t2
     t3 = time.perf_counter()
+    if not (math.isfinite(gfit.density) and gfit.density <= MAX_DENSITY):
+        # the likelihood ran off to a spike or tail that explains the detections with almost no
+        # flakes expected anywhere: no trustworthy model (reported, not rendered)
+        report["skipped"] = (f"glint likelihood degenerate (density {gfit.density:.3g}/px > {MAX_DENSITY:.3g}, tilt σ "
+                             f"{gfit.tilt_sigma:.3g}, glint σ {gfit.glint_sigma:.3g}): no flake model")
+        report["times"] = times
+        return StatsResult(None, obs, flake_id, report)
     shapes = fit_shapes(obs)
     cmean, ccov = fit_colour(obs, gfit)
     times["shape_colour"] = time.perf_counter() - t3
-    density = min(gfit.density, 1.0)
+    density = gfit.density
     report.update({
         "density": density, "tilt_sigma": gfit.tilt_sigma, "glint_sigma": gfit.glint_sigma,
         "detected_fraction": count / max(1.0, density * float(g_area.sum())),
