@@ -128,6 +128,15 @@ def control_model(cp: tuple[Tensor, ...], alpha: Tensor) -> tuple[Tensor, Tensor
     return e, de
 
 
+def visible(m: Tensor, e: Tensor) -> Tensor:
+    """(3,) bool: the lobe e (3, nb) reaches e⁻⁴⁰ on some used control point (m (3, nb) 0/1).
+
+    Below that it counts as zero (as everywhere in the fit): s is not identifiable, and s = Σc̄·e/Σe²
+    would be absurdly large (1e68 on a lobe of e⁻¹⁹⁰).
+    """
+    return (m * e.abs()).amax(-1) > math.exp(ACTIVE_LOG)
+
+
 def grid_start(cp: tuple[Tensor, ...], alphas: tuple[float, ...] = ALPHA_GRID) -> tuple[Tensor, Tensor]:
     """Best (s, β) per channel over a coarse α grid, s projected: max(0, Σ c̄·e / Σ e²) (3,) each."""
     use, c = cp[0], cp[1]
@@ -138,7 +147,8 @@ def grid_start(cp: tuple[Tensor, ...], alphas: tuple[float, ...] = ALPHA_GRID) -
     for a in alphas:
         e, _ = control_model(cp, torch.full((3, 1), float(a), dtype=torch.float64, device=c.device))
         ee = (m * e * e).sum(-1)
-        s = torch.where(ee > 0, (m * c * e).sum(-1) / torch.where(ee > 0, ee, torch.ones_like(ee)), torch.zeros_like(ee))
+        ok = visible(m, e)
+        s = torch.where(ok, (m * c * e).sum(-1) / torch.where(ok, ee, torch.ones_like(ee)), torch.zeros_like(ee))
         s = s.clamp_min(0.0)
         cost = (m * (c - s.unsqueeze(-1) * e) ** 2).sum(-1)
         better = cost < best_cost
@@ -163,7 +173,7 @@ def fit_control_points(
         s0, beta0: (3,) start.
 
     Returns:
-        s (3,) ≥ 0, β (3,) float64.
+        s (3,) ≥ 0 (0 where the lobe is not :func:`visible`), β (3,) float64.
     """
     use, c = cp[0], cp[1]
     m = use.double()
@@ -185,7 +195,9 @@ def fit_control_points(
     hi = torch.tensor([math.inf, BETA_MAX], dtype=torch.float64, device=x0.device)
     res = levenberg_marquardt(oracle, x0, lower=lo, upper=hi, tol=tol, xtol=tol, max_iters=max_iters)
     x = torch.where(torch.isfinite(res.x), res.x, x0)
-    return x[:, 0].clamp_min(0.0), x[:, 1]
+    s, beta = x[:, 0].clamp_min(0.0), x[:, 1]
+    seen = visible(m, control_model(cp, torch.exp(beta).unsqueeze(-1))[0])
+    return torch.where(seen, s, torch.zeros_like(s)), beta
 
 
 def _ok(w: Tensor, g: Tensor, u: Tensor) -> Tensor:
