@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
-from torchmetal.fit.clusters import Labeler, Selection, choose_specular, evidence, fit_clustered
+from torchmetal.fit.clusters import Labeler, Selection, choose_specular, evidence, fit_clustered, heldout_evidence
 from torchmetal.fit.paper import paper_scheme
 from torchmetal.fit.problem import (
     ROBUST, Observations, Reference, Weighting, build_observations, compute_dtype, grid_stride,
@@ -331,15 +331,26 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
                                    "full-resolution outlier masking skipped")
                 weighting = None
 
-    # 3. highlight evidence
+    # 3. highlight evidence: in sample, then on a held-out shot (a sharp lobe can fit noise)
     s_fixed = None
     if glob is not None:
         ev = evidence(glob)[0]
+        reason = None
         if not bool(ev.any()):
             one = " (one shot cannot separate diffuse and specular)" if n_shots == 1 else ""
             frac = float(((glob.A - glob.cost) / glob.Y.clamp_min(1e-300)).max().clamp_min(0.0))
-            run.skipped.append(f"specular: no highlight evidence{one}: the best specular term explains {frac:.1e} of "
-                               f"the image energy ({float(glob.explained().max()):.1%} of the diffuse-only residual); s = 0")
+            reason = (f"no highlight evidence{one}: the best specular term explains {frac:.1e} of the image energy "
+                      f"({float(glob.explained().max()):.1%} of the diffuse-only residual)")
+        elif n_shots >= 3:
+            with run.stage("select"):
+                kept, mse_s, mse_d = heldout_evidence(capture, glob, stride=sel_stride, hold=_hold_shot(sub, glob),
+                                                      tol=sub_tol, max_iters=max_iters, dtype=dt, chunk=chunk,
+                                                      weighting=weighting)
+            if not kept:
+                reason = (f"no highlight evidence on a held-out shot (MSE {mse_s:.4g} with the specular term vs "
+                          f"{mse_d:.4g} diffuse only)")
+        if reason is not None:
+            run.skipped.append(f"specular: {reason}; s = 0")
             glob = None
         elif not bool(ev.all()):
             chans = [c for c, e in zip("RGB", ev.tolist()) if not e]
