@@ -14,6 +14,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.stress.helpers import with_
 from torchmetal.errors import TorchmetalError
 from torchmetal.fit import fit_phong
 from torchmetal.io.capture import Capture
@@ -83,13 +84,6 @@ def ring(n: int, elev_deg: float, *, point: bool = False, dist: float = 0.3) -> 
 @pytest.fixture(scope="module")
 def base() -> Capture:
     return synth_capture(size=16, shots=8, seed=2, texture="procedural").capture
-
-
-def with_(cap: Capture, **kw) -> Capture:
-    d = dict(images=cap.images.clone(), normals=cap.normals, mask=cap.mask, lights=cap.lights, intensities=cap.intensities,
-             cameras=cap.cameras, size=cap.size, saturated=cap.saturated)
-    d.update(kw)
-    return Capture(**d)
 
 
 # ----------------------------------------------------------------------------- α and s ranges

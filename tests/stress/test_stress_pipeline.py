@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from tests.stress.helpers import with_
 from torchmetal.errors import TorchmetalError
 from torchmetal.io.capture import Capture
 from torchmetal.phong import phong_render
@@ -18,13 +19,6 @@ from torchmetal.synth import synth_capture
 @pytest.fixture(scope="module")
 def base() -> Capture:
     return synth_capture(size=16, shots=8, seed=6, texture="procedural").capture
-
-
-def with_(cap: Capture, **kw) -> Capture:
-    d = dict(images=cap.images.clone(), normals=cap.normals, mask=cap.mask, lights=cap.lights, intensities=cap.intensities,
-             cameras=cap.cameras, size=cap.size, saturated=cap.saturated)
-    d.update(kw)
-    return Capture(**d)
 
 
 def one_pixel(base: Capture) -> Capture:
