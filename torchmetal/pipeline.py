@@ -22,6 +22,7 @@ from torchmetal.material import Material
 
 FLAKE_MODES = ("auto", "on", "off")
 ROBUST_AUTO = "huber"  # the refine scheme's weights when the flake stage runs (robust="auto")
+CLEAN_MIN_PARTICLES = 20  # fewer first-round detections than this: no texture re-solve (stats' min_flakes)
 
 
 @dataclass
@@ -43,19 +44,18 @@ def render_shots(fit, capture, *, chunk: int = 4) -> torch.Tensor:
     return torch.cat(parts)
 
 
-def _texture_without_glints(capture, texture: torch.Tensor, phong_images: torch.Tensor):
-    """One round of detection, then the texture re-solved under it: (texture, phong_images)."""
-    from torchmetal.flakes.detect import detect_flakes
-    from torchmetal.flakes.stage import irradiance_maps
+def _flake_stage(capture, fit, seed: int):
+    """Detect; re-solve the texture under the detections when there are more than noise gives,
+    then the flake stage on the renders with it. Returns (stage result, texture)."""
+    from torchmetal.flakes.stage import detect_capture, flake_stage
     from torchmetal.flakes.texture import texture_without_glints
 
-    valid = capture.mask.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)
-    det = detect_flakes(capture.images, phong_images.to(capture.images.dtype), irradiance_maps(capture, dtype=capture.images.dtype),
-                        valid=valid)
-    if len(det.particles) == 0:
-        return texture, phong_images
-    new, phong_images, _ = texture_without_glints(capture, texture, phong_images.to(texture.dtype), det.labels)
-    return new, phong_images
+    phong_images = render_shots(fit, capture)
+    det = detect_capture(capture, phong_images)
+    if len(det.particles) < CLEAN_MIN_PARTICLES:  # a few noise peaks: keep the texture and the detection
+        return flake_stage(capture, phong_images, seed=seed, detection=det), fit.texture
+    texture, phong_images, _ = texture_without_glints(capture, fit.texture, phong_images.to(fit.texture.dtype), det.labels)
+    return flake_stage(capture, phong_images, seed=seed), texture
 
 
 def fit_material(
@@ -103,14 +103,8 @@ def fit_material(
         skipped.append("flakes: disabled by the caller")
         stage_times["flakes"] = 0.0
     else:
-        from torchmetal.flakes.stage import flake_stage
-
         t = time.perf_counter()
-        phong_images = render_shots(fit, capture)
-        texture, phong_images = _texture_without_glints(capture, fit.texture, phong_images)
-        stage_times["flakes.texture"] = time.perf_counter() - t
-        flake_result = flake_stage(capture, phong_images, seed=seed)
-        del phong_images
+        flake_result, texture = _flake_stage(capture, fit, seed)
         stage_times["flakes"] = time.perf_counter() - t
         flake_model = flake_result.model
         if flake_model is not None:

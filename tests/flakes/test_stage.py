@@ -29,7 +29,7 @@ class TestFlakeStage:
         assert isinstance(result, FlakeStageResult)
         assert result.model is not None and result.model.seed == 7
         rep = result.report
-        for key in ("irradiance", "detect", "statistics", "statistics.likelihood", "total"):
+        for key in ("detect", "statistics", "statistics.likelihood", "total"):
             assert rep["times"][key] >= 0.0
         assert rep["times"]["total"] >= rep["times"]["detect"] + rep["times"]["statistics"] - 1e-9
         assert sum(rep["particles_per_shot"]) == len(result.particles)

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.checks import check_shape
-from torchmetal.flakes.detect import Particles, detect_flakes
+from torchmetal.flakes.detect import Detection, Particles, detect_flakes
 from torchmetal.flakes.model import FlakeModel
 from torchmetal.flakes.stats import Geometry, flake_statistics
 from torchmetal.geometry import direction_to, surface_points
@@ -42,6 +42,18 @@ def irradiance_maps(capture, *, dtype: torch.dtype = torch.float32) -> Tensor:
     return capture.intensities.to(dtype)[:, :, None, None] / dist2
 
 
+def detect_capture(capture, phong_images: Tensor, **detect) -> Detection:
+    """:func:`~torchmetal.flakes.detect.detect_flakes` on every shot of ``capture``: residual
+    against ``phong_images`` (N, 3, H, W), irradiance from the shots' lights, and only mask pixels
+    that are not saturated in any channel."""
+    images = capture.images
+    n, _, h, w = images.shape
+    check_shape(phong_images, (n, 3, h, w), "phong_images")
+    irr = irradiance_maps(capture, dtype=images.dtype)
+    valid = capture.mask.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)
+    return detect_flakes(images, phong_images.to(images.dtype), irr, valid=valid, **detect)
+
+
 def flake_stage(
     capture,
     phong_images: Tensor,
@@ -49,6 +61,7 @@ def flake_stage(
     seed: int = 0,
     detect: dict | None = None,
     stats: dict | None = None,
+    detection: Detection | None = None,
 ) -> FlakeStageResult:
     """Fit the flake model of a capture, given the Phong renders of its shots.
 
@@ -61,27 +74,22 @@ def flake_stage(
             (k_hi, k_lo, tile, background, close, open, min_area, cc_backend, chunk).
         stats: extra keyword arguments of :func:`~torchmetal.flakes.stats.flake_statistics`
             (assoc_radius, min_flakes, max_cells, max_flakes).
+        detection: :func:`detect_capture` of these renders when the caller already has it
+            (``detect`` is then unused).
 
     Returns:
         :class:`FlakeStageResult`.
     """
-    images = capture.images
-    n, _, h, w = images.shape
+    n, _, h, w = capture.images.shape
     check_shape(phong_images, (n, 3, h, w), "phong_images")
-    if phong_images.dtype != images.dtype:
-        phong_images = phong_images.to(images.dtype)
     t0 = time.perf_counter()
-    irr = irradiance_maps(capture, dtype=images.dtype)
-    valid = capture.mask.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)
-    t1 = time.perf_counter()
-    det = detect_flakes(images, phong_images, irr, valid=valid, **(detect or {}))
-    del irr
+    det = detect_capture(capture, phong_images, **(detect or {})) if detection is None else detection
     t2 = time.perf_counter()
     geo = Geometry(capture.normals, capture.lights, capture.intensities, capture.cameras, capture.size)
     res = flake_statistics(det, geo, seed=seed, **(stats or {}))
     t3 = time.perf_counter()
     report = dict(res.report)
-    times = {"irradiance": t1 - t0, "detect": t2 - t1}
+    times = {"detect": t2 - t0}
     times.update({f"detect.{k}": v for k, v in det.times.items()})
     times["statistics"] = t3 - t2
     times.update({f"statistics.{k}": v for k, v in report.pop("times", {}).items()})
