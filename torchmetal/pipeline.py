@@ -54,7 +54,7 @@ def _flake_stage(capture, fit, seed: int):
     det = detect_capture(capture, phong_images)
     if len(det.particles) < CLEAN_MIN_PARTICLES:  # a few noise peaks: keep the texture and the detection
         return flake_stage(capture, phong_images, seed=seed, detection=det), fit.texture
-    texture, phong_images, _ = texture_without_glints(capture, fit.texture, phong_images.to(fit.texture.dtype), det.labels)
+    texture, phong_images, _ = texture_without_glints(capture, fit.texture, phong_images, det.labels)
     return flake_stage(capture, phong_images, seed=seed), texture
 
 
