@@ -15,7 +15,7 @@ from tests.flakes.scenes import capture_of, make_scene, true_flakes
 from torchmetal.errors import InputError
 from torchmetal.flakes import stats as S
 from torchmetal.flakes.detect import detect_flakes
-from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.model import MAX_DENSITY, FlakeModel
 from torchmetal.flakes.stage import flake_stage
 
 SIZE, SHOTS, DENSITY = 384, 10, 0.01
@@ -175,6 +175,60 @@ class TestLikelihood:
         ref = torch.logsumexp((logp + logw).flatten(1), 1) + 2 * torch.log(p["sg"]) - la_hat
         torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-9)
 
+    @staticmethod
+    def _p_any_reference(d, cell, tau, sg, la, va, samples=40000, n_amp=120):
+        """P_any of one grid cell by brute force: slopes drawn from N(0, τ²I), log A on a dense
+        grid above the floor, detection Φ(A·g/σ − k_hi) (the probit the logistic stands for)."""
+        gen = torch.Generator().manual_seed(0)
+        mu = torch.randn(samples, 2, generator=gen, dtype=torch.float64) * tau
+        n = d.grid_normal[cell]
+        t1, t2 = S._frame(n)
+        m = n + mu[:, :1] * t1 + mu[:, 1:] * t2
+        mh = (m / m.norm(dim=-1, keepdim=True)) @ d.grid_half[cell].t()  # (S, N)
+        floor = S.log_amp_floor(d)
+        xs = torch.linspace(floor, max(la + 8 * va, floor + 3), n_amp, dtype=torch.float64)
+        dens = torch.exp(-0.5 * ((xs - la) / va) ** 2) / (va * math.sqrt(2 * math.pi))
+        vals = torch.stack([
+            (1 - (1 - torch.special.ndtr(torch.exp(x - (1 - mh) / sg**2) / d.grid_sigma[cell] - d.k_hi)).prod(-1)).mean()
+            for x in xs
+        ])
+        return float(torch.trapezoid(vals * dens, xs) / torch.special.ndtr(torch.tensor(-(floor - la) / va)))
+
+    @pytest.mark.parametrize("prm", [(0.15, 0.03, math.log(0.57), 0.1), (0.06, 0.05, -2.0, 0.3), (0.06, 0.05, -10.0, 2.0)],
+                             ids=["truth", "wide-glint", "far-amplitude-tail"])
+    def test_p_any_matches_brute_force(self, data, prm):
+        # the far tail (most flakes below the noise, a few bright ones) is where quantile nodes
+        # in A were 17-37x off and the fit ran away on cards_blue
+        t = {k: torch.tensor(v, dtype=torch.float64) for k, v in zip(("tau", "sg", "la", "va"), prm)}
+        got = S.log_p_any(data, t["tau"], t["sg"], t["la"], t["va"]).exp()
+        for cell in (0, 14, 35):
+            ref = self._p_any_reference(data, cell, *prm)
+            assert float(got[cell]) == pytest.approx(ref, rel=0.12, abs=1e-5), cell
+
+    def test_p_any_far_tail_does_not_underflow_float32(self, data):
+        # a far tail's weight is below float32's range: the fit ran off to "no flake expected
+        # anywhere" when it underflowed to 0
+        d64 = S.replace(data, log_floor=S.log_amp_floor(data))
+        grid32 = S._recast(d64, None, torch.float32, flakes=False, grid=True)
+        la, va = -40.0, 1.8
+        assert math.log(0.5 * math.erfc((d64.log_floor - la) / va / math.sqrt(2))) < math.log(1e-38)  # a far tail
+        args = [torch.tensor(v) for v in (0.06, 0.05, la, va)]
+        lp32 = S.log_p_any(grid32, *[a.float() for a in args])
+        lp64 = S.log_p_any(d64, *[a.double() for a in args])
+        assert lp32.dtype == torch.float64 and bool(torch.isfinite(lp32).all())
+        torch.testing.assert_close(lp32, lp64, rtol=0, atol=0.05)
+
+    def test_truncated_moments_match_quadrature(self):
+        for mu, v, floor in ((-0.5, 0.1, -3.0), (-10.0, 2.0, -6.0), (-2.0, 0.5, -1.5)):
+            x = torch.linspace(floor, mu + 12 * v + abs(floor - mu), 200001, dtype=torch.float64)
+            w = torch.exp(-0.5 * ((x - mu) / v) ** 2)
+            a = torch.exp(x)
+            m1 = float(torch.trapezoid(w * a, x) / torch.trapezoid(w, x))
+            m2 = float(torch.trapezoid(w * a * a, x) / torch.trapezoid(w, x))
+            got_m, got_v = S.truncated_moments(mu, v, floor)
+            assert got_m == pytest.approx(m1, rel=1e-4)
+            assert got_v == pytest.approx(m2 - m1 * m1, rel=1e-3)
+
     def test_fit_recovers_truth_and_reports(self, data):
         fit = S.fit_glints(data)
         assert abs(fit.tilt_sigma / 0.15 - 1) < 0.25 and abs(fit.glint_sigma / 0.03 - 1) < 0.25
@@ -226,3 +280,24 @@ class TestDegenerateFit:
         res = S.flake_statistics(det, geo)
         assert res.model is None
         assert "degenerate" in res.report["skipped"]
+
+    @pytest.mark.parametrize("fitted_density,model_density", [(0.2, MAX_DENSITY), (2.0, None)])
+    def test_dense_layer_is_rendered_at_capacity(self, small, monkeypatch, fitted_density, model_density):
+        """Denser than the hash field can draw (≤ 1/px): rendered at capacity and said so;
+        more flakes than pixels: degenerate."""
+        det, geo = small
+        real = S.fit_glints
+
+        def dense(*args, **kwargs):
+            fit = real(*args, **kwargs)
+            fit.density = fitted_density
+            return fit
+
+        monkeypatch.setattr(S, "fit_glints", dense)
+        res = S.flake_statistics(det, geo)
+        if model_density is None:
+            assert res.model is None and "degenerate" in res.report["skipped"]
+            return
+        assert res.model.density == model_density
+        assert res.model.extra["density_fitted"] == fitted_density == res.report["density"]
+        assert "capacity" in res.report["density_clamped"]

@@ -20,7 +20,11 @@ never glint are accounted for by the selection probability
 
     P_any(p) = ∫dA f_A(A) ∫dΩ p_τ(m) · [1 − Π_k (1 − P_k(m, A))],
 
-integrated cap by cap with a partition of unity. The true density is profiled out in closed form
+integrated cap by cap with a partition of unity. A is LogNormal truncated to A > A₀, the
+amplitude floor (:func:`log_amp_floor`): the density counts flakes that some shot could detect
+at perfect alignment (flakes that never glinted because of their tilt are counted; flakes
+fainter than the noise everywhere are not, as nothing in the data says how many there are).
+The true density is profiled out in closed form
 (ρ̂ = J / ∫P_any dp) and (τ, σ_g, log-A mean and spread) maximise
 Σ_j log f_j − J log ∫P_any dp (L-BFGS, float64, weak log-normal priors that only matter when
 the shots cannot separate them). σ_g is identified by flakes seen in more than one shot, τ by
@@ -32,7 +36,7 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import torch
 import torch.nn.functional as F
@@ -41,7 +45,7 @@ from torch import Tensor
 from torchmetal.errors import InputError
 from torchmetal.flakes import regions
 from torchmetal.flakes.detect import Detection, Particles
-from torchmetal.flakes.model import MAX_DENSITY, FlakeModel
+from torchmetal.flakes.model import MAX_DENSITY, MIN_CELL, FlakeModel
 from torchmetal.geometry import shading_geometry, surface_points
 
 _LOG2PI = math.log(2.0 * math.pi)
@@ -281,6 +285,7 @@ class GlintData:
     grid_area: Tensor  # (G,) valid pixels per cell
     k_hi: float
     count: int  # all associated flakes (the numerator may use a subsample)
+    log_floor: float | None = None  # log amplitude floor; None: FLOOR_LEVEL·min grid σ (:func:`log_amp_floor`)
 
 
 def nearest_shots(half: Tensor, first: Tensor, k: int, prefer: Tensor | None = None) -> Tensor:
@@ -334,6 +339,56 @@ def _memo(d: GlintData, key: tuple, make):
     return store[key]
 
 
+FLOOR_LEVEL = 2.0  # the faintest flake counted glints at this many σ of the quietest cell
+
+
+def log_amp_floor(d: GlintData) -> float:
+    """log of the amplitude floor A₀ = FLOOR_LEVEL·σ_min: the model's amplitude distribution is
+    the log-normal truncated to A > A₀, and its density counts those flakes only.
+
+    Fainter flakes are never detected (P < 1% at perfect alignment in the quietest cell), so
+    the data cannot say how many there are: without the floor a steep bright tail of a mostly
+    invisible population fits many real captures better, and the density runs off to infinity.
+    """
+    if d.log_floor is not None:
+        return d.log_floor
+    return math.log(FLOOR_LEVEL * float(d.grid_sigma.double().min()))
+
+
+def _tail_nodes(la: Tensor, va: Tensor, log_lo: Tensor, qa: Tensor, log_floor: float) -> tuple[Tensor, Tensor]:
+    """Quantile nodes of log A ~ N(la, va²) truncated to log A > max(log_lo, log_floor).
+
+    Args:
+        la, va: log-amplitude mean and spread (scalars); log_lo: (R,) lower bounds;
+        qa: (nA,) quantile levels in (0, 1); log_floor: the model's amplitude floor.
+
+    Returns:
+        log A nodes (R, nA) in the dtype of ``log_lo``, and log P(A > lo | A > floor) (R,) in
+        float64 (it underflows float32 for a far tail).
+    """
+    dt = log_lo.dtype
+    la, va = la.double(), va.double()
+    z0 = (log_lo.double().clamp_min(log_floor) - la) / va  # small tensors: float64
+    log_tail = torch.special.log_ndtr(-z0)  # log(1 − F(lo))
+    # u_i = F(lo) + (1 − F(lo))·q_i, written through the upper tail to keep precision near 1
+    tail = torch.exp(log_tail).unsqueeze(1) * (1 - qa.double())  # 1 − u_i
+    z = torch.maximum(-torch.special.ndtri(tail.clamp(1e-300, 1.0)), z0.unsqueeze(1))
+    log_norm = torch.special.log_ndtr(-(log_floor - la) / va)
+    return (la + va * z).to(dt), log_tail - log_norm
+
+
+def truncated_moments(log_amp_mean: float, log_amp_std: float, log_floor: float) -> tuple[float, float]:
+    """Mean and variance of A ~ LogNormal(mean, std) truncated to A > exp(log_floor)."""
+    mu, v = log_amp_mean, max(log_amp_std, 1e-12)
+    zf = (log_floor - mu) / v
+    def log_moment(k: int) -> float:  # log E[A^k | A > floor]
+        num = torch.special.log_ndtr(torch.tensor(k * v - zf, dtype=torch.float64))
+        den = torch.special.log_ndtr(torch.tensor(-zf, dtype=torch.float64))
+        return k * mu + 0.5 * (k * v) ** 2 + float(num - den)
+    m1 = math.exp(log_moment(1))
+    return m1, max(math.exp(log_moment(2)) - m1 * m1, 0.0)
+
+
 def log_numerator(
     d: GlintData, tau: Tensor, sg: Tensor, la: Tensor, va: Tensor, *, n_a: int = 6, n_phi: int = 16, outlier: float = 0.02,
 ) -> Tensor:
@@ -363,14 +418,7 @@ def log_numerator(
         detected, sigma, anchor = _gather_shots(detected, idx), _gather_shots(sigma, idx), torch.zeros_like(anchor)
         to_shots = to_shots.gather(2, idx.unsqueeze(1).expand(-1, 3, -1))
     log_amp = torch.log(d.amp.clamp_min(1e-12))
-    # A nodes: quantiles of the log-normal truncated to A > â (small tensors: float64)
-    z0 = ((log_amp.double() - la.double()) / va.double())
-    log_tail = torch.special.log_ndtr(-z0)  # log(1 − F(â))
-    # u_i = F(â) + (1 − F(â))·q_i, written through the upper tail to keep precision near 1
-    tail = torch.exp(log_tail).unsqueeze(1) * (1 - qa.double())  # 1 − u_i
-    z = -torch.special.ndtri(tail.clamp(1e-300, 1.0))
-    z = torch.maximum(z, z0.unsqueeze(1))
-    log_a = (la.double() + va.double() * z).to(dt)  # (J, nA)
+    log_a, log_tail = _tail_nodes(la, va, log_amp, qa, log_amp_floor(d))  # A nodes: A > â
     log_tail = log_tail.to(dt)
     cap = sg * sg * (log_a - log_amp.unsqueeze(1))  # 1 − cos β ≥ 0
     inside = cap < 1.9
@@ -411,11 +459,17 @@ def _gauss_legendre(n: int, dtype, device) -> tuple[Tensor, Tensor]:
     return torch.tensor(0.5 * (x + 1), dtype=dtype, device=device), torch.tensor(0.5 * w, dtype=dtype, device=device)
 
 
-def p_any(
+def log_p_any(
     d: GlintData, tau: Tensor, sg: Tensor, la: Tensor, va: Tensor, *,
-    n_a: int = 4, n_in: int = 2, n_band: int = 3, n_phi: int = 8, margin: float = 3.0,
+    n_a: int = 2, n_a_band: int = 4, n_in: int = 2, n_band: int = 3, n_phi: int = 8, margin: float = 3.0,
 ) -> Tensor:
-    """Probability (G,) that a flake in each grid cell is detected in at least one shot.
+    """log of the probability (G,) (float64) that a flake in each grid cell is detected in at
+    least one shot.
+
+    Amplitudes: Gauss–Legendre in log A (``n_a_band`` nodes) over the band where the cell's
+    detection probability rises (from (k_hi − margin)·σ_min to (k_hi + margin)·σ_max of the
+    cell), where a steep amplitude tail and a steep detection rate meet and quantile nodes
+    would be far off; ``n_a`` quantile nodes of the distribution above it.
 
     Cap k of shot k (A fixed) is integrated in u = 1 − m·h_k and φ: Gauss–Legendre in u on
     the interior, where A·g ≥ (k_hi + margin)·σ and detection is certain, and on the edge band
@@ -437,17 +491,28 @@ def p_any(
         h_near = d.grid_half.gather(1, order.flatten(1)[..., None].expand(-1, -1, 3)).view(g, n, n, 3)
         to_near = torch.einsum("gnac,gnkc->gnak", basis, h_near)  # (G, N, 3, N) onto the nearest shots' h
         s_near = d.grid_sigma.gather(1, order.flatten(1)).view(g, n, n)
-        return (torch.special.ndtri(qa), phi, _gauss_legendre(n_in, dt, dev), _gauss_legendre(n_band, dt, dev),
+        return (qa, phi, _gauss_legendre(n_in, dt, dev), _gauss_legendre(n_band, dt, dev),
                 torch.log(d.grid_sigma).view(g, 1, n), proj, to_near, s_near)
 
-    zq, phi, (x_in, w_in), (x_bd, w_bd), lsig, proj, to_near, s_near = _memo(d, ("p_any", n_a, n_in, n_band, n_phi), constants)
-    log_a = la + va * zq  # (nA,)
+    qa, phi, (x_in, w_in), (x_bd, w_bd), lsig, proj, to_near, s_near = _memo(d, ("p_any", n_a, n_in, n_band, n_phi), constants)
+    level_lo = max(0.5, d.k_hi - margin)
+    log_floor = log_amp_floor(d)
+    lo = (lsig.amin(-1)[:, 0] + math.log(level_lo)).double().clamp_min(log_floor)  # (G,)
+    hi = lsig.amax(-1)[:, 0].double() + math.log(d.k_hi + margin)
+    x_ab, w_ab = _memo(d, ("gl", n_a_band), lambda: _gauss_legendre(n_a_band, torch.float64, dev))
+    la64, va64 = la.double(), va.double()
+    lab = lo.unsqueeze(1) + (hi - lo).unsqueeze(1) * x_ab  # (G, nAb) band nodes in log A
+    log_wb = (torch.log((hi - lo).unsqueeze(1) * w_ab) - 0.5 * ((lab - la64) / va64) ** 2 - 0.5 * _LOG2PI
+              - torch.log(va64) - torch.special.log_ndtr(-(log_floor - la64) / va64))
+    lat, log_tail = _tail_nodes(la, va, hi, qa, log_floor)  # (G, nA) above the band
+    log_a = torch.cat([lab.to(dt), lat], 1)  # (G, nAb + nA)
+    log_wa = torch.cat([log_wb, (log_tail - math.log(n_a)).unsqueeze(1).expand(-1, n_a)], 1)
 
     def ucap(level: float) -> Tensor:  # 1 − m·h where A·g = level·σ, (G, nA, N)
-        return (sg * sg * (log_a.view(1, -1, 1) - lsig - math.log(level))).clamp(0.0, 1.9)
+        return (sg * sg * (log_a.unsqueeze(-1) - lsig - math.log(level))).clamp(0.0, 1.9)
 
     u_lo = ucap(d.k_hi + margin)
-    u_hi = ucap(max(0.5, d.k_hi - margin))
+    u_hi = ucap(level_lo)
     uu = torch.cat([u_lo.unsqueeze(-1) * x_in, u_lo.unsqueeze(-1) + (u_hi - u_lo).unsqueeze(-1) * x_bd], -1)
     wu = torch.cat([u_lo.unsqueeze(-1) * w_in, (u_hi - u_lo).unsqueeze(-1) * w_bd], -1)  # (G, nA, N, nR)
     uu = uu.clamp_min(1e-9)
@@ -463,13 +528,13 @@ def p_any(
 
     logp = _log_slope_from(dot_m(0), dot_m(1), dot_m(2), tau)
     # shots whose caps may overlap cap k (own shot first): caps farther apart never meet
-    beta = _cap_radius(sg, float(log_a.max().detach()), float(d.grid_sigma.min()), max(0.5, d.k_hi - margin))
+    beta = _cap_radius(sg, float(log_a.max().detach()), float(d.grid_sigma.min()), level_lo)
     kk = _overlap_count(d.grid_half, d.grid_half, 2.2 * beta + 1e-3)
     tn = to_near[..., :kk]  # (G, N, 3, K)
     sn = s_near[..., :kk]  # (G, N, K)
     rh = cphi.view(-1, 1) * tn[:, :, 1].unsqueeze(2) + sphi.view(-1, 1) * tn[:, :, 2].unsqueeze(2)  # (G, N, nφ, K)
     mh = cosb.unsqueeze(-1) * tn[:, :, 0].view(g, 1, n, 1, 1, -1) + sinb.unsqueeze(-1) * rh.view(g, 1, n, 1, -1, kk)  # (G, nA, N, nR, nφ, K)
-    a_over_s = torch.exp(log_a.view(1, -1, 1, 1, 1, 1) - (1 - mh) / (sg * sg)) / sn.view(g, 1, n, 1, 1, -1)
+    a_over_s = torch.exp(log_a.view(g, -1, 1, 1, 1, 1) - (1 - mh) / (sg * sg)) / sn.view(g, 1, n, 1, 1, -1)
     zk = _PROBIT * (a_over_s - d.k_hi)
     pk = torch.sigmoid(zk)
     any_ = 1.0 - (1.0 - pk).prod(-1)
@@ -477,7 +542,7 @@ def p_any(
     share = own * any_ / pk.sum(-1).clamp_min(1e-30)
     wts = (wu * (2 * math.pi / n_phi)).unsqueeze(-1)
     val = (torch.exp(logp) * share * wts).sum((2, 3, 4))  # (G, nA)
-    return val.mean(1)
+    return torch.logsumexp(torch.log(val.double().clamp_min(1e-300)) + log_wa, 1)
 
 
 def _objective(d: GlintData, sub: GlintData, theta: Tensor, prior: tuple[Tensor, Tensor], nodes: dict) -> tuple[Tensor, Tensor]:
@@ -488,12 +553,12 @@ def _objective(d: GlintData, sub: GlintData, theta: Tensor, prior: tuple[Tensor,
     wd = d.grid_half.dtype
     tau, sg, la, va = torch.exp(theta[0]).to(wd), torch.exp(theta[1]).to(wd), theta[2].to(wd), torch.exp(theta[3]).to(wd)
     lnum = log_numerator(sub, tau, sg, la, va, **nodes.get("num", {})).double()
-    pa = p_any(d, tau, sg, la, va, **nodes.get("any", {})).double()
-    expected = (pa * d.grid_area.double()).sum()
-    ll = lnum.sum() * (d.count / max(1, sub.amp.numel())) - d.count * torch.log(expected.clamp_min(1e-300))
+    log_pa = log_p_any(d, tau, sg, la, va, **nodes.get("any", {}))
+    log_expected = torch.logsumexp(log_pa + torch.log(d.grid_area.double().clamp_min(1e-300)), 0)
+    ll = lnum.sum() * (d.count / max(1, sub.amp.numel())) - d.count * log_expected
     mean, sd = prior
     pen = 0.5 * (((theta - mean) / sd) ** 2).sum()
-    return -(ll - pen), expected
+    return -(ll - pen), torch.exp(log_expected)
 
 
 @dataclass
@@ -513,6 +578,7 @@ class GlintFit:
     identified: dict
     iterations: int
     evaluations: int = 0
+    log_amp_floor: float = -math.inf
 
 
 _PER_FLAKE = ("half", "normal", "anchor", "amp", "detected", "sigma")
@@ -597,6 +663,7 @@ def fit_glints(
     if j == 0:
         raise InputError("fit_glints: expected at least one associated flake, found 0")
     wd = work_dtype
+    d = replace(d, log_floor=log_amp_floor(d))  # one floor for the numerator and the float32 grid
     sub = _recast(d, _even_subsample(j, max_flakes, dev), wd, flakes=True, grid=False)
     grid = _recast(d, None, wd, flakes=False, grid=True)
     init = dict(init or {})
@@ -672,7 +739,7 @@ def fit_glints(
         log_amp_std=float(torch.exp(th[3])), density=d.count / expected if expected > 0 else math.inf,
         expected_fraction=expected / max(total_area, 1.0), loglik=-loss,
         std_err={nm: float(se[i]) for i, nm in enumerate(names)}, identified=ident, iterations=iters,
-        evaluations=evals[0],
+        evaluations=evals[0], log_amp_floor=log_amp_floor(d),
     )
 
 
@@ -717,14 +784,13 @@ def fit_colour(obs: FlakeObservations, fit: GlintFit, *, min_snr: float = 8.0) -
 
     The peak glint of a detection is A·g with g ≤ 1, so raw peaks underestimate the flake's
     colour; the glint falloff is corrected through the fitted amplitude distribution:
-    mean = E[A] × mean chroma (chroma = colour / channel mean is independent of g).
+    mean = E[A | A > floor] × mean chroma (chroma = colour / channel mean is independent of g).
     """
     sel = obs.snr >= min_snr
     if int(sel.sum()) < 10:
         sel = torch.ones_like(sel)
     ch = obs.chroma[sel].double()
-    mean_a = math.exp(fit.log_amp_mean + 0.5 * fit.log_amp_std**2)
-    var_a = (math.exp(fit.log_amp_std**2) - 1.0) * mean_a**2
+    mean_a, var_a = truncated_moments(fit.log_amp_mean, fit.log_amp_std, fit.log_amp_floor)
     cm = ch.mean(0)
     mean = (mean_a * cm).clamp_min(0.0)
     # chroma covariance minus its measurement noise (per channel ≈ √3·σ/(amp·√area)), PSD-clipped
@@ -815,20 +881,23 @@ def flake_statistics(
     gfit = fit_glints(data, max_flakes=max_flakes)
     times["likelihood"] = time.perf_counter() - t2
     t3 = time.perf_counter()
-    if not (math.isfinite(gfit.density) and gfit.density <= MAX_DENSITY):
+    if not (math.isfinite(gfit.density) and gfit.density <= 1.0):
         # the likelihood ran off to a spike or tail that explains the detections with almost no
-        # flakes expected anywhere: no trustworthy model (reported, not rendered)
-        report["skipped"] = (f"glint likelihood degenerate (density {gfit.density:.3g}/px > {MAX_DENSITY:.3g}, tilt σ "
+        # flakes expected anywhere (more flakes than pixels): no trustworthy model (reported, not rendered)
+        report["skipped"] = (f"glint likelihood degenerate (density {gfit.density:.3g}/px > 1, tilt σ "
                              f"{gfit.tilt_sigma:.3g}, glint σ {gfit.glint_sigma:.3g}): no flake model")
         report["times"] = times
         return StatsResult(None, obs, flake_id, report)
     shapes = fit_shapes(obs)
     cmean, ccov = fit_colour(obs, gfit)
     times["shape_colour"] = time.perf_counter() - t3
-    density = gfit.density
+    density = min(gfit.density, MAX_DENSITY)
+    if gfit.density > MAX_DENSITY:  # a near-solid layer of flakes: drawn as dense as the hash field can
+        report["density_clamped"] = (f"fitted density {gfit.density:.3g}/px exceeds the flake field's capacity "
+                                     f"{MAX_DENSITY:.3g}/px (one flake per {MIN_CELL}×{MIN_CELL} px cell): rendered at capacity")
     report.update({
-        "density": density, "tilt_sigma": gfit.tilt_sigma, "glint_sigma": gfit.glint_sigma,
-        "detected_fraction": count / max(1.0, density * float(g_area.sum())),
+        "density": gfit.density, "density_rendered": density, "tilt_sigma": gfit.tilt_sigma, "glint_sigma": gfit.glint_sigma,
+        "detected_fraction": count / max(1.0, gfit.density * float(g_area.sum())),
         "std_err": gfit.std_err, "identified": gfit.identified, "iterations": gfit.iterations,
         "multi_shot_flakes": int((obs.detected.sum(1) > 1).sum()), "times": times,
     })
@@ -837,7 +906,8 @@ def flake_statistics(
         aspect_mean=shapes["aspect_mean"], aspect_std=shapes["aspect_std"], color_mean=cmean, color_cov=ccov,
         tilt_sigma=min(gfit.tilt_sigma, 1.5), glint_sigma=min(max(gfit.glint_sigma, 1e-4), 1.5),
         shape_lines=shapes["shape_lines"], seed=seed,
-        extra={"flakes_detected": count, "log_amp_mean": gfit.log_amp_mean, "log_amp_std": gfit.log_amp_std,
+        extra={"flakes_detected": count, "density_fitted": gfit.density, "log_amp_mean": gfit.log_amp_mean, "log_amp_std": gfit.log_amp_std,
+               "log_amp_floor": gfit.log_amp_floor,
                "std_err": gfit.std_err, "identified": gfit.identified},
     )
     return StatsResult(model, obs, flake_id, report)
