@@ -104,7 +104,7 @@ def data(small):
     h, w = det.signal.shape[-2:]
     fid, count = S.associate(det.particles, h, w)
     obs = S.observe(det, fid, count, geo)
-    gh, gn, gs, ga = S._grid(det, geo, 36)
+    gh, gn, gs, ga, _ = S._grid(det, geo, 36, S.measurable(det))
     return S.GlintData(
         half=obs.half.double(), normal=obs.normal.double(), anchor=obs.anchor, amp=obs.amp.double(),
         detected=obs.detected, sigma=obs.sigma.double(), grid_half=gh, grid_normal=gn, grid_sigma=gs,
