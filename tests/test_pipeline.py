@@ -2,8 +2,9 @@
 the render of a left-out shot against its photo, by the paper's MD, over several seeds,
 textures and light layouts.
 
-MD's own sampling noise is measured in the same test: two photos of the same truth whose flake
-fields differ only in their seed (the best any statistical model can do) score 1–6 at 256².
+MD's own sampling noise is measured alongside (reported on failure): two photos of the same
+truth whose flake fields differ only in their seed (the best any statistical model can do)
+score 1–6 at 256².
 """
 
 import math
@@ -59,11 +60,10 @@ def left_out():
 
 
 def test_md_of_left_out_photo(left_out):
-    # measured: 4.84, 2.57, 3.05, 1.35, 3.89 (mean 3.14) against a floor of 3.26, 1.09, 3.21, 1.37, 3.56
-    mds = [r["md"] for r in left_out.values()]
-    assert sum(mds) / len(mds) <= 4.0, left_out
+    # the issue's target (the paper reports 4.05 and 5.40); measured 3.04, 3.63, 3.44, 0.75, 3.06
+    # against a seed-to-seed floor of 3.26, 1.09, 3.21, 1.37, 3.56
     for case, r in left_out.items():
-        assert r["md"] <= max(4.0, r["md_floor"] + 2.0), (case, r)
+        assert r["md"] <= 4.0, (case, r)
 
 
 def test_sparkles_are_needed(left_out):

@@ -8,8 +8,9 @@ The detector fires when A·g_k exceeds T_k = k_hi·σ_k(p); with pixel noise σ_
 with probability Φ(A·g_k/σ_k − k_hi) (used in its logistic form σ(1.702·z)).
 
 Detections of one flake in several shots are associated by position. Each associated flake j
-contributes its detection pattern b_jk and the amplitude â_j of its brightest detection
-(the anchor shot k*). Given (A, m) on the sphere, the anchor amplitude pins m to a ring
+contributes its detection pattern b_jk and the amplitude â_j of its detection in the anchor
+shot k*, its first detected shot (a choice independent of the amplitudes, so the anchor carries
+no selection bias; shape and colour are measured on its brightest detection). Given (A, m) on the sphere, the anchor amplitude pins m to a ring
 1 − m·h_k* = σ_g² ln(A/â) around h_k*; the density of â there is σ_g²/â (exact change of
 variables), so
 
@@ -119,11 +120,12 @@ def associate(particles: Particles, height: int, width: int, radius: float = 1.5
 class FlakeObservations:
     """Per associated flake j (J rows), over N shots.
 
-    row, col (J,) int64 anchor pixel; anchor (J,) shot of the brightest detection;
-    amp (J,) its peak amplitude (channel-mean reflectance units); detected (J, N) bool;
-    sigma (J, N) local pixel noise σ at the flake; area (J,) flux/peak area (px²) of the
-    anchor; aspect (J,) minor/major of the anchor ellipse; major (J,) its semi-major axis (px);
-    chroma (J, 3) anchor colour / its channel mean; snr (J,) anchor amp/σ;
+    row, col (J,) int64 pixel of the brightest detection; anchor (J,) the likelihood's anchor
+    shot, the first shot the flake was detected in; amp (J,) the anchor's peak amplitude
+    (channel-mean reflectance units); detected (J, N) bool; sigma (J, N) local pixel noise σ at
+    the flake; measured on the brightest detection: area (J,) flux/peak area (px²), aspect (J,)
+    minor/major of its ellipse, major (J,) its semi-major axis (px), chroma (J, 3) its colour /
+    its channel mean, snr (J,) its amp/σ;
     half (J, N, 3), normal (J, 3): unit half vectors and surface normal at the flake;
     observed (J, N) bool: the flake's neighbourhood is measurable in that shot (:func:`measurable`).
     """
@@ -202,8 +204,12 @@ def observe(det: Detection, flake_id: Tensor, count: int, geometry: "Geometry", 
     aspect = torch.sqrt(lam2.clamp_min(1e-3) / lam1.clamp_min(1e-3)).clamp(0.05, 1.0)
     chroma = a.rgb / a.rgb.mean(1, keepdim=True).clamp_min(1e-12)
     half, normal = geometry.at_pixels(row, col)
+    # the likelihood's anchor is the flake's first detected shot, a choice independent of the
+    # amplitudes: anchoring on the brightest detection (the max of several noisy peaks) biased
+    # E[A], and with it the colour, 6-10 % high where flakes glint in many shots (flash layout)
+    ring_p = rows[regions.segment_argmax(fid, -shot.double(), count)]
     return FlakeObservations(
-        row=row, col=col, anchor=a.shot, amp=a.amp, detected=detected, sigma=sigma, area=area,
+        row=row, col=col, anchor=p.shot[ring_p], amp=p.amp[ring_p], detected=detected, sigma=sigma, area=area,
         aspect=aspect, major=0.5 * a.major, chroma=chroma, snr=a.snr, half=half, normal=normal,
         observed=ok[:, row, col].t(),
     )
