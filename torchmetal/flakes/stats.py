@@ -162,8 +162,13 @@ def measurable(det: Detection, radius: int = CLIP_RADIUS) -> Tensor:
     their low amplitudes inflated the density by 17–55 %, against 3–6 % when they are missing.
     """
     n, _, h, w = det.signal.shape
-    bad = (~det.valid).expand(n, -1, -1, -1).to(det.signal.dtype)
-    return F.max_pool2d(bad, 2 * radius + 1, 1, radius)[:, 0] == 0
+    bad = ~det.valid[:, 0]
+    if not bool(bad.any()):
+        return torch.ones(n, h, w, dtype=torch.bool, device=bad.device)
+    k = 2 * radius + 1  # separable dilation (rows, then columns)
+    near = F.max_pool2d(bad.unsqueeze(1).to(torch.float32), (1, k), 1, (0, radius))
+    near = F.max_pool2d(near, (k, 1), 1, (radius, 0))[:, 0]
+    return (near == 0).expand(n, -1, -1)
 
 
 def _particle_pixels(p: Particles) -> tuple[Tensor, Tensor]:
@@ -541,13 +546,17 @@ def log_p_any(
         d, ("p_any", n_a, n_in, n_band, n_phi), constants)
     level_lo = max(0.5, d.k_hi - margin)
     log_floor = log_amp_floor(d)
-    lo = (lsig.amin(-1)[:, 0] + math.log(level_lo)).double().clamp_min(log_floor)  # (G,)
-    hi = lsig.amax(-1)[:, 0].double() + math.log(d.k_hi + margin)
-    x_ab, w_ab = _memo(d, ("gl", n_a_band), lambda: _gauss_legendre(n_a_band, torch.float64, dev))
+
+    def band():  # log-A band nodes (G, nAb), log of their width × Gauss–Legendre weight, band top (G,)
+        lo = (lsig.amin(-1)[:, 0] + math.log(level_lo)).double().clamp_min(log_floor)
+        hi = lsig.amax(-1)[:, 0].double() + math.log(d.k_hi + margin)
+        x_ab, w_ab = _gauss_legendre(n_a_band, torch.float64, dev)
+        return lo.unsqueeze(1) + (hi - lo).unsqueeze(1) * x_ab, torch.log((hi - lo).unsqueeze(1) * w_ab), hi
+
+    lab, log_width, hi = _memo(d, ("band", n_a_band, margin), band)
     la64, va64 = la.double(), va.double()
-    lab = lo.unsqueeze(1) + (hi - lo).unsqueeze(1) * x_ab  # (G, nAb) band nodes in log A
-    log_wb = (torch.log((hi - lo).unsqueeze(1) * w_ab) - 0.5 * ((lab - la64) / va64) ** 2 - 0.5 * _LOG2PI
-              - torch.log(va64) - torch.special.log_ndtr(-(log_floor - la64) / va64))
+    log_wb = (log_width - 0.5 * ((lab - la64) / va64) ** 2 - 0.5 * _LOG2PI
+              - torch.log(va64) - torch.special.log_ndtr((la64 - log_floor) / va64))
     lat, log_tail = _tail_nodes(la, va, hi, qa, log_floor)  # (G, nA) above the band
     log_a = torch.cat([lab.to(dt), lat], 1)  # (G, nAb + nA)
     log_wa = torch.cat([log_wb, (log_tail - math.log(n_a)).unsqueeze(1).expand(-1, n_a)], 1)
@@ -872,7 +881,7 @@ def _grid(det: Detection, geometry: Geometry, max_cells: int, ok: Tensor) -> tup
     gh = min(side, h)
     gw = min(side, w)
     lsig = F.adaptive_avg_pool2d(torch.log(det.sigma.double()), (gh, gw))  # (N, 1, gh, gw)
-    valid = F.adaptive_avg_pool2d(ok.double().unsqueeze(1), (gh, gw))[:, 0]  # (N, gh, gw)
+    valid = F.adaptive_avg_pool2d(ok.unsqueeze(1).to(torch.float32), (gh, gw))[:, 0].double()  # (N, gh, gw)
     area = torch.full((gh * gw,), h * w / (gh * gw), dtype=torch.float64, device=det.sigma.device)
     half, normal = geometry.on_grid(gh, gw)
     return half, normal, torch.exp(lsig).flatten(1).t(), area, valid.flatten(1).t()
