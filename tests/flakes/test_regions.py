@@ -270,6 +270,13 @@ class TestSegmentOps:
         assert mx[:3].tolist() == [3.0, 5.0, -2.0] and mx[3] == float("-inf")
         assert regions.segment_argmax(ids, v, 3).tolist() == [2, 1, 3]
 
+    def test_argmax_ties_take_the_first(self):
+        ids = torch.zeros(100_000, dtype=torch.int64)
+        ids[50_000:] = 1
+        v = torch.ones(100_000)  # every row ties: the first of each component, every time
+        for _ in range(3):
+            assert regions.segment_argmax(ids, v, 2).tolist() == [0, 50_000]
+
     def test_patches_fill_outside(self):
         x = torch.arange(16.0).view(1, 1, 4, 4)
         p = regions.patches(x, torch.tensor([0]), torch.tensor([0]), torch.tensor([3]), 1, fill=-1.0)

@@ -101,12 +101,13 @@ def segment_max(ids: Tensor, values: Tensor, count: int) -> Tensor:
 
 
 def segment_argmax(ids: Tensor, values: Tensor, count: int) -> Tensor:
-    """Index into the pixel list of each component's maximum (P,) (ties: any one of them)."""
+    """Index into the pixel list of each component's maximum (P,) (ties: the first of them, so
+    the result never depends on the order a parallel scatter writes in)."""
     best = segment_max(ids, values, count)
     hit = values >= best[ids]
-    arg = torch.zeros(count, dtype=torch.int64, device=values.device)
-    arg[ids[hit]] = torch.nonzero(hit, as_tuple=True)[0]
-    return arg
+    arg = torch.full((count,), values.numel(), dtype=torch.int64, device=values.device)
+    arg.scatter_reduce_(0, ids[hit], torch.nonzero(hit, as_tuple=True)[0], reduce="amin")
+    return arg.clamp_max(max(values.numel() - 1, 0))
 
 
 def region_moments(px: PixelList, weight: Tensor) -> dict[str, Tensor]:

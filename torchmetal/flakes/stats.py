@@ -736,8 +736,11 @@ def fit_glints(
     # roughly uniform on [log T, log A], and its top quantile is a close start for log A
     la0 = init.get("log_amp", float(torch.quantile(torch.log(d.amp.clamp_min(1e-12)).double(), 0.98)) + 0.1)
     va0 = init.get("log_amp_std", 0.1)
-    prior_mean = torch.tensor([math.log(0.15), math.log(0.03), la0, math.log(0.3)], dtype=torch.float64, device=dev)
-    prior_sd = torch.tensor([2.0, 2.0, 5.0, 2.0], dtype=torch.float64, device=dev)
+    # the amplitude spread's prior is the one that matters: with ~100 flakes the likelihood is flat
+    # in it within 0.3 nats from 0.1 to 0.6 (demo), and E[A] = exp(ℓ + v²/2), hence the colour,
+    # followed it up by 20 %; flakes of one paint are alike, so v ~ LogNormal(log 0.15, 0.5²)
+    prior_mean = torch.tensor([math.log(0.15), math.log(0.03), la0, math.log(0.15)], dtype=torch.float64, device=dev)
+    prior_sd = torch.tensor([2.0, 2.0, 5.0, 0.5], dtype=torch.float64, device=dev)
     prior = (prior_mean, prior_sd)
     evals = [0]
 
@@ -842,10 +845,13 @@ def fit_colour(obs: FlakeObservations, fit: GlintFit, *, min_snr: float = 8.0) -
     The peak glint of a detection is A·g with g ≤ 1, so raw peaks underestimate the flake's
     colour; the glint falloff is corrected through the fitted amplitude distribution:
     mean = E[A | A > floor] × mean chroma (chroma = colour / channel mean is independent of g).
+    Chroma outside [0, 3] per channel (a detection whose mean colour is ≈ 0 or negative: a
+    texture edge, not a glint) is left out.
     """
-    sel = obs.snr >= min_snr
+    plausible = ((obs.chroma >= 0) & (obs.chroma <= 3)).all(1)
+    sel = (obs.snr >= min_snr) & plausible
     if int(sel.sum()) < 10:
-        sel = torch.ones_like(sel)
+        sel = plausible if int(plausible.sum()) >= 1 else torch.ones_like(sel)
     ch = obs.chroma[sel].double()
     mean_a, var_a = truncated_moments(fit.log_amp_mean, fit.log_amp_std, fit.log_amp_floor)
     cm = ch.mean(0)

@@ -6,13 +6,13 @@ the glint there and turns negative in every other shot. Flake statistics fitted 
 residual come out too sparse in amplitude and too wide in spread.
 
 :func:`texture_without_glints` re-solves d(p) at every pixel covered by a detection (dilated by
-one pixel), in closed form given the fitted specular and using only the shots where that pixel
-was not detected:
+one pixel), given the fitted specular and using only the shots where that pixel was not detected:
 
     d(p) = Σ_k w_k a_k (I_k − S_k) / Σ_k w_k a_k²,   a_k = E_k·max(n·l, 0),
 
 with S_k the fitted specular term and w_k = 0 for saturated, masked-out, shadowed and detected
-observations, capped by the all-shot texture (glints only add light). Pixels detected in every
+observations and for those more than 2.5 robust σ above the median of the others (a glint below
+the detection threshold), capped by the all-shot texture (glints only add light). Pixels detected in every
 shot take the mean of their undetected neighbours. Every other pixel keeps its texture, so a flake-free capture is unchanged
 wherever nothing was detected.
 """
@@ -57,18 +57,33 @@ def texture_without_glints(
         return texture, phong_images, changed
     dt = texture.dtype
     valid = capture.mask.unsqueeze(0) & ~capture.saturated
-    num = torch.zeros(3, h, w, dtype=torch.float64, device=texture.device)
-    den = torch.zeros_like(num)
+    idx = torch.nonzero(changed[0].flatten(), as_tuple=True)[0]  # (M,) pixels to re-solve
+    est = torch.empty(n, 3, idx.numel(), dtype=dt, device=texture.device)
+    gain = torch.empty_like(est)
     shots = [slice(k0, min(n, k0 + chunk)) for k0 in range(0, n, chunk)]
     for sl in shots:
         a = _diffuse_gain(capture, sl, dt)
         spec = phong_images[sl] - texture * a
-        wk = (valid[sl] & ~flagged[sl] & (a > 0)).to(dt)
-        num += (wk * a * (capture.images[sl].to(dt) - spec)).sum(0).double()
-        den += (wk * a * a).sum(0).double()
-    solved = den > 0
+        ok = valid[sl] & ~flagged[sl] & (a > 0)
+        e = (capture.images[sl].to(dt) - spec) / a.clamp_min(1e-12)
+        est[sl] = torch.where(ok, e, torch.full_like(e, float("nan"))).flatten(2)[:, :, idx]
+        gain[sl] = torch.where(ok, a, torch.zeros_like(a)).flatten(2)[:, :, idx]
+    # a glint below the detection threshold in a few clean shots (those next to the detected
+    # ones) would raise the mean, and with it lower every detected glint's amplitude: shots
+    # more than 2.5 robust σ above the median are left out of the weighted mean
+    med = torch.nanquantile(est, 0.5, dim=0)  # (3, M)
+    mad = 1.4826 * torch.nanquantile((est - med).abs(), 0.5, dim=0)
+    keep = (gain > 0) & ~(est > med + 2.5 * mad + 1e-6)
+    wk = torch.where(keep, gain * gain, torch.zeros_like(gain))
+    num = (wk * torch.nan_to_num(est)).sum(0)
+    den = wk.sum(0)
+    solved = torch.zeros(3, h * w, dtype=torch.bool, device=texture.device)
+    solved[:, idx] = den > 0
+    solved = solved.view(3, h, w)
+    d = torch.zeros(3, h * w, dtype=dt, device=texture.device)
+    d[:, idx] = num / den.clamp_min(1e-30)
     # glints only add light: the clean solve never exceeds the all-shot one (noise of few shots)
-    d = torch.where(solved, torch.minimum(num / den.clamp_min(1e-300), texture.double()), 0.0).to(dt)
+    d = torch.where(solved, torch.minimum(d.view(3, h, w), texture), torch.zeros_like(texture))
     # pixels detected in every shot: mean of the solved/untouched neighbours
     known = (~changed | solved.all(0, keepdim=True)).to(dt)  # (1, H, W)
     base = torch.where(changed, d, texture)
