@@ -115,7 +115,8 @@ class TestDeterminism:
         a = S.flake_statistics(det, geo, seed=5)
         b = S.flake_statistics(det, geo, seed=5)
         assert a.model is not None
-        assert a.model.to_dict() == b.model.to_dict()
+        da, db = a.model.to_dict(), b.model.to_dict()
+        assert da == db, {k: (da[k], db[k]) for k in da if da[k] != db[k]}
         assert torch.equal(a.flake_id, b.flake_id)
 
 
