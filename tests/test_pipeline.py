@@ -60,7 +60,7 @@ def left_out():
 
 
 def test_md_of_left_out_photo(left_out):
-    # the target (the paper reports 4.05 and 5.40); measured 3.04, 3.63, 3.44, 0.75, 3.06
+    # the target (the paper reports 4.05 and 5.40); measured 3.17, 2.12, 3.68, 0.56, 3.58
     # against a seed-to-seed floor of 3.26, 1.09, 3.21, 1.37, 3.56
     for case, r in left_out.items():
         assert r["md"] <= 4.0, (case, r)
@@ -68,7 +68,9 @@ def test_md_of_left_out_photo(left_out):
 
 def test_sparkles_are_needed(left_out):
     for case, r in left_out.items():
-        assert r["density"] is not None and abs(r["density"] - 1) < 0.15, (case, r)
+        # ~200 flakes, ~120 detected: the estimator's own noise is ~10 % here (the 10 % accuracy
+        # target is tested at 384² on the flake stage, tests/flakes/test_stats.py)
+        assert r["density"] is not None and abs(r["density"] - 1) < 0.25, (case, r)
         if r["md_no_flakes"] > 5.0:  # photo textures hide most sparkle in their own detail
             assert r["md"] < 0.5 * r["md_no_flakes"], (case, r)
 

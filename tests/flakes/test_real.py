@@ -51,7 +51,7 @@ def test_flake_term_lowers_md_of_the_left_out_shot(cards_blue):
             img = MaterialRenderer(res.material, flakes=flakes)(one.lights.float(), one.intensities.float(), one.cameras.float())
             assert bool(torch.isfinite(img).all())
             md[flakes] = float(metallic_difference(img, one.images.float()))
-    assert md[True] < 0.8 * md[False]  # measured: 35.7 with, 58.9 without
+    assert md[True] < 0.8 * md[False]  # measured: 31.9 with, 57.1 without
 
 
 def test_overlay_png(cards_blue, tmp_path):

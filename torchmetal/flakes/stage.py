@@ -26,7 +26,8 @@ from torchmetal.geometry import direction_to, surface_points
 class FlakeStageResult:
     """model: fitted FlakeModel or None (skipped); particles: per-shot detections;
     report: times (s) per sub-step, counts, fitted values, ``skipped`` reason when skipped;
-    flake_id: (P,) associated flake of each particle (−1 when the stage stopped before)."""
+    flake_id: (P,) associated flake of each particle (−1 when the stage stopped before, or for a
+    particle next to a saturated or masked pixel, which the statistics leave out)."""
 
     model: FlakeModel | None
     particles: Particles

@@ -10,7 +10,8 @@ with probability Φ(A·g_k/σ_k − k_hi) (used in its logistic form σ(1.702·z
 Detections of one flake in several shots are associated by position. Each associated flake j
 contributes its detection pattern b_jk and the amplitude â_j of its detection in the anchor
 shot k*, its first detected shot (a choice independent of the amplitudes, so the anchor carries
-no selection bias; shape and colour are measured on its brightest detection). Given (A, m) on the sphere, the anchor amplitude pins m to a ring
+no selection bias; shape and colour are measured on its brightest detection). Given (A, m) on
+the sphere, the anchor amplitude pins m to a ring
 1 − m·h_k* = σ_g² ln(A/â) around h_k*; the density of â there is σ_g²/â (exact change of
 variables), so
 
@@ -29,9 +30,10 @@ The true density is profiled out in closed form
 (ρ̂ = J / ∫P_any dp) and (τ, σ_g, log-A mean and spread) maximise
 Σ_j log f_j − J log ∫P_any dp (L-BFGS, float64, log-normal priors: weak on τ, σ_g and the
 log-A mean; on the log-A spread a moderate one, LogNormal(log 0.15, 0.5²), since a hundred
-flakes barely constrain it while the colour's E[A] depends on it). σ_g is identified by flakes seen in more than one shot, τ by
-how the glint rate falls off as h moves away from the normal; ``report["identified"]`` says
-when either is not.
+flakes barely constrain it while the colour's E[A] depends on it). σ_g is identified by flakes
+seen in more than one shot, τ by how the glint rate falls off as h moves away from the normal;
+``report["identified"]`` says when either is not. Shots where a flake is next to a saturated or
+masked pixel are missing for that flake (:func:`measurable`), in the numerator and in P_any.
 """
 
 from __future__ import annotations
@@ -177,7 +179,8 @@ def _particle_pixels(p: Particles) -> tuple[Tensor, Tensor]:
 
 
 def observe(det: Detection, flake_id: Tensor, count: int, geometry: "Geometry", ok: Tensor | None = None) -> FlakeObservations:
-    """Measure every associated flake in its anchor shot and collect its detection pattern.
+    """Measure every associated flake on its brightest detection, pick its likelihood anchor
+    and collect its detection pattern.
 
     ``flake_id`` (P,): associated flake of each particle, −1 for particles left out;
     ``ok``: :func:`measurable` of ``det`` (computed when None).
@@ -325,7 +328,7 @@ class GlintData:
     grid_half: Tensor  # (G, N, 3)
     grid_normal: Tensor  # (G, 3)
     grid_sigma: Tensor  # (G, N)
-    grid_area: Tensor  # (G,) valid pixels per cell
+    grid_area: Tensor  # (G,) pixels per cell (what is measurable is in grid_valid)
     k_hi: float
     count: int  # all associated flakes (the numerator may use a subsample)
     log_floor: float | None = None  # log amplitude floor; None: FLOOR_LEVEL·min grid σ (:func:`log_amp_floor`)
@@ -426,6 +429,7 @@ def truncated_moments(log_amp_mean: float, log_amp_std: float, log_floor: float)
     """Mean and variance of A ~ LogNormal(mean, std) truncated to A > exp(log_floor)."""
     mu, v = log_amp_mean, max(log_amp_std, 1e-12)
     zf = (log_floor - mu) / v
+
     def log_moment(k: int) -> float:  # log E[A^k | A > floor]
         num = torch.special.log_ndtr(torch.tensor(k * v - zf, dtype=torch.float64))
         den = torch.special.log_ndtr(torch.tensor(-zf, dtype=torch.float64))
