@@ -164,15 +164,28 @@ def shading_geometry(
     return ShadingGeometry(n=n, l=l, v=v, n_dot_l=dot(n, l), spec_q=spec_q, irradiance=irradiance)
 
 
+def _grid_offsets(target: Tensor, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Offsets from the plane points (x_j, y_i, 0) to homogeneous targets (B, 4): dx (B, 1, C),
+    dy (B, R, 1), dz (B, 1, 1), their squared length (B, R, C) and w (B, 1, 1)."""
+    b = target.shape[0]
+    w = target[:, 3].view(b, 1, 1)
+    dx = target[:, 0].view(b, 1, 1) - w * x.view(1, 1, -1)
+    dy = target[:, 1].view(b, 1, 1) - w * y.view(1, -1, 1)
+    dz = target[:, 2].view(b, 1, 1)  # the plane is z = 0
+    return dx, dy, dz, (dx * dx + dz * dz) + dy * dy, w
+
+
+def grid_distance2(target: Tensor, x: Tensor, y: Tensor) -> Tensor:
+    """Squared distance (B, R, C) from the plane points (x_j, y_i, 0) to homogeneous targets
+    (B, 4) (1 for directions), built separably (see :func:`pixel_axes` for x (C,), y (R,))."""
+    *_, d2, w = _grid_offsets(target, x, y)
+    return torch.where(w > 0.5, d2, torch.ones_like(d2))
+
+
 def _grid_direction(target: Tensor, x: Tensor, y: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
     """Unit direction components from the plane points (x_j, y_i, 0) to homogeneous targets (B, 4),
     each (B, R, C), and the squared distance (B, R, C) (1 for directions)."""
-    b = target.shape[0]
-    w = target[:, 3].view(b, 1, 1)
-    dx = target[:, 0].view(b, 1, 1) - w * x.view(1, 1, -1)  # (B, 1, C)
-    dy = target[:, 1].view(b, 1, 1) - w * y.view(1, -1, 1)  # (B, R, 1)
-    dz = target[:, 2].view(b, 1, 1)  # the plane is z = 0
-    d2 = (dx * dx + dz * dz) + dy * dy
+    dx, dy, dz, d2, w = _grid_offsets(target, x, y)
     norm = torch.sqrt(d2.clamp_min(_EPS * _EPS))
     dist2 = torch.where(w > 0.5, d2, torch.ones_like(d2))
     return (dx / norm, dy / norm, dz / norm), dist2

@@ -184,8 +184,9 @@ def _check_inputs(photos: Tensor, phong: Tensor, irradiance: Tensor, valid: Tens
             raise InputError(f"valid: expected a bool tensor, found dtype {valid.dtype}")
     check_finite(photos, "photos")
     check_finite(phong, "phong")
-    if bool((irradiance <= 0).any()) or not bool(torch.isfinite(irradiance).all()):
-        raise InputError(f"irradiance: expected finite values > 0, found minimum {float(irradiance.min()):.4g}")
+    low = float(irradiance.min())
+    if not low > 0 or not bool(torch.isfinite(irradiance.sum())):
+        raise InputError(f"irradiance: expected finite values > 0, found minimum {low:.4g}")
 
 
 def _morph(mask: Tensor, close: int, open_: int) -> Tensor:

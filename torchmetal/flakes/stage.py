@@ -19,7 +19,7 @@ from torchmetal.checks import check_shape
 from torchmetal.flakes.detect import Detection, Particles, detect_flakes
 from torchmetal.flakes.model import FlakeModel
 from torchmetal.flakes.stats import Geometry, flake_statistics
-from torchmetal.geometry import direction_to, surface_points
+from torchmetal.geometry import grid_distance2, pixel_axes
 
 
 @dataclass
@@ -38,9 +38,9 @@ class FlakeStageResult:
 def irradiance_maps(capture, *, dtype: torch.dtype = torch.float32) -> Tensor:
     """Irradiance E of every shot, (N, 3, H, W): intensity/dist² (point) or intensity."""
     n, _, h, w = capture.images.shape
-    pts = surface_points(h, w, capture.size, dtype=dtype, device=capture.images.device)
-    _, dist2 = direction_to(pts, capture.lights.to(dtype))
-    return capture.intensities.to(dtype)[:, :, None, None] / dist2
+    x, y = pixel_axes(h, w, capture.size, dtype=dtype, device=capture.images.device)
+    dist2 = grid_distance2(capture.lights.to(dtype), x, y)  # (N, H, W), separably
+    return capture.intensities.to(dtype)[:, :, None, None] / dist2.unsqueeze(1)
 
 
 def detect_capture(capture, phong_images: Tensor, **detect) -> Detection:
