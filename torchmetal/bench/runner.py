@@ -630,7 +630,7 @@ class Bench:
         dens = 0.003
         res = self.jobs([("prepare", {"path": path, "size": p.flake_size, "shots": 8, "noise": 0.01, "holdout": 0,
                                       "flakes": True, "flake_density": dens}),
-                         ("flakes", {"path": path, "repeats": 3, "true_density": dens})])
+                         ("flakes", {"path": path, "repeats": 7, "true_density": dens})])
         self.raw["flakes"] = res
         msg = problem(res[0]) or problem(res[1])
         if msg:
