@@ -696,7 +696,7 @@ def fit_glints(
     *,
     max_flakes: int = 300,
     max_iter: int = 30,
-    tol: float = 2e-2,
+    tol: float = 3e-3,
     restarts: int = 2,
     init: dict | None = None,
     nodes: dict | None = None,
