@@ -48,7 +48,7 @@ def check_float(x: torch.Tensor, name: str, error: type[TorchmetalError] = Input
 def check_finite(x: torch.Tensor, name: str, error: type[TorchmetalError] = InputError) -> None:
     # a sum is finite only if every term is (NaN and ±Inf propagate): one cheap reduction on the
     # common path; the element-wise test runs only when it fails (or the sum overflowed)
-    if not x.is_floating_point() or bool(torch.isfinite(x.sum(dtype=torch.float64 if x.dtype == torch.float64 else None))):
+    if not x.is_floating_point() or bool(torch.isfinite(x.sum())):
         return
     bad = ~torch.isfinite(x)
     if bool(bad.any()):

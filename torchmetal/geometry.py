@@ -179,6 +179,11 @@ def grid_distance2(target: Tensor, x: Tensor, y: Tensor) -> Tensor:
     """Squared distance (B, R, C) from the plane points (x_j, y_i, 0) to homogeneous targets
     (B, 4) (1 for directions), built separably (see :func:`pixel_axes` for x (C,), y (R,))."""
     *_, d2, w = _grid_offsets(target, x, y)
+    return _light_dist2(d2, w)
+
+
+def _light_dist2(d2: Tensor, w: Tensor) -> Tensor:
+    """The squared distance d2 of a point target (w = 1), 1 for a direction (w = 0)."""
     return torch.where(w > 0.5, d2, torch.ones_like(d2))
 
 
@@ -187,8 +192,7 @@ def _grid_direction(target: Tensor, x: Tensor, y: Tensor) -> tuple[tuple[Tensor,
     each (B, R, C), and the squared distance (B, R, C) (1 for directions)."""
     dx, dy, dz, d2, w = _grid_offsets(target, x, y)
     norm = torch.sqrt(d2.clamp_min(_EPS * _EPS))
-    dist2 = torch.where(w > 0.5, d2, torch.ones_like(d2))
-    return (dx / norm, dy / norm, dz / norm), dist2
+    return (dx / norm, dy / norm, dz / norm), _light_dist2(d2, w)
 
 
 def grid_shading_terms(

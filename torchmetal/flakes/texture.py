@@ -12,9 +12,9 @@ one pixel), given the fitted specular and using only the shots where that pixel 
 
 with S_k the fitted specular term and w_k = 0 for saturated, masked-out, shadowed and detected
 observations and for those more than 2.5 robust σ above the median of the others (a glint below
-the detection threshold), capped by the all-shot texture (glints only add light). Pixels detected in every
-shot take the mean of their undetected neighbours. Every other pixel keeps its texture, so a flake-free capture is unchanged
-wherever nothing was detected.
+the detection threshold), capped by the all-shot texture (glints only add light). Pixels
+detected in every shot take the mean of their undetected neighbours. Every other pixel keeps
+its texture, so a flake-free capture is unchanged wherever nothing was detected.
 """
 
 from __future__ import annotations
