@@ -94,7 +94,7 @@ def direction_to(points: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
     d = xyz - w * points.unsqueeze(0)
     d2 = (d * d).sum(1, keepdim=True)
     unit = d / torch.sqrt(d2.clamp_min(_EPS * _EPS))
-    dist2 = torch.where(w > 0.5, d2, torch.ones_like(d2))
+    dist2 = _light_dist2(d2, w)
     return unit, dist2
 
 
