@@ -234,6 +234,16 @@ class TestLikelihood:
         assert set(fit.std_err) == set(fit.identified) == {"log_tilt_sigma", "log_glint_sigma", "log_amp_mean", "log_amp_std"}
         assert all(math.isfinite(v) for v in fit.std_err.values())
 
+    def test_glint_width_stays_put_without_multi_shot_flakes(self, data):
+        # every flake seen in one shot only (e.g. a one-shot capture): nothing sets σ_g
+        one = torch.zeros_like(data.detected)
+        one[torch.arange(one.shape[0]), data.anchor] = True
+        fit = S.fit_glints(S.replace(data, detected=one))
+        assert fit.glint_sigma == pytest.approx(0.03, rel=1e-12)
+        assert not fit.identified["log_glint_sigma"] and math.isnan(fit.std_err["log_glint_sigma"])
+        assert fit.identified["log_tilt_sigma"] and math.isfinite(fit.std_err["log_tilt_sigma"])
+        assert math.isfinite(fit.density) and fit.density > 0
+
     def test_fit_does_not_modify_init(self, data):
         init = {"glint_sigma": 0.03}
         S.fit_glints(data, init=init, uncertainty=False)
