@@ -76,3 +76,12 @@ def test_malformed_capture_json(tmp_path):
     (tmp_path / "cap").mkdir()
     (tmp_path / "cap" / "capture.json").write_text("{\"format\": ")
     assert_one_line_error(run_cli("fit", tmp_path / "cap", "-o", tmp_path / "m"), "JSON")
+
+
+def test_fit_summary_says_when_density_is_at_capacity():
+    from torchmetal.cli import _density_text
+    from torchmetal.flakes.model import MAX_DENSITY, FlakeModel
+
+    assert _density_text(FlakeModel(density=0.01)) == "density 0.01/px"
+    capped = FlakeModel(density=MAX_DENSITY, extra={"density_fitted": 0.17})
+    assert _density_text(capped) == "density 0.111/px (fitted 0.17, drawn at the field's capacity)"

@@ -54,10 +54,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
         f"fitted {capture.num_shots} shots {capture.height}x{capture.width} in {rep['total_time']:.2f} s: "
         f"rmse {rep['rmse']:.4g}, s {[round(v, 4) for v in result.material.s.tolist()]}, "
         f"alpha {[round(v, 1) for v in result.material.alpha.tolist()]}, "
-        f"flakes {'none' if flakes is None else f'density {flakes.density:.3g}/px'}; "
+        f"flakes {'none' if flakes is None else _density_text(flakes)}; "
         f"skipped: {'; '.join(rep['skipped']) or 'nothing'} -> {args.output}"
     )
     return 0
+
+
+def _density_text(flakes) -> str:
+    fitted = flakes.extra.get("density_fitted", flakes.density)
+    capped = f" (fitted {fitted:.3g}, drawn at the field's capacity)" if fitted > flakes.density else ""
+    return f"density {flakes.density:.3g}/px{capped}"
 
 
 def cmd_render(args: argparse.Namespace) -> int:

@@ -1,4 +1,4 @@
-"""Pictures and summaries of the flake stage: detections drawn on a shot, a stats summary."""
+"""Pictures of the flake stage: detections drawn on a shot."""
 
 from __future__ import annotations
 
@@ -12,7 +12,6 @@ from torch import Tensor
 from torchmetal.checks import check_shape
 from torchmetal.errors import InputError
 from torchmetal.flakes.detect import Particles, srgb_encode
-from torchmetal.flakes.model import FlakeModel
 
 
 def overlay_detections(
@@ -70,19 +69,3 @@ def save_detection_overlay(path: str | Path, image: Tensor, particles: Particles
     if not ok:
         raise InputError(f"path: expected a writable .png path, found {str(path)!r}")
     return path
-
-
-def summarize(model: FlakeModel | None, report: dict) -> str:
-    """A few human-readable lines about a fitted flake model and its stage report."""
-    if model is None:
-        return f"flakes: none ({report.get('skipped', 'skipped')})"
-    se = report.get("std_err", {})
-    lines = [
-        f"flakes: density {model.density:.4g}/px ({report.get('flakes_detected', '?')} seen in "
-        f"{report.get('particles', '?')} detections, {100 * report.get('detected_fraction', float('nan')):.0f}% of all flakes)",
-        f"  area: median {model.median_area:.3g} px² (log-std {model.area_log_std:.2f}); aspect {model.aspect_mean:.2f} ± {model.aspect_std:.2f}",
-        "  colour (glint reflectance): " + ", ".join(f"{c:.3f}" for c in model.color_mean),
-        f"  tilt σ {model.tilt_sigma:.3f} rad (±{100 * se.get('log_tilt_sigma', float('nan')):.0f}%), "
-        f"glint σ {model.glint_sigma:.4f} rad (±{100 * se.get('log_glint_sigma', float('nan')):.0f}%)",
-    ]
-    return "\n".join(lines)
