@@ -839,12 +839,16 @@ def fit_shapes(obs: FlakeObservations, *, min_snr: float = 8.0) -> dict:
     var = max(mad**2 - float(noise_rel2.median()), 1e-4)
     asp = obs.aspect[sel].double()
     semi_major = obs.major[sel].double()
+    # semi-major = b + k·√area by least squares in closed form (element-wise sums only: LAPACK's
+    # lstsq changed the last bits from call to call with the memory alignment, so the same
+    # inputs gave different models)
     x = torch.sqrt(area)
-    A = torch.stack([torch.ones_like(x), x], 1)
-    coef = torch.linalg.lstsq(A, semi_major.unsqueeze(1)).solution[:, 0]
-    resid = semi_major - A @ coef
+    xc = x - x.mean()
+    k = (xc * (semi_major - semi_major.mean())).sum() / (xc * xc).sum().clamp_min(1e-300)
+    b0 = semi_major.mean() - k * x.mean()
+    resid = semi_major - (b0 + k * x)
     q = torch.quantile(resid, torch.tensor([0.05, 0.95], dtype=resid.dtype))
-    lines = (float(coef[0] + q[0]), float(coef[1]), float(coef[0] + q[1]), float(coef[1]))
+    lines = (float(b0 + q[0]), float(k), float(b0 + q[1]), float(k))
     return {
         "area_log_mean": med, "area_log_std": math.sqrt(var),
         "aspect_mean": float(asp.mean().clamp(0.05, 1.0)), "aspect_std": float(asp.std().clamp(0.0, 1.0)) if asp.numel() > 1 else 0.0,
@@ -870,7 +874,8 @@ def fit_colour(obs: FlakeObservations, fit: GlintFit, *, min_snr: float = 8.0) -
     cm = ch.mean(0)
     mean = (mean_a * cm).clamp_min(0.0)
     # chroma covariance minus its measurement noise (per channel ≈ √3·σ/(amp·√area)), PSD-clipped
-    cov_ch = torch.cov(ch.t()) if ch.shape[0] > 1 else torch.zeros(3, 3, dtype=ch.dtype)
+    dev_ch = ch - ch.mean(0)  # covariance by element-wise sums, not a BLAS product (see fit_shapes)
+    cov_ch = (dev_ch.unsqueeze(2) * dev_ch.unsqueeze(1)).sum(0) / max(ch.shape[0] - 1, 1)
     noise = (3.0 / (obs.snr[sel].double() ** 2 * obs.area[sel].double().clamp_min(1.0))).median()
     cov_ch = cov_ch - noise * torch.eye(3, dtype=ch.dtype)
     ev, evec = torch.linalg.eigh(cov_ch)
