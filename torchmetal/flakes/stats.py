@@ -174,8 +174,9 @@ def measurable(det: Detection, radius: int = CLIP_RADIUS) -> Tensor:
     return (near == 0).expand(n, -1, -1)
 
 
-def _particle_pixels(p: Particles) -> tuple[Tensor, Tensor]:
-    return p.cy.floor().long(), p.cx.floor().long()
+def _particle_pixels(p: Particles, h: int, w: int) -> tuple[Tensor, Tensor]:
+    """Row and column (P,) of the pixel holding each particle's centroid, inside an H×W image."""
+    return p.cy.floor().long().clamp(0, h - 1), p.cx.floor().long().clamp(0, w - 1)
 
 
 def observe(det: Detection, flake_id: Tensor, count: int, geometry: "Geometry", ok: Tensor | None = None) -> FlakeObservations:
@@ -192,8 +193,7 @@ def observe(det: Detection, flake_id: Tensor, count: int, geometry: "Geometry", 
     fid, shot = flake_id[rows], p.shot[rows]
     anchor_p = rows[regions.segment_argmax(fid, p.snr[rows].double(), count)]
     a = p.select(anchor_p)
-    row, col = _particle_pixels(a)
-    row, col = row.clamp(0, h - 1), col.clamp(0, w - 1)
+    row, col = _particle_pixels(a, h, w)
     detected = torch.zeros(count, n_shots, dtype=torch.bool, device=row.device)
     detected[fid, shot] = True
     # flux/peak area on the anchor, with a ring background around the particle (radius 5 patch)
@@ -941,8 +941,8 @@ def flake_statistics(
         raise InputError(f"geometry: expected {n} shots to match the detection, found {geometry.lights.shape[0]}")
     p = det.particles
     ok = measurable(det)
-    row, col = _particle_pixels(p)
-    keep = ok[p.shot, row.clamp(0, h - 1), col.clamp(0, w - 1)]
+    row, col = _particle_pixels(p, h, w)
+    keep = ok[p.shot, row, col]
     flake_id = torch.full((len(p),), -1, dtype=torch.int64, device=p.shot.device)
     flake_id[keep], count = associate(p.select(keep), h, w, assoc_radius)
     times["associate"] = time.perf_counter() - t0
