@@ -30,6 +30,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from torchmetal.fit.projected_sums import chunk_stats, reduce_stats
 from torchmetal.geometry import grid_shading_terms, pixel_axes
 from torchmetal.phong import log1p_exact
 
@@ -330,8 +331,6 @@ def build_observations(
     zero = torch.zeros((), dtype=dt, device=dev)
     stats_acc = eb_all = None
     if with_stats and ref is not None:
-        from torchmetal.fit.refine import chunk_stats, reduce_stats  # noqa: PLC0415 (refine imports this module)
-
         stats_acc = torch.zeros(6, 3, ref.k, dtype=torch.float64, device=dev)
         eb_all = new(3, p)
     grid_geometry(capture, rows, cols, lights, cams, dt, max(1, chunk // w), out=(g_all, u_all, l_all))

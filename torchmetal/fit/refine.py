@@ -28,6 +28,7 @@ from torch import Tensor
 
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Observations
+from torchmetal.fit.projected_sums import chunk_stats, reduce_stats
 
 ALPHA_MIN = 1.0
 ALPHA_MAX = 1.0e4
@@ -76,34 +77,6 @@ def pixel_map(x: Tensor, labels: Tensor | None) -> Tensor:
     return x[labels].T
 
 
-def chunk_stats(
-    y: Tensor, a: Tensor, b: Tensor, t: Tensor, w: Tensor, isaa: Tensor, wa: Tensor | None = None
-) -> tuple[Tensor, Tensor]:
-    """Per-pixel projected sums of one chunk.
-
-    Args:
-        y (n, 3, c) data; a = i·g (n, 3, c) texture basis; b = i·u·exp(t) (n, 3, c) lobe;
-        t = α·L (n, 3, c), so ∂b/∂β = t·b; w (n, 3, c) float weights (0/1 validity or IRLS);
-        isaa (3, c) = 1/Σ w·a² (0 where none); wa (n, 3, c) = w·a when the caller has it.
-
-    Returns:
-        e_b (3, c) and the stats (6, 3, c): B, C, Bc, Cc, Yc, Sbb (see module docstring).
-    """
-    wa = w * a if wa is None else wa
-    wab = wa * b
-    sab = wab.sum(0)
-    eb = sab * isaa
-    ec = (wab * t).sum(0) * isaa
-    bp = torch.addcmul(b, a, eb, value=-1.0)  # b − a·e_b
-    cp = torch.addcmul(b * t, a, ec, value=-1.0)  # ∂b/∂β − a·e_c
-    wbp = w * bp
-    wcp = w * cp
-    C = (wbp * bp).sum(0)
-    sbb = C + eb * sab  # Σ w·b² = Σ w·b⊥² + e_b²·Σ w·a² (b⊥ ⊥ a), and e_b·Σ w·a² = Σ w·a·b
-    stats = torch.stack([(wbp * y).sum(0), C, (wbp * cp).sum(0), (wcp * cp).sum(0), (wcp * y).sum(0), sbb])
-    return eb, stats
-
-
 def lobe_terms(g: Tensor, u: Tensor, L: Tensor, inten: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """a = i·g, t = α·L, b = i·u·exp(t), all (n, 3, c); alpha (1, 3, 1) or (1, 3, c)."""
     t = alpha * L
@@ -145,15 +118,6 @@ def spec_sums(obs: Observations, alpha: Tensor, *, per_pixel: bool = False) -> t
         done += n_act * (p1 - p0)
     frac = done / max(1, obs.num_shots * p)
     return (pix if pix is not None else acc.permute(0, 2, 1).contiguous()), eb, frac
-
-
-def reduce_stats(st: Tensor, labels: Tensor | None, k: int, out: Tensor) -> None:
-    """Add per-pixel stats (6, 3, c) into per-element sums ``out`` (6, 3, K) float64."""
-    st = st.double()
-    if labels is None or k == 1:
-        out[:, :, 0] += st.sum(-1)
-    else:
-        out.index_add_(2, labels, st)
 
 
 def element_terms(stats: Tensor, A: Tensor, s_fixed: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
