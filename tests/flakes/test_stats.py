@@ -1,5 +1,6 @@
-"""Flake statistics (torchmetal.flakes.stats): accuracy against synthetic truth, flake-free
-captures, determinism, the glint likelihood's pieces and bad input.
+"""Flake statistics (torchmetal.flakes.stats and the modules it builds on: association,
+glint_model, likelihood, visibility): accuracy against synthetic truth, flake-free captures,
+determinism, the glint likelihood's pieces and bad input.
 
 Scenes are 384² with 10 shots at density 0.01 (~1,500 flakes, 450–600 detected): the
 estimator's own noise is then ~3–4 % on density and tilt and ~0.02 on the colour mean, well
@@ -7,12 +8,14 @@ inside the tolerances. Every case runs the same default parameters.
 """
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
 from tests.flakes.scenes import capture_of, make_scene, true_flakes
 from torchmetal.errors import InputError
+from torchmetal.flakes import association, glint_model, likelihood, shot_geometry, visibility
 from torchmetal.flakes import stats as S
 from torchmetal.flakes.detect import detect_flakes
 from torchmetal.flakes.model import MAX_DENSITY, FlakeModel
@@ -92,17 +95,17 @@ def small():
     """(detection, geometry) of a 256² 8-shot scene."""
     sc = make_scene(256, 256, true_model(6), shots=8, seed=6)
     det = detect_flakes(sc.photos, sc.phong, sc.irradiance, valid=sc.valid)
-    return det, S.Geometry(sc.normals, sc.lights, sc.intensities, sc.cameras, sc.size)
+    return det, shot_geometry.Geometry(sc.normals, sc.lights, sc.intensities, sc.cameras, sc.size)
 
 
 @pytest.fixture(scope="module")
 def data(small):
     det, geo = small
     h, w = det.signal.shape[-2:]
-    fid, count = S.associate(det.particles, h, w)
-    obs = S.observe(det, fid, count, geo)
-    gh, gn, gs, ga, _ = S._grid(det, geo, 36, S.measurable(det))
-    return S.GlintData(
+    fid, count = association.associate(det.particles, h, w)
+    obs = association.observe(det, fid, count, geo)
+    gh, gn, gs, ga, _ = visibility._grid(det, geo, 36, association.measurable(det))
+    return glint_model.GlintData(
         half=obs.half.double(), normal=obs.normal.double(), anchor=obs.anchor, amp=obs.amp.double(),
         detected=obs.detected, sigma=obs.sigma.double(), grid_half=gh, grid_normal=gn, grid_sigma=gs,
         grid_area=ga, k_hi=det.k_hi, count=count,
@@ -129,38 +132,38 @@ class TestLikelihood:
         # outlier mix: which far shots are included changes with the parameters
         z = torch.tensor([-50.0, 0.0, 50.0])
         no = torch.zeros(3, dtype=torch.bool)
-        lp = S._log_detect(z, 5.0, no, outlier=0.02)
+        lp = glint_model._log_detect(z, 5.0, no, outlier=0.02)
         assert float(lp[0]) == pytest.approx(0.0, abs=1e-9)
         assert float(lp[2]) == pytest.approx(math.log(0.01 / 0.99), rel=1e-3)  # a certain miss: bounded
-        assert float(S._log_detect(z, 5.0, ~no, outlier=0.02)[0]) == pytest.approx(math.log(0.01), rel=1e-3)
+        assert float(glint_model._log_detect(z, 5.0, ~no, outlier=0.02)[0]) == pytest.approx(math.log(0.01), rel=1e-3)
 
     def test_extra_far_shot_leaves_numerator_unchanged(self, data):
         p = {k: v.double() for k, v in PARAMS.items()}
-        base = S.log_numerator(data, p["tau"], p["sg"], p["la"], p["va"])
+        base = likelihood.log_numerator(data, p["tau"], p["sg"], p["la"], p["va"])
         # one more shot whose half vector points far away (never detected)
         j = data.amp.shape[0]
         far = torch.tensor([0.6, 0.0, 0.8], dtype=torch.float64).expand(j, 1, 3)
-        more = S.GlintData(
+        more = glint_model.GlintData(
             torch.cat([data.half, far], 1), data.normal, data.anchor, data.amp,
             torch.cat([data.detected, torch.zeros(j, 1, dtype=torch.bool)], 1),
             torch.cat([data.sigma, data.sigma[:, :1]], 1), data.grid_half, data.grid_normal, data.grid_sigma,
             data.grid_area, data.k_hi, data.count,
         )
-        torch.testing.assert_close(S.log_numerator(more, p["tau"], p["sg"], p["la"], p["va"]), base, rtol=0, atol=1e-9)
+        torch.testing.assert_close(likelihood.log_numerator(more, p["tau"], p["sg"], p["la"], p["va"]), base, rtol=0, atol=1e-9)
 
     def test_numerator_matches_vector_reference(self, data):
         # the projected ring nodes equal the explicit (J, nA, nφ, 3) construction for one shot
         p = {k: v.double() for k, v in PARAMS.items()}
-        one = S.GlintData(
+        one = glint_model.GlintData(
             data.half[:, :1], data.normal, torch.zeros_like(data.anchor), data.amp, data.detected[:, :1],
             data.sigma[:, :1], data.grid_half, data.grid_normal, data.grid_sigma, data.grid_area, data.k_hi, data.count,
         )
-        got = S.log_numerator(one, p["tau"], p["sg"], p["la"], p["va"], n_a=4, n_phi=8)
+        got = likelihood.log_numerator(one, p["tau"], p["sg"], p["la"], p["va"], n_a=4, n_phi=8)
         j = one.amp.shape[0]
-        qa, phi = S._ring_nodes(4, 8, torch.float64, "cpu")
+        qa, phi = glint_model._ring_nodes(4, 8, torch.float64, "cpu")
         h = one.half[:, 0]
-        e1, e2 = S._frame(h)
-        t1, t2 = S._frame(one.normal)
+        e1, e2 = glint_model._frame(h)
+        t1, t2 = glint_model._frame(one.normal)
         la_hat = torch.log(one.amp)
         z0 = (la_hat - p["la"]) / p["va"]
         tail = torch.exp(torch.special.log_ndtr(-z0)).unsqueeze(1) * (1 - qa)
@@ -168,7 +171,7 @@ class TestLikelihood:
         cap = (p["sg"] ** 2 * (p["la"] + p["va"] * z - la_hat.unsqueeze(1))).clamp(1e-9, 1.9)
         ring = torch.cos(phi).view(1, 1, -1, 1) * e1.view(j, 1, 1, 3) + torch.sin(phi).view(1, 1, -1, 1) * e2.view(j, 1, 1, 3)
         m = (1 - cap).view(j, 4, 1, 1) * h.view(j, 1, 1, 3) + torch.sqrt(cap * (2 - cap)).view(j, 4, 1, 1) * ring
-        logp = S._log_slope_density(m, one.normal.view(j, 1, 1, 3), t1.view(j, 1, 1, 3), t2.view(j, 1, 1, 3), p["tau"])
+        logp = glint_model._log_slope_density(m, one.normal.view(j, 1, 1, 3), t1.view(j, 1, 1, 3), t2.view(j, 1, 1, 3), p["tau"])
         logw = torch.special.log_ndtr(-z0).view(j, 1, 1) - math.log(4) + math.log(2 * math.pi / 8)
         ref = torch.logsumexp((logp + logw).flatten(1), 1) + 2 * torch.log(p["sg"]) - la_hat
         torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-9)
@@ -180,10 +183,10 @@ class TestLikelihood:
         gen = torch.Generator().manual_seed(0)
         mu = torch.randn(samples, 2, generator=gen, dtype=torch.float64) * tau
         n = d.grid_normal[cell]
-        t1, t2 = S._frame(n)
+        t1, t2 = glint_model._frame(n)
         m = n + mu[:, :1] * t1 + mu[:, 1:] * t2
         mh = (m / m.norm(dim=-1, keepdim=True)) @ d.grid_half[cell].t()  # (S, N)
-        floor = S.log_amp_floor(d)
+        floor = glint_model.log_amp_floor(d)
         xs = torch.linspace(floor, max(la + 8 * va, floor + 3), n_amp, dtype=torch.float64)
         dens = torch.exp(-0.5 * ((xs - la) / va) ** 2) / (va * math.sqrt(2 * math.pi))
         vals = torch.stack([
@@ -198,7 +201,7 @@ class TestLikelihood:
         # the far tail (most flakes below the noise, a few bright ones) is where quantile nodes
         # in A were 17-37x off and the fit ran away on cards_blue
         t = {k: torch.tensor(v, dtype=torch.float64) for k, v in zip(("tau", "sg", "la", "va"), prm)}
-        got = S.log_p_any(data, t["tau"], t["sg"], t["la"], t["va"]).exp()
+        got = visibility.log_p_any(data, t["tau"], t["sg"], t["la"], t["va"]).exp()
         for cell in (0, 14, 35):
             ref = self._p_any_reference(data, cell, *prm)
             assert float(got[cell]) == pytest.approx(ref, rel=0.12, abs=1e-5), cell
@@ -206,13 +209,13 @@ class TestLikelihood:
     def test_p_any_far_tail_does_not_underflow_float32(self, data):
         # a far tail's weight is below float32's range: the fit ran off to "no flake expected
         # anywhere" when it underflowed to 0
-        d64 = S.replace(data, log_floor=S.log_amp_floor(data))
+        d64 = replace(data, log_floor=glint_model.log_amp_floor(data))
         grid32 = S._recast(d64, None, torch.float32, flakes=False, grid=True)
         la, va = -40.0, 1.8
         assert math.log(0.5 * math.erfc((d64.log_floor - la) / va / math.sqrt(2))) < math.log(1e-38)  # a far tail
         args = [torch.tensor(v) for v in (0.06, 0.05, la, va)]
-        lp32 = S.log_p_any(grid32, *[a.float() for a in args])
-        lp64 = S.log_p_any(d64, *[a.double() for a in args])
+        lp32 = visibility.log_p_any(grid32, *[a.float() for a in args])
+        lp64 = visibility.log_p_any(d64, *[a.double() for a in args])
         assert lp32.dtype == torch.float64 and bool(torch.isfinite(lp32).all())
         torch.testing.assert_close(lp32, lp64, rtol=0, atol=0.05)
 
@@ -223,7 +226,7 @@ class TestLikelihood:
             a = torch.exp(x)
             m1 = float(torch.trapezoid(w * a, x) / torch.trapezoid(w, x))
             m2 = float(torch.trapezoid(w * a * a, x) / torch.trapezoid(w, x))
-            got_m, got_v = S.truncated_moments(mu, v, floor)
+            got_m, got_v = glint_model.truncated_moments(mu, v, floor)
             assert got_m == pytest.approx(m1, rel=1e-4)
             assert got_v == pytest.approx(m2 - m1 * m1, rel=1e-3)
 
@@ -238,7 +241,7 @@ class TestLikelihood:
         # every flake seen in one shot only (e.g. a one-shot capture): nothing sets σ_g
         one = torch.zeros_like(data.detected)
         one[torch.arange(one.shape[0]), data.anchor] = True
-        fit = S.fit_glints(S.replace(data, detected=one))
+        fit = S.fit_glints(replace(data, detected=one))
         assert fit.glint_sigma == pytest.approx(0.03, rel=1e-12)
         assert not fit.identified["log_glint_sigma"] and math.isnan(fit.std_err["log_glint_sigma"])
         assert fit.identified["log_tilt_sigma"] and math.isfinite(fit.std_err["log_tilt_sigma"])
@@ -258,7 +261,7 @@ class TestLikelihood:
 
 class TestBadInput:
     def test_no_flakes(self, data):
-        empty = S.GlintData(
+        empty = glint_model.GlintData(
             data.half[:0], data.normal[:0], data.anchor[:0], data.amp[:0], data.detected[:0], data.sigma[:0],
             data.grid_half, data.grid_normal, data.grid_sigma, data.grid_area, data.k_hi, 0,
         )
@@ -268,7 +271,7 @@ class TestBadInput:
     def test_geometry_shot_count(self):
         sc = make_scene(64, 64, true_model(0), shots=4, seed=0)
         det = detect_flakes(sc.photos, sc.phong, sc.irradiance)
-        geo = S.Geometry(sc.normals, sc.lights[:3], sc.intensities[:3], sc.cameras[:3], sc.size)
+        geo = shot_geometry.Geometry(sc.normals, sc.lights[:3], sc.intensities[:3], sc.cameras[:3], sc.size)
         with pytest.raises(InputError, match="expected 4 shots"):
             S.flake_statistics(det, geo)
 

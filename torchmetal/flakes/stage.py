@@ -18,7 +18,8 @@ from torch import Tensor
 from torchmetal.checks import check_shape
 from torchmetal.flakes.detect import Detection, Particles, detect_flakes
 from torchmetal.flakes.model import FlakeModel
-from torchmetal.flakes.stats import Geometry, flake_statistics
+from torchmetal.flakes.shot_geometry import Geometry
+from torchmetal.flakes.stats import flake_statistics
 from torchmetal.geometry import grid_distance2, pixel_axes
 
 
