@@ -11,8 +11,9 @@ No files or downloads are needed: the sample is rendered by :func:`torchmetal.sy
       metrics.json    the numbers below, plus per-stage times and what was skipped
       material/       the material directory (DESIGN 2.3) with its ONNX renderer
 
-Metrics (all PSNRs use the photo's peak and leave out pixels saturated in the photo; "clean"
-pixels are also free of flakes — there the Phong model is the whole truth):
+Metrics (all PSNRs are :func:`torchmetal.metrics.psnr` — linear values clipped to [0, 1], peak 1 —
+and leave out pixels saturated in the photo; "clean" pixels are also free of flakes — there the
+Phong model is the whole truth):
 
 - ``phong_psnr_db``: fitted Phong re-render vs the fitted photos, clean pixels.
 - ``heldout_psnr_db``: the same on the held-out shot; ``heldout_truth_psnr_db`` renders the true
@@ -121,10 +122,11 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
     """
     from torchmetal.flakes.md import metallic_difference
     from torchmetal.material import save_material
+    from torchmetal.metrics import psnr
     from torchmetal.onnx_export import export_onnx
     from torchmetal.pipeline import fit_material, render_shots
     from torchmetal.renderer import MaterialRenderer
-    from torchmetal.report import psnr, report_figure
+    from torchmetal.report import report_figure
 
     t_start = time.perf_counter()
     out = Path(out_dir)

@@ -21,6 +21,9 @@ error map                 |render − photo| per pixel, in units of the photo's 
 Display convention: images are linear radiance; for viewing they are scaled so that a high
 percentile of the *reference* maps to 1, clipped, and sRGB-encoded. Photo and render always share
 one scale, so brightness differences in the figure are real.
+
+PSNR in the titles is :func:`torchmetal.metrics.psnr` (linear values clipped to [0, 1], peak 1),
+the same number the demo's metrics report.
 """
 
 from __future__ import annotations
@@ -32,6 +35,8 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
+
+from torchmetal.metrics import psnr  # re-exported: the notebooks import it from here
 
 __all__ = [
     "psnr",
@@ -46,39 +51,6 @@ __all__ = [
     "particle_ellipses",
     "report_figure",
 ]
-
-
-# ---------------------------------------------------------------------------------------------
-# numbers
-
-
-def psnr(pred: Tensor, ref: Tensor, *, peak: float | None = None, mask: Tensor | None = None) -> float:
-    """Peak signal-to-noise ratio in dB, 10·log10(peak² / MSE).
-
-    Args:
-        pred, ref: tensors of the same shape (any layout), linear values.
-        peak: the signal peak; default ``ref.max()`` (radiance has no fixed white).
-        mask: optional boolean tensor broadcastable to ``ref``: only these elements count.
-
-    Returns:
-        PSNR in dB (``inf`` for identical inputs).
-    """
-    if pred.shape != ref.shape:
-        raise ValueError(f"psnr: expected equal shapes, found {tuple(pred.shape)} and {tuple(ref.shape)}")
-    p = pred.detach().double()
-    r = ref.detach().double()
-    d2 = (p - r) ** 2
-    if mask is not None:
-        m = mask.expand_as(d2)
-        if not bool(m.any()):
-            raise ValueError("psnr: the mask selects no element")
-        mse = float(d2[m].mean())
-    else:
-        mse = float(d2.mean())
-    pk = float(r.max()) if peak is None else float(peak)
-    if mse == 0.0:
-        return math.inf
-    return 10.0 * math.log10(pk * pk / mse)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from torchmetal.bench.memory import PeakMemory
 from torchmetal.bench.runner import (
     EQUAL_DB, SECTIONS, full_plan, quick_plan, run_jobs, speed_ratio, sweep_configs,
 )
-from torchmetal.bench.tasks import holdout_indices, psnr, rel_err
+from torchmetal.bench.tasks import holdout_indices, psnr_or_nan, rel_err
 from torchmetal.bench.worker import run_task
 
 
@@ -55,15 +55,19 @@ def test_holdout_indices_are_spread_and_distinct():
 
 def test_psnr_and_relative_error():
     ref = torch.full((2, 3, 4, 4), 0.5, dtype=torch.float64)
-    ref[0, 0, 0, 0] = 1.0
+    ref[0, 0, 0, 0] = 0.9  # below 1: the +0.01 stays inside the clipped [0, 1] range
     pred = ref + 0.01
-    assert psnr(pred, ref) == pytest.approx(40.0, abs=1e-9)  # peak 1, rmse 0.01
+    assert psnr_or_nan(pred, ref) == pytest.approx(40.0, abs=1e-9)  # metrics.psnr: peak 1, rmse 0.01
     valid = torch.ones_like(ref, dtype=torch.bool)
     pred2 = pred.clone()
     pred2[1, 2, 3, 3] = 100.0
     valid[1, 2, 3, 3] = False
-    assert psnr(pred2, ref, valid) == pytest.approx(40.0, abs=1e-9)  # the masked outlier is ignored
-    assert psnr(ref, ref) == math.inf
+    assert psnr_or_nan(pred2, ref, valid) == pytest.approx(40.0, abs=1e-9)  # the masked outlier is ignored
+    assert psnr_or_nan(ref, ref) == math.inf
+    # a failed method is recorded, not raised: NaN for non-finite renders or an empty valid mask
+    pred2[0, 0, 1, 1] = float("nan")
+    assert math.isnan(psnr_or_nan(pred2, ref, valid))
+    assert math.isnan(psnr_or_nan(pred, ref, torch.zeros_like(valid)))
     assert rel_err([1.1, 2.0, 0.0], [1.0, 2.0, 0.0]) == pytest.approx(0.1)
     assert math.isnan(rel_err(np.ones((3, 4)), [1.0, 1.0, 1.0]))
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from torchmetal.io.capture import Capture
@@ -12,14 +10,6 @@ from torchmetal.synth import synth_capture
 
 def synth(size: int = 48, shots: int = 12, seed: int = 0, **kw):
     return synth_capture(size=size, shots=shots, seed=seed, texture="procedural", **kw)
-
-
-def psnr(pred: torch.Tensor, ref: torch.Tensor, valid: torch.Tensor | None = None, peak: float = 1.0) -> float:
-    err = pred.double() - ref.double()
-    if valid is not None:
-        err = err[valid.expand_as(err)]
-    mse = float(err.square().mean())
-    return math.inf if mse == 0 else 10 * math.log10(peak * peak / mse)
 
 
 def render_all(fit, cap: Capture) -> torch.Tensor:

@@ -10,15 +10,12 @@ from torchmetal.errors import InputError
 from torchmetal.flakes.field import flake_field, sparkle_render
 from torchmetal.flakes.md import block_features, metallic_difference
 from torchmetal.flakes.model import FlakeModel
+from torchmetal.metrics import psnr
 
 H = 256
 NOISE = 0.004
 # ~390 flakes on 256², ~20 % of them glint in one shot: enough for block statistics
 BASE = {"density": 0.006, "area_log_mean": math.log(2.0), "tilt_sigma": 0.1, "glint_sigma": 0.05}
-
-
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float(10 * torch.log10(1.0 / ((a - b) ** 2).mean()))
 
 
 @pytest.fixture(scope="module")

@@ -7,16 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-
-def psnr(pred: Tensor, ref: Tensor, valid: Tensor, peak: float | None = None) -> float:
-    """PSNR (dB) over ``valid``; peak defaults to the largest reference value there."""
-    v = valid.expand_as(ref)
-    if not bool(v.any()):
-        return math.nan
-    err = (pred.double() - ref.double())[v]
-    mse = float(err.square().mean())
-    pk = float(ref.double()[v].abs().max()) if peak is None else float(peak)
-    return math.inf if mse <= 0 else 10.0 * math.log10(pk * pk / mse)
+from torchmetal.metrics import psnr
 
 
 def valid_pixels(capture) -> Tensor:
@@ -27,17 +18,17 @@ def valid_pixels(capture) -> Tensor:
     return v
 
 
-def leave_one_out(capture, specular: str = "auto", *, peak: float | None = None, **fit_kwargs) -> list[float]:
+def leave_one_out(capture, specular: str = "auto", *, peak: float = 1.0, **fit_kwargs) -> list[float]:
     """PSNR of each shot rendered from a fit on all the other shots.
 
     Args:
         capture: a Capture with N ≥ 2 shots.
         specular: passed to :func:`~torchmetal.fit.fit_phong` ("global", "clustered", ...).
-        peak: PSNR peak (default: the largest valid value of the left-out shot).
+        peak: PSNR peak (:func:`torchmetal.metrics.psnr`: linear values clipped to [0, 1]).
         fit_kwargs: more :func:`fit_phong` arguments.
 
     Returns:
-        N PSNR values (dB), over mask pixels that are not saturated.
+        N PSNR values (dB), over mask pixels that are not saturated (NaN for a shot with none).
     """
     from torchmetal.fit.api import fit_phong
 
@@ -48,5 +39,6 @@ def leave_one_out(capture, specular: str = "auto", *, peak: float | None = None,
         one = capture.subset([k])
         with torch.no_grad():
             pred = fit.render(one.lights, one.intensities, one.cameras)
-        out.append(psnr(pred, one.images, valid_pixels(one), peak))
+        v = valid_pixels(one)
+        out.append(psnr(pred, one.images, mask=v, peak=peak) if bool(v.any()) else math.nan)
     return out
