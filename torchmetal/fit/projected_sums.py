@@ -27,6 +27,14 @@ def chunk_stats(
     Returns:
         e_b (3, c) and the stats (6, 3, c): B, C, Bc, Cc, Yc, Sbb (see :mod:`torchmetal.fit.refine`).
     """
+    e_b, e_c, stats = chunk_stats_full(y, a, b, t, w, isaa, wa)
+    return e_b, stats
+
+
+def chunk_stats_full(
+    y: Tensor, a: Tensor, b: Tensor, t: Tensor, w: Tensor, isaa: Tensor, wa: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`chunk_stats` that also returns e_c (3, c): (e_b, e_c, stats)."""
     wa = w * a if wa is None else wa
     wab = wa * b
     sab = wab.sum(0)
@@ -39,7 +47,21 @@ def chunk_stats(
     C = (wbp * bp).sum(0)
     sbb = C + eb * sab  # Σ w·b² = Σ w·b⊥² + e_b²·Σ w·a² (b⊥ ⊥ a), and e_b·Σ w·a² = Σ w·a·b
     stats = torch.stack([(wbp * y).sum(0), C, (wbp * cp).sum(0), (wcp * cp).sum(0), (wcp * y).sum(0), sbb])
-    return eb, stats
+    return eb, ec, stats
+
+
+def add_skipped_shots(stats: Tensor, eb: Tensor, ec: Tensor, saa_rest: Tensor, say_rest: Tensor) -> Tensor:
+    """Stats (6, 3, c) of a chunk whose shots with a negligible lobe (b = 0) were left out.
+
+    A left-out shot has b = 0 but still couples through the texture: its b⊥ = −a·e_b and
+    c⊥ = −a·e_c, so it adds e_b²·Σ'w·a² to C, −e_b·Σ'w·a·y to B, e_b·e_c·Σ'w·a² to Bc,
+    e_c²·Σ'w·a² to Cc and −e_c·Σ'w·a·y to Yc (Σ' over the left-out shots: ``saa_rest``,
+    ``say_rest`` (3, c)). Σ w·b² itself is unchanged, but :func:`chunk_stats` forms it as
+    C + e_b·Σ w·a·b, so Sbb takes C's correction too.
+    """
+    B, C, Bc, Cc, Yc, sbb = stats.unbind(0)
+    return torch.stack([B - eb * say_rest, C + eb * eb * saa_rest, Bc + eb * ec * saa_rest, Cc + ec * ec * saa_rest,
+                        Yc - ec * say_rest, sbb + eb * eb * saa_rest])
 
 
 def reduce_stats(st: Tensor, labels: Tensor | None, k: int, out: Tensor) -> None:
