@@ -11,7 +11,7 @@ import torch
 
 from torchmetal.errors import CaptureError, InputError
 from torchmetal.io.capture import Capture, check_light_camera, load_capture, save_capture
-from torchmetal.io.images import srgb_to_linear, write_image
+from torchmetal.io.images import code_table, srgb_to_linear, write_image
 
 DATA = (Path(__file__).resolve().parents[2] / "../shared/data").resolve()
 
@@ -190,9 +190,33 @@ class TestDecoding:
         edit_json(cap_dir, lambda m: m.update(color_space="srgb"))
         lin = load_capture(cap_dir.with_name("cap"))
         raw = cv2.imread(str(cap_dir / "images" / "001.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
-        expected = srgb_to_linear(torch.from_numpy(raw.astype(np.float32) / np.float32(255)).permute(2, 0, 1).contiguous())
+        # the sRGB curve in float64 on code / 255, rounded once to float32 (what the lookup table holds)
+        expected = srgb_to_linear(torch.from_numpy(raw.astype(np.float64) / 255).permute(2, 0, 1)).float()
         assert torch.equal(lin.images[1], expected)
         assert lin.images.dtype == torch.float32 and lin.color_space == "srgb"
+
+    @pytest.mark.parametrize("bits", [8, 16])
+    def test_srgb_integer_files_decoded_by_table(self, tmp_path, bits, monkeypatch):
+        import torchmetal.io.capture as capture_mod
+
+        c = make_capture(n=2, h=16, w=20)
+        c.color_space = "srgb"
+        root = save_capture(c, tmp_path / "s", bits=bits)
+        raws = [cv2.imread(str(root / n), cv2.IMREAD_UNCHANGED)[..., ::-1] for n in c.names]
+        calls = []
+        monkeypatch.setattr(capture_mod, "srgb_to_linear", lambda x: calls.append(x) or srgb_to_linear(x))
+        lin = load_capture(root)
+        assert not calls  # integer codes never go through the float formula
+        table = code_table(bits, True)
+        for k, raw in enumerate(raws):
+            assert torch.equal(lin.images[k], torch.from_numpy(table[raw.transpose(2, 0, 1)]))
+
+    def test_srgb_float_files_decoded_by_formula(self, tmp_path):
+        root = save_capture(make_capture(n=2), tmp_path / "f", color_space="srgb")
+        c = load_capture(root)
+        for k, name in enumerate(c.names):
+            stored = torch.from_numpy(np.load(root / name)).permute(2, 0, 1).contiguous()
+            assert torch.equal(c.images[k], srgb_to_linear(stored))
 
     def test_saturation_8bit(self, tmp_path):
         c = make_capture()

@@ -8,7 +8,9 @@ import pytest
 import torch
 
 from torchmetal.errors import CaptureError, InputError
-from torchmetal.io.images import decode_planes, have_exr, linear_to_srgb, read_image, read_raw, srgb_to_linear, write_image
+from torchmetal.io.images import (
+    code_table, decode_planes, have_exr, linear_to_srgb, quantize, read_image, read_raw, srgb_to_linear, write_image,
+)
 
 
 def one_line(exc_info, *words):
@@ -72,6 +74,93 @@ class TestSrgb:
         x = torch.tensor([-0.5, 0.0, 0.04045, 0.0031308], requires_grad=True)
         (srgb_to_linear(x).sum() + linear_to_srgb(x).sum()).backward()
         assert torch.isfinite(x.grad).all()
+
+
+class TestCodeTables:
+    """Integer files are decoded by lookup table; the tables are the formula, exactly."""
+
+    @pytest.mark.parametrize("bits", [8, 16])
+    def test_srgb_table_is_float64_formula_cast_once(self, bits):
+        top = 2**bits - 1
+        table = code_table(bits, True)
+        assert table.dtype == np.float32 and table.shape == (top + 1,) and not table.flags.writeable
+        codes = np.arange(top + 1, dtype=np.float64) / top
+        np.testing.assert_array_equal(table, srgb_to_linear(torch.from_numpy(codes)).numpy().astype(np.float32))
+        np.testing.assert_array_equal(table, ref_decode(codes).astype(np.float32))  # independent reference
+        assert table[0] == 0.0 and table[-1] == 1.0 and (np.diff(table) > 0).all()
+
+    @pytest.mark.parametrize("bits", [8, 16])
+    def test_linear_table_is_correctly_rounded_division(self, bits):
+        top = 2**bits - 1
+        table = code_table(bits, False)
+        np.testing.assert_array_equal(table, np.arange(top + 1, dtype=np.float32) / np.float32(top))
+        np.testing.assert_array_equal(table, (np.arange(top + 1, dtype=np.float64) / top).astype(np.float32))
+
+    def test_tables_built_once(self):
+        assert code_table(16, True) is code_table(16, True)
+        with pytest.raises(InputError):
+            code_table(12, True)
+
+    @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+    @pytest.mark.parametrize("srgb", [False, True])
+    def test_decode_planes_integer_codes_every_value(self, dtype, srgb):
+        bits = 8 if dtype == np.uint8 else 16
+        top = 2**bits - 1
+        codes = np.arange(top + 1, dtype=dtype)
+        rng = np.random.default_rng(3)
+        bgra = rng.permutation(np.concatenate([codes] * 4)).reshape(-1, 4, 1, 4)[:, :, 0, :].reshape(-1, 16, 4)
+        raw = bgra[:, :, [2, 1, 0]]  # a strided RGB view of BGR(A) data, as read_raw returns
+        out, sat = np.full((3, *raw.shape[:2]), np.nan, np.float32), np.empty((3, *raw.shape[:2]), bool)
+        decode_planes(raw, out, sat, srgb=srgb)
+        planes = raw.transpose(2, 0, 1).astype(np.float64) / top
+        want = ref_decode(planes) if srgb else planes
+        np.testing.assert_array_equal(out, want.astype(np.float32))
+        np.testing.assert_array_equal(sat, raw.transpose(2, 0, 1) == top)
+
+    def test_decode_planes_no_full_size_temporaries(self):
+        import tracemalloc
+
+        raw = np.random.default_rng(5).integers(0, 65536, (501, 700, 3), dtype=np.uint16)[:, :, ::-1]
+        out, sat = np.empty((3, 501, 700), np.float32), np.empty((3, 501, 700), bool)
+        code_table(16, True)  # built outside the measurement
+        tracemalloc.start()
+        decode_planes(raw, out, sat, srgb=True)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert peak < out.nbytes / 4, peak  # one (3, H, W) intp index copy would be 2x out
+        np.testing.assert_array_equal(out, code_table(16, True)[raw.transpose(2, 0, 1)])
+
+    def test_decode_planes_other_out_dtype(self):
+        raw = np.arange(256, dtype=np.uint8).reshape(16, 16, 1).repeat(3, axis=2)
+        out, sat = np.empty((3, 16, 16), np.float64), np.empty((3, 16, 16), bool)
+        decode_planes(raw, out, sat, srgb=True)
+        np.testing.assert_array_equal(out, code_table(8, True)[raw.transpose(2, 0, 1)].astype(np.float64))
+
+    def test_decode_planes_float_srgb_uses_formula(self):
+        raw = np.random.default_rng(4).random((5, 6, 3)).astype(np.float32) * 1.2
+        out, sat = np.empty((3, 5, 6), np.float32), np.empty((3, 5, 6), bool)
+        decode_planes(raw, out, sat, srgb=True)
+        expected = srgb_to_linear(torch.from_numpy(np.ascontiguousarray(raw.transpose(2, 0, 1)))).numpy()
+        np.testing.assert_array_equal(out, expected)
+        assert not sat.any()
+
+    @pytest.mark.parametrize("bits", [8, 16])
+    def test_srgb_file_round_trip_recovers_every_code(self, tmp_path, bits):
+        """linear → sRGB encode → PNG file → load (table) → encode again: the same codes."""
+        top = 2**bits - 1
+        codes = np.arange(top + 1, dtype=np.int64)
+        lin = code_table(bits, True).astype(np.float64)
+        img = np.stack([lin, lin[::-1], np.roll(lin, 7)], axis=-1).reshape(-1, 256, 3)
+        want = np.stack([codes, codes[::-1], np.roll(codes, 7)], axis=-1).reshape(-1, 256, 3)
+        enc = linear_to_srgb(torch.from_numpy(img)).numpy()
+        write_image(tmp_path / "a.png", enc, bits=bits)
+        raw = read_raw(tmp_path / "a.png")
+        np.testing.assert_array_equal(raw, want)
+        out, sat = np.empty((3, *raw.shape[:2]), np.float32), np.empty((3, *raw.shape[:2]), bool)
+        decode_planes(raw, out, sat, srgb=True)
+        np.testing.assert_array_equal(out, img.transpose(2, 0, 1).astype(np.float32))
+        back = linear_to_srgb(torch.from_numpy(out.astype(np.float64))).numpy().transpose(1, 2, 0)
+        np.testing.assert_array_equal(quantize(back, bits), want)
 
 
 def rand_image(h=7, w=5, seed=0):

@@ -29,13 +29,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 
-import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
 from torchmetal.errors import CaptureError, InputError, TorchmetalError
-from torchmetal.io.images import PNG_MAX, decode_planes, encode_image, linear_to_srgb, quantize, read_raw, srgb_to_linear
+from torchmetal.io.images import PNG_MAX, _cv2, decode_planes, encode_image, linear_to_srgb, quantize, read_raw, srgb_to_linear
 
 __all__ = ["Capture", "load_capture", "save_capture", "write_capture_files", "check_light_camera", "FORMAT", "VERSION", "COLOR_SPACES"]
 
@@ -414,6 +413,7 @@ def _load_mask(f: Path, h: int, w: int) -> Tensor:
         if not f.is_file():
             raise CaptureError(f"{f}: expected the mask file named in capture.json, found nothing")
         data = np.fromfile(f, dtype=np.uint8)
+        cv2 = _cv2()
         arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
         if arr is None:
             raise CaptureError(f"{f}: expected a readable mask image, found undecodable data")
@@ -435,8 +435,10 @@ def _load_saturated(f: Path, n: int, h: int, w: int) -> Tensor:
 def load_capture(path: str | os.PathLike) -> Capture:
     """Read a capture directory (DESIGN 2.1).
 
-    Images are read one at a time into a preallocated (N, 3, H, W) float32 tensor; sRGB files
-    are decoded with :func:`srgb_to_linear`. Saturation comes from the raw values (255 / 65535
+    Images are read one at a time into a preallocated (N, 3, H, W) float32 tensor. 8/16-bit
+    files are decoded straight from their integer codes by lookup table (for sRGB, the curve
+    evaluated in float64 and rounded once to float32); float sRGB files with
+    :func:`srgb_to_linear`. Saturation comes from the raw values (255 / 65535
     for PNG; none for float files, unless the capture carries ``saturated.npy``).
 
     Args:
@@ -463,12 +465,14 @@ def load_capture(path: str | os.PathLike) -> Capture:
             raise CaptureError(
                 f"{f}: expected size {w}x{h} (width x height, as {shots[0].image}), found {raw.shape[1]}x{raw.shape[0]}"
             )
-        decode_planes(raw, images_np[k], saturated_np[k])
-        if raw.dtype.kind == "f":  # integer files are finite and >= 0 by construction
+        is_float = raw.dtype.kind == "f"
+        # integer codes go through the lookup table (sRGB included); floats are checked as stored
+        decode_planes(raw, images_np[k], saturated_np[k], srgb=color_space == "srgb" and not is_float)
+        if is_float:  # integer files are finite and >= 0 by construction
             _check_pixels(images[k], str(f))
+            if color_space == "srgb":
+                images[k] = srgb_to_linear(images[k])
         del raw
-        if color_space == "srgb":
-            images[k] = srgb_to_linear(images[k])
     del first
 
     normals = _load_normals(root / normals_name, h, w) if normals_name else None
@@ -542,7 +546,7 @@ def write_capture_files(
         meta["normals"] = "normals.npy"
     if not bool(capture.mask.all()):
         m = capture.mask[0].detach().cpu().numpy().astype(np.uint8) * 255
-        ok, buf = cv2.imencode(".png", m)
+        ok, buf = _cv2().imencode(".png", m)
         if not ok:
             raise CaptureError(f"mask: expected a PNG-encodable mask, found shape {m.shape}")
         (root / "mask.png").write_bytes(buf.tobytes())

@@ -23,19 +23,27 @@ import os
 import tempfile
 from pathlib import Path
 
-os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # must precede the cv2 import
+import numpy as np
+import torch
+from torch import Tensor
 
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from torch import Tensor  # noqa: E402
+from torchmetal.errors import CaptureError, InputError
 
-from torchmetal.errors import CaptureError, InputError  # noqa: E402
+os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # read by OpenCV when it loads; cv2 itself loads lazily
 
 __all__ = [
-    "srgb_to_linear", "linear_to_srgb", "read_image", "read_raw", "decode_planes", "write_image", "encode_image", "quantize",
-    "atomic_write_bytes", "have_exr", "PNG_MAX",
+    "srgb_to_linear", "linear_to_srgb", "read_image", "read_raw", "decode_planes", "code_table", "write_image",
+    "encode_image", "quantize", "atomic_write_bytes", "have_exr", "PNG_MAX",
 ]
+
+
+@functools.cache
+def _cv2():
+    """OpenCV, imported on first use, with OpenEXR decoding enabled."""
+    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # must precede the cv2 import
+    import cv2
+
+    return cv2
 
 # IEC 61966-2-1 constants
 _A = 0.055
@@ -45,6 +53,7 @@ _SRGB_KNEE = 0.04045  # encoded value where the linear segment ends
 _LIN_KNEE = 0.0031308  # linear value where the linear segment ends
 
 PNG_MAX = {8: 255, 16: 65535}
+_LOOKUP_PIXELS = 1 << 16  # pixels per table lookup in decode_planes (a 512 KiB index temporary)
 _PNG_DTYPE = {8: np.uint8, 16: np.uint16}
 
 
@@ -64,6 +73,25 @@ def srgb_to_linear(x: Tensor) -> Tensor:
     base = torch.where(power, x, torch.full_like(x, 1.0))
     high = ((base + _A) / (1.0 + _A)) ** _GAMMA
     return torch.where(power, high, x / _LIN_SLOPE)
+
+
+@functools.cache
+def code_table(bits: int, srgb: bool) -> np.ndarray:
+    """Float32 value of every integer code of a ``bits``-bit file (8: 256 entries, 16: 65 536).
+
+    ``srgb=False``: code / (2^bits − 1), correctly rounded in float32 (what ``np.divide`` in
+    float32 gives). ``srgb=True``: :func:`srgb_to_linear` of code / (2^bits − 1), computed in
+    float64 and rounded once to float32. Built once per (bits, srgb) and read-only.
+    """
+    if bits not in PNG_MAX:
+        raise InputError(f"bits: expected 8 or 16, found {bits!r}")
+    top = PNG_MAX[bits]
+    if srgb:
+        table = srgb_to_linear(torch.arange(top + 1, dtype=torch.float64) / top).to(torch.float32).numpy()
+    else:
+        table = np.arange(top + 1, dtype=np.float32) / np.float32(top)
+    table.setflags(write=False)
+    return table
 
 
 def linear_to_srgb(x: Tensor) -> Tensor:
@@ -103,7 +131,7 @@ def _rgb_channels(arr: np.ndarray, path: Path) -> np.ndarray:
 @functools.cache
 def have_exr() -> bool:
     """Whether this OpenCV build can decode OpenEXR files."""
-    for line in cv2.getBuildInformation().splitlines():
+    for line in _cv2().getBuildInformation().splitlines():
         if line.strip().startswith("OpenEXR:"):
             return line.split(":", 1)[1].strip().upper() not in ("NO", "")
     return False
@@ -114,6 +142,7 @@ def _read_cv2(path: Path) -> np.ndarray:
         raise CaptureError(f"{path}: expected a readable EXR file, found that this OpenCV build has no OpenEXR support "
                            "(convert the images to 16-bit PNG or float .npy)")
     data = np.fromfile(path, dtype=np.uint8)  # handles non-ASCII paths, unlike cv2.imread
+    cv2 = _cv2()
     arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if arr is None:
         raise CaptureError(f"{path}: expected a readable {path.suffix.lstrip('.').upper()} image, found undecodable data")
@@ -153,21 +182,34 @@ def read_raw(path: str | os.PathLike) -> np.ndarray:
     return arr
 
 
-def decode_planes(raw: np.ndarray, out: np.ndarray, saturated: np.ndarray) -> None:
+def decode_planes(raw: np.ndarray, out: np.ndarray, saturated: np.ndarray, *, srgb: bool = False) -> None:
     """Write raw (H, W, 3) values as float32 planes into ``out`` (3, H, W) and clipping flags
     into ``saturated`` (3, H, W) bool, without full-size temporaries.
 
-    Integers: v / 255 or v / 65535, correctly rounded in float32; flagged where v is the maximum.
-    Floats: copied as float32; never flagged.
+    Integers (uint8 / uint16): looked up in :func:`code_table` — v / 255 or v / 65535 correctly
+    rounded in float32, or with ``srgb`` their linear value (the sRGB curve in float64, rounded
+    once to float32); flagged where v is the maximum.
+    Floats: copied as float32 (with ``srgb``, decoded by :func:`srgb_to_linear` in float32);
+    never flagged.
     """
+    planes = raw.transpose(2, 0, 1)  # (3, H, W) view
     if raw.dtype in (np.uint8, np.uint16):
-        top = PNG_MAX[8 if raw.dtype == np.uint8 else 16]
+        bits = 8 if raw.dtype == np.uint8 else 16
+        table = code_table(bits, srgb)
+        h, w = raw.shape[:2]
+        rows = max(1, _LOOKUP_PIXELS // max(w, 1))
         for c in range(3):
-            np.divide(raw[:, :, c], np.float32(top), out=out[c], dtype=np.float32, casting="unsafe")
-            np.equal(raw[:, :, c], top, out=saturated[c])
+            for r in range(0, h, rows):  # np.take copies its indices to intp: bound that copy
+                if out.dtype == table.dtype:
+                    np.take(table, raw[r:r + rows, :, c], out=out[c, r:r + rows], mode="clip")  # "clip": unbuffered
+                else:
+                    out[c, r:r + rows] = table[raw[r:r + rows, :, c]]
+        np.equal(planes, PNG_MAX[bits], out=saturated)
     else:
-        for c in range(3):
-            np.copyto(out[c], raw[:, :, c], casting="unsafe")
+        np.copyto(out, planes, casting="unsafe")
+        if srgb:
+            t = torch.from_numpy(out)
+            t.copy_(srgb_to_linear(t))
         saturated[...] = False
 
 
@@ -247,7 +289,7 @@ def encode_image(array: np.ndarray, suffix: str, bits: int = 8) -> bytes:
         if bits not in PNG_MAX:
             raise InputError(f"bits: expected 8 or 16 for PNG, found {bits!r}")
         q = quantize(array, bits)
-        ok, buf = cv2.imencode(".png", np.ascontiguousarray(q[:, :, ::-1]))  # RGB → BGR, once
+        ok, buf = _cv2().imencode(".png", np.ascontiguousarray(q[:, :, ::-1]))  # RGB → BGR, once
         if not ok:
             raise InputError(f"image: expected a PNG-encodable array, found shape {q.shape} dtype {q.dtype}")
         return buf.tobytes()
