@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--specular", choices=["auto", "global", "clustered", "none"], default="auto")
     f.add_argument("--flakes", choices=["auto", "on", "off"], default="auto")
     f.add_argument("--robust", choices=["auto", "none", "huber", "cauchy"], default="auto",
-                   help="IRLS weights of the Phong fit (auto: huber when the flake stage runs)")
+                   help="IRLS weights of the Phong fit (auto: plain least squares)")
     f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
     f.add_argument("--max-iters", type=int, default=100)
     f.add_argument("--seed", type=int, default=0, help="seed of the flake field")
