@@ -46,15 +46,25 @@ def render_shots(fit, capture, *, chunk: int = 4) -> torch.Tensor:
 
 
 def _flake_stage(capture, fit, seed: int):
-    """Detect; re-solve the texture under the detections when there are more than noise gives,
+    """Detect; stop when the detections do not exceed the mirrored residual's (misfit, not
+    glints); re-solve the texture under the detections when there are more than noise gives,
     then the flake stage on the renders with it. Returns (stage result, texture)."""
-    from torchmetal.flakes.stage import detect_capture, flake_stage
+    from torchmetal.flakes.stage import FlakeStageResult, detect_capture, flake_stage, glint_excess, mirrored_detection
     from torchmetal.flakes.texture import texture_without_glints
 
+    t0 = time.perf_counter()
     phong_images = render_shots(fit, capture)
     det = detect_capture(capture, phong_images)
     if len(det.particles) < CLEAN_MIN_PARTICLES:  # a few noise peaks: keep the texture and the detection
         return flake_stage(capture, phong_images, seed=seed, detection=det), fit.texture
+    kept, counts = glint_excess(det.particles, mirrored_detection(capture, phong_images).particles)
+    if not kept:
+        report = {"skipped": ("detections consistent with the Phong fit's misfit: no SNR at which they exceed the "
+                              f"mirrored residual's (positive {counts['positive']} vs mirrored {counts['mirrored']} "
+                              f"above SNR {counts['snr']})"),
+                  "particles": len(det.particles), "null_test": counts,
+                  "times": {"total": time.perf_counter() - t0}}
+        return FlakeStageResult(None, det.particles, report), fit.texture
     texture, phong_images, _ = texture_without_glints(capture, fit.texture, phong_images, det.labels)
     return flake_stage(capture, phong_images, seed=seed), texture
 

@@ -164,15 +164,24 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
 
     z1, z2 = _normal_pair(u(8), u(9))
     z3, _ = _normal_pair(u(10), u(11))
-    chol = torch.linalg.cholesky(
-        torch.tensor(model.color_cov, dtype=torch.float64) + 1e-12 * torch.eye(3, dtype=torch.float64)
-    ).to(dtype=dtype, device=device)
+    chol = colour_factor(model.color_cov).to(dtype=dtype, device=device)
     mean = torch.tensor(model.color_mean, dtype=dtype, device=device).view(3, 1, 1)
     z = torch.stack([z1, z2, z3])
     color = (mean + torch.einsum("ij,jhw->ihw", chol, z)).clamp_min(0.0)
 
     count = int((present & (ci * c < height) & (cj * c < width))[::c, ::c].sum()) if presence > 0 else 0
     return FlakeField(weight.unsqueeze(0), m, color, float(model.glint_sigma), count)
+
+
+def colour_factor(cov) -> Tensor:
+    """L (3, 3) float64 with L·Lᵀ = cov: the symmetric square root of cov's PSD part.
+
+    An eigen-decomposition with negative eigenvalues clipped to 0, so a covariance that is PSD
+    only to rounding (FlakeModel checks it) never fails the way a Cholesky factorisation does.
+    """
+    c = torch.tensor(cov, dtype=torch.float64)
+    vals, vecs = torch.linalg.eigh(0.5 * (c + c.T))
+    return vecs * vals.clamp_min(0.0).sqrt().unsqueeze(0) @ vecs.T
 
 
 def sparkle_shading(field: FlakeField, geom: ShadingGeometry) -> Tensor:

@@ -13,6 +13,29 @@ from torchmetal.errors import MaterialError
 
 MIN_CELL = 3  # px: the hash field holds at most one flake per MIN_CELL² cell …
 MAX_DENSITY = 1.0 / (MIN_CELL * MIN_CELL)  # … so this is the densest field it can draw (flakes/px)
+MAX_COLOR = 1.0e4  # glint reflectance bound: a mirror flake's peak is ~1/(π·glint σ²) ≈ 350 at σ = 0.03 rad
+
+
+def _check_covariance(cov: tuple[tuple[float, ...], ...]) -> None:
+    """A colour covariance the renderer can factor: finite, symmetric, PSD, spread ≤ MAX_COLOR."""
+    flat = [c for r in cov for c in r]
+    if not all(math.isfinite(c) for c in flat):
+        raise MaterialError(f"FlakeModel.color_cov: expected finite values, found {cov!r}")
+    scale = max(abs(c) for c in flat)
+    if scale > MAX_COLOR**2:
+        raise MaterialError(f"FlakeModel.color_cov: expected entries <= {MAX_COLOR**2:g} (colour spread <= "
+                            f"{MAX_COLOR:g}), found {scale:.3g}")
+    tol = 1e-9 * max(scale, 1e-30)
+    if any(abs(cov[i][j] - cov[j][i]) > tol for i in range(3) for j in range(3)):
+        raise MaterialError(f"FlakeModel.color_cov: expected a symmetric matrix, found {cov!r}")
+    # leading principal minors of cov + tol·I ≥ 0 (Sylvester, with the tolerance the renderer adds)
+    a = [[cov[i][j] + (tol if i == j else 0.0) for j in range(3)] for i in range(3)]
+    m1 = a[0][0]
+    m2 = a[0][0] * a[1][1] - a[0][1] * a[1][0]
+    m3 = (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+          + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
+    if m1 < 0 or m2 < -tol * scale or m3 < -tol * scale * scale:
+        raise MaterialError(f"FlakeModel.color_cov: expected a positive semi-definite matrix, found {cov!r}")
 
 
 @dataclass
@@ -59,10 +82,14 @@ class FlakeModel:
                 raise MaterialError(f"FlakeModel.{name}: expected a number in [{lo}, {hi}], found {value!r}")
         if len(self.color_mean) != 3 or not all(math.isfinite(c) and c >= 0 for c in self.color_mean):
             raise MaterialError(f"FlakeModel.color_mean: expected 3 finite values >= 0, found {self.color_mean!r}")
+        if not all(c <= MAX_COLOR for c in self.color_mean):
+            raise MaterialError(f"FlakeModel.color_mean: expected glint reflectances <= {MAX_COLOR:g}, "
+                                f"found {self.color_mean!r}")
         if len(self.color_cov) != 3 or any(len(r) != 3 for r in self.color_cov):
             raise MaterialError(f"FlakeModel.color_cov: expected a 3x3 matrix, found {self.color_cov!r}")
         self.color_mean = tuple(float(c) for c in self.color_mean)  # type: ignore[assignment]
         self.color_cov = tuple(tuple(float(c) for c in r) for r in self.color_cov)
+        _check_covariance(self.color_cov)
 
     @property
     def median_area(self) -> float:

@@ -369,6 +369,7 @@ class ZooCase:
     fit_intensities: np.ndarray
     fit_cameras: np.ndarray
     truth_stats: dict = field(default_factory=dict)
+    flake_pixels: np.ndarray | None = None  # (n, n) bool: pixels a true flake covers, grown by 1 px
 
 
 def _intensity(light: np.ndarray, tex_mean: float, exposure: float, factor: float) -> np.ndarray:
@@ -459,7 +460,23 @@ def make_case(scene: Scene, out_dir: str | os.PathLike) -> ZooCase:
                      tilt_sigma=float(scene.flakes["tilt_sigma"]))
     return ZooCase(scene=scene, capture_dir=out, truth=truth, held_lights=lights[held], held_intensities=ints[held],
                    held_cameras=cams[held], clean=clean.astype(np.float32), fit_lights=lights[:scene.shots],
-                   fit_intensities=ints[:scene.shots], fit_cameras=cams[:scene.shots], truth_stats=stats)
+                   fit_intensities=ints[:scene.shots], fit_cameras=cams[:scene.shots], truth_stats=stats,
+                   flake_pixels=_flake_pixels(truth))
+
+
+def _flake_pixels(truth: Truth) -> np.ndarray:
+    n = truth.texture.shape[-1]
+    m = np.zeros((n, n), bool)
+    for rr, cc, _ in truth.cover or []:
+        m[rr, cc] = True
+    if truth.cover:
+        g = m.copy()
+        g[1:] |= m[:-1]
+        g[:-1] |= m[1:]
+        g[:, 1:] |= g[:, :-1].copy()
+        g[:, :-1] |= g[:, 1:].copy()
+        m = g
+    return m
 
 
 def oracle_render(case: ZooCase) -> np.ndarray:
