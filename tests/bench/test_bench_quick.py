@@ -80,6 +80,12 @@ def test_speed_ratio_only_at_equal_or_better_error():
     assert ratio == pytest.approx(10.0)
     ratio, txt = speed_ratio(tm, {"wall_s": 20.0, "psnr_holdout": 51.0})
     assert ratio is None and "worse" in txt
+    # the error against the clean truth decides when both results have it, not the noisy-photo one
+    tm2 = {"wall_s": 2.0, "psnr_holdout": 40.0, "psnr_truth": 55.0}
+    ratio, _ = speed_ratio(tm2, {"wall_s": 20.0, "psnr_holdout": 41.0, "psnr_truth": 54.0})
+    assert ratio == pytest.approx(10.0)
+    ratio, txt = speed_ratio(tm2, {"wall_s": 20.0, "psnr_holdout": 39.0, "psnr_truth": 56.0})
+    assert ratio is None and "worse" in txt
     assert speed_ratio({"error": "x"}, {"wall_s": 1.0, "psnr_holdout": 1.0})[0] is None
 
 
@@ -123,6 +129,43 @@ def test_a_hanging_child_is_stopped():
     assert "timed out" in res[0]["error"]
 
 
+def test_sweep_scores_held_out_shots_against_the_clean_truth(tmp_path):
+    """task_prepare keeps noise-free held-out renders; task_method scores against them (psnr_truth)."""
+    for noise in (0.0, 0.03):
+        path = str(tmp_path / f"c{noise}.pt")
+        prep = run_task("prepare", {"path": path, "size": 16, "shots": 4, "noise": noise, "holdout": 2})
+        assert "error" not in prep, prep
+        d = torch.load(path, weights_only=False)
+        assert d["clean_hold"].shape == d["capture"].images[d["hold_idx"]].shape
+        r = run_task("method", {"path": path, "method": "paper-numpy", "tol": 1e-6, "max_iters": 50})
+        assert "error" not in r, r
+        assert math.isfinite(r["psnr_truth"]) and math.isfinite(r["psnr_holdout"])
+        if noise == 0.0:  # float images without noise are the clean renders
+            assert torch.equal(d["clean_hold"], d["capture"].images[d["hold_idx"]])
+            assert r["psnr_truth"] == pytest.approx(r["psnr_holdout"])
+        else:  # the noise is no longer charged to the fit
+            assert r["psnr_truth"] > r["psnr_holdout"] + 3.0
+
+
+def test_zoo_markdown_rows_and_verdict():
+    from torchmetal.bench.zoo_section import verdict, zoo_markdown
+
+    row = {"psnr": 50.0, "psnr_coat": 50.0, "s_err": 0.01, "alpha_err": 0.02, "time": 1.0, "flake_model": False,
+           "stage_times": {"phong.init": 0.1, "phong.refine": 0.2, "flakes": 0.3, "lm_evaluations": 7}}
+    good = {"oracle": 51.0, "truth": {}, "default": row, "paper": {**row, "psnr_coat": 50.15, "psnr": 49.0}}
+    bad = {"oracle": 51.0, "truth": {"density": 0.01}, "default": row, "paper": {**row, "psnr_coat": 50.3}}
+    assert verdict(good) is True and verdict(bad) is False
+    md = zoo_markdown(["a", "b", "c"], [good, bad, {"error": "RuntimeError: x"}], {"a": "8² × 3"})
+    lines = [ln for ln in md.splitlines() if ln.startswith("| ") and not ln.startswith("| scene")]
+    assert [ln.split(" | ")[0] for ln in lines] == ["| a", "| b", "| c"]
+    a, b = lines[0].split(" | "), lines[1].split(" | ")
+    assert a[1] == "8² × 3" and a[2] == "50.00" and a[3] == "50.15 (as rendered 49.00)" and a[4] == "51.00"
+    assert a[-1] == "yes |" and b[-1] == "no |" and "no (MISSED)" in b
+    assert "init 0.10, refine 0.20, flakes 0.30" in a and "lm_evaluations" not in md
+    assert "error: RuntimeError: x" in lines[2]
+    assert "on 1 of 2 scenes" in md
+
+
 def test_unknown_task_config_is_an_error_entry_not_a_crash():
     r = run_task("method", {"path": "/nonexistent/capture.pt", "method": "paper-numpy"})
     assert "error" in r and "FileNotFoundError" in r["error"]
@@ -153,7 +196,7 @@ def test_quick_run_writes_every_output(quick_run):
     assert rc == 0
     md = (out / "results.md").read_text()
     titles = ("Sweep", "Capture load", "Phong fit", "Skip evidence", "Flake detection", "ONNX renderer",
-              "Real captures: leave-one-out", "Real captures: flake statistics")
+              "Real captures: leave-one-out", "Real captures: flake statistics", "Scene zoo")
     for title in titles:
         assert f"## {title}" in md
     assert len(SECTIONS) == len(titles)
@@ -175,6 +218,8 @@ def test_quick_run_baselines_have_numbers(quick_run):
             assert math.isfinite(p) and p > 30.0, (m, p)
             assert float(r["wall_s"]) > 0 and float(r["peak_bytes"]) >= 0
             assert abs(p - float(r["psnr_holdout_truth"])) < 6.0  # near the noise ceiling (quick: few Adam steps)
+            t = float(r["psnr_truth"])  # the primary error: against the noise-free render of the truth
+            assert math.isfinite(t) and t > 30.0, (m, t)
     if _importable("torchmetal.fit"):
         assert by_method.get("torchmetal"), "torchmetal.fit exists but the sweep has no torchmetal rows"
         for r in by_method["torchmetal"]:
@@ -189,6 +234,35 @@ def test_quick_run_sections_report_numbers_or_a_reason(quick_run):
     load = md.split("## Capture load")[1].split("\n## ")[0]
     if _importable("torchmetal.io.capture"):
         assert "load_capture s" in load and "not available" not in load
+
+
+def test_quick_run_zoo_has_a_row_per_scene_with_numbers(quick_run):
+    import json
+
+    from torchmetal.synth.zoo import ci_scenes
+
+    _, out, _ = quick_run
+    names = [s.name for s in ci_scenes()]
+    rows = json.loads((out / "zoo.json").read_text())
+    assert [r["scene"] for r in rows] == names
+    for r in rows:
+        assert "error" not in r and "not_available" not in r, r
+        for m in ("default", "paper"):
+            for k in ("psnr", "psnr_coat", "time"):
+                assert math.isfinite(float(r[m][k])), (r["scene"], m, k, r[m][k])
+            assert float(r[m]["psnr_coat"]) > 30.0, (r["scene"], m)
+        assert math.isfinite(float(r["oracle"]))
+        assert any(k.startswith("phong.") for k in r["default"]["stage_times"])
+    md = (out / "results.md").read_text().split("## Scene zoo")[1].split("\n## ")[0]
+    table = [ln for ln in md.splitlines() if ln.startswith("| ") and not ln.startswith("| scene")]
+    assert [ln.split(" | ")[0][2:] for ln in table] == names
+    for ln in table:
+        cells = ln.strip("| ").split(" | ")
+        for c in cells[2:5]:  # default, paper, oracle dB: a number (∞ for the clean float oracle)
+            v = c.split(" ")[0]
+            assert v == "∞" or math.isfinite(float(v)), (cells[0], c)
+        assert cells[-1] in ("yes", "no"), cells
+    assert "default ≥ paper − 0.2 dB on" in md
 
 
 def test_shared_server_survives_a_timeout():

@@ -163,7 +163,10 @@ def task_prepare(cfg: dict) -> dict:
     hold = holdout_indices(n_total, n_hold)
     fit_idx = [i for i in range(n_total) if i not in hold]
     truth = {k: v for k, v in dict(res.truth).items()}
-    torch.save({"capture": cap, "truth": truth, "fit_idx": fit_idx, "hold_idx": hold}, cfg["path"])
+    # noise-free, unquantised renders of the truth for the held-out shots: what a fit is scored against
+    clean_hold = res.render_clean(hold) if hold else None
+    torch.save({"capture": cap, "truth": truth, "fit_idx": fit_idx, "hold_idx": hold, "clean_hold": clean_hold},
+               cfg["path"])
     return {"synth_s": t_synth, "capture_f32_bytes": capture_nbytes_f32(cap.subset(fit_idx)), "shots_total": n_total}
 
 
@@ -172,7 +175,9 @@ def _load_prepared(path: str):
 
     d = torch.load(path, weights_only=False)
     cap = d["capture"]
-    return cap, d["truth"], d["fit_idx"], d["hold_idx"]
+    truth = dict(d["truth"])
+    truth["clean_hold"] = d.get("clean_hold")  # (H, 3, h, w) noise-free held-out renders, or None
+    return cap, truth, d["fit_idx"], d["hold_idx"]
 
 
 def _fit_torchmetal(fit_cap, cfg: dict):
@@ -231,6 +236,10 @@ def task_method(cfg: dict) -> dict:
                 pred = fit.render(hold_cap.lights, hold_cap.intensities, hold_cap.cameras)
         else:
             pred = render_params(texture, s, alpha, hold_cap)
+        # primary: against the noise-free render of the truth; secondary: against the noisy photos
+        clean = truth.get("clean_hold")
+        if clean is not None:
+            out["psnr_truth"] = psnr_or_nan(pred, clean)
         out["psnr_holdout"] = psnr_or_nan(pred, hold_cap.images, v)
         if all(k in truth for k in ("texture", "s", "alpha")):
             ref = render_params(truth["texture"], truth["s"], truth["alpha"], hold_cap)
@@ -463,6 +472,21 @@ def _downsample(cap, factor: int):
     return dataclasses.replace(cap, **changes)
 
 
+def task_zoo(cfg: dict) -> dict:
+    """One scene of the zoo (``cfg['scene']``; its CI size when ``cfg['ci']``) fitted with each of
+    ``cfg['methods']`` (name → ``fit_material`` options) and scored against the noise-free truth."""
+    SCENES, ci_scenes = _need("torchmetal.synth.zoo", "SCENES", "ci_scenes")
+    run_scene = _need("torchmetal.bench.zoo", "run_scene")
+    scenes = {s.name: s for s in ci_scenes()} if cfg.get("ci") else dict(SCENES)
+    scene = scenes[cfg["scene"]]
+    methods = cfg.get("methods") or {"default": {}, "paper": {"scheme": "paper", "flakes": "off"}}
+    r = run_scene(scene, methods)
+    for name in methods:
+        r[name].pop("specular", None)  # a fit object's field, not JSON
+    r["size"], r["shots"] = int(scene.size), int(scene.shots)
+    return r
+
+
 def task_selftest(cfg: dict) -> dict:
     """Harness self-test: sleep, allocate ``mib`` MiB, or fail, as ``cfg`` says."""
     with PeakMemory() as pm:
@@ -490,4 +514,5 @@ TASKS = {
     "onnx": task_onnx,
     "real": task_real,
     "realflakes": task_realflakes,
+    "zoo": task_zoo,
 }
