@@ -76,19 +76,49 @@ def mirrored_detection(capture, phong_images: Tensor, **detect) -> Detection:
     return detect_flakes(2.0 * ph - images, ph, irr, valid=valid, **detect)
 
 
-def glint_excess(positive: Particles, mirrored: Particles, ladder: tuple[float, ...] = SNR_LADDER,
-                 min_excess: int = MIN_EXCESS) -> tuple[bool, dict]:
-    """Do the detections exceed what the mirrored residual gives, at some SNR?
+def _locations(h: int, w: int, *parts: Particles) -> list[Tensor]:
+    """A location label per particle of each part: centres within 1 px (any shot, any part) join."""
+    import cv2
+    import numpy as np
 
-    At each SNR t of ``ladder``: P(t), M(t) detections above t in the residual and its mirror.
-    Glints are kept when, for some t, P − M ≥ max(min_excess, 3·√(P + M)) and P ≥ 2·M. On
-    flake-free zoo scenes (photo textures, mismatched lobes, two materials) P ≈ M at every t;
-    with flakes, P ≫ M at high SNR (the texture's share of a glint only makes shallow dips).
+    occupied = np.zeros((h, w), np.uint8)
+    rows, cols = [], []
+    for p in parts:
+        r = p.cy.round().long().clamp(0, h - 1)
+        c = p.cx.round().long().clamp(0, w - 1)
+        rows.append(r)
+        cols.append(c)
+        occupied[r.cpu().numpy(), c.cpu().numpy()] = 1
+    occupied = cv2.dilate(occupied, np.ones((3, 3), np.uint8))
+    _, labels = cv2.connectedComponents(occupied, connectivity=8)
+    lab = torch.from_numpy(labels.astype(np.int64))
+    return [lab[r.cpu(), c.cpu()].to(p.cy.device) for r, c, p in zip(rows, cols, parts)]
+
+
+def glint_excess(positive: Particles, mirrored: Particles, shape: tuple[int, int],
+                 ladder: tuple[float, ...] = SNR_LADDER, min_excess: int = MIN_EXCESS) -> tuple[bool, dict]:
+    """Do the detections exceed what the mirrored residual gives, location by location?
+
+    Detections of the residual and of its mirror are pooled into locations (centres within 1 px,
+    any shot). A location is *positive* when its brightest detection is in the residual, *mirrored*
+    when it is in the mirror. Misfit makes both equally often; a flake is positive, even where the
+    texture has absorbed part of its glints (the dips this leaves in the other shots are shallower
+    than its peak). At each SNR t of ``ladder``, over the locations whose brightest detection
+    exceeds t: P positive, M mirrored. Glints are kept when, for some t,
+    P − M ≥ max(min_excess, 3·√(P + M)) and P ≥ 2·M.
 
     Returns (kept, {"snr": [t…], "positive": [P…], "mirrored": [M…]}).
     """
-    pos = [int((positive.snr > t).sum()) for t in ladder]
-    neg = [int((mirrored.snr > t).sum()) for t in ladder]
+    h, w = shape
+    lp, lm = _locations(h, w, positive, mirrored)
+    n = int(max(int(lp.max()) if len(lp) else 0, int(lm.max()) if len(lm) else 0)) + 1
+    best_p = torch.zeros(n, dtype=torch.float64).scatter_reduce_(0, lp.cpu(), positive.snr.double().cpu(), "amax")
+    best_m = torch.zeros(n, dtype=torch.float64).scatter_reduce_(0, lm.cpu(), mirrored.snr.double().cpu(), "amax")
+    pos, neg = [], []
+    for t in ladder:
+        top = torch.maximum(best_p, best_m)
+        pos.append(int(((top > t) & (best_p >= best_m)).sum()))
+        neg.append(int(((top > t) & (best_m > best_p)).sum()))
     kept = any(p - m >= max(min_excess, 3.0 * math.sqrt(p + m)) and p >= 2 * m for p, m in zip(pos, neg))
     return kept, {"snr": list(ladder), "positive": pos, "mirrored": neg}
 

@@ -1,0 +1,72 @@
+"""The accuracy rules on the CI-sized scene zoo, scored against the noise-free truth.
+
+1. The default ``fit_material`` is never worse than the paper's scheme (−0.2 dB) on the coating.
+2. Where global Phong is the truth (and the shots sample the lobe), it is within 1 dB of the
+   oracle (the truth's own specular, texture solved from the same shots).
+3. No flake model on a flake-free scene; a model on every flake scene.
+4. Where the shots never sample the lobe's peak, no highlight is invented.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from torchmetal.bench.zoo import METHODS, run_scene
+from torchmetal.synth.zoo import ci_scenes
+
+SCENES = {s.name: s for s in ci_scenes()}
+UNIDENTIFIED = {"blind_peak", "grazing_only"}  # fit shots never near the mirror direction: s, α not identifiable
+PSNR_CEILING = 100.0  # float32 rounding: above this, dB differences say nothing
+
+
+@pytest.fixture(scope="module")
+def zoo(tmp_path_factory):
+    root = tmp_path_factory.mktemp("zoo")
+    return {name: run_scene(sc, METHODS, workdir=root) for name, sc in SCENES.items()}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(SCENES))
+def test_default_never_loses_to_the_paper(zoo, name):
+    r = zoo[name]
+    d, p = r["default"], r["paper"]
+    assert math.isfinite(d["psnr_coat"]) and d["psnr_coat"] >= p["psnr_coat"] - 0.2, (d["psnr_coat"], p["psnr_coat"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [n for n, s in SCENES.items() if s.phong_truth and n not in UNIDENTIFIED])
+def test_default_reaches_the_oracle_where_phong_is_the_truth(zoo, name):
+    r = zoo[name]
+    assert r["default"]["psnr"] >= min(r["oracle"], PSNR_CEILING) - 1.0, (r["default"]["psnr"], r["oracle"])
+    assert r["default"]["s_err"] < 0.02 and r["default"]["alpha_err"] < 0.02
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(SCENES))
+def test_flake_models_only_where_there_are_flakes(zoo, name):
+    has = SCENES[name].flakes is not None
+    assert zoo[name]["default"]["flake_model"] == has, zoo[name]["default"]["skipped"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(UNIDENTIFIED))
+def test_no_highlight_where_the_data_never_showed_one(zoo, name):
+    d = zoo[name]["default"]
+    assert d["s"] == 0.0 and any(s.startswith("specular: no highlight evidence") for s in d["skipped"])
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="open (issue 12): against the zoo's independent flake generator the density "
+                   "comes out 22-40% low when glints are narrow (glint σ 0.03 rad; 5% at 0.06), tilt 10-32%")
+@pytest.mark.parametrize("name", [n for n, s in SCENES.items() if s.flakes is not None])
+def test_flake_statistics_within_tolerance(zoo, name):
+    d = zoo[name]["default"]
+    assert d["density_err"] <= 0.10 and d["area_err"] <= 0.15 and d["tilt_err"] <= 0.20, d
+
+
+def test_scores_are_against_the_clean_truth(tmp_path):
+    """A perfect fit scores the oracle's reach, not the noisy photo's floor: a noise-free capture gives > 100 dB."""
+    sc = SCENES["float_clean"].with_(size=48)
+    r = run_scene(sc, {"default": {}}, workdir=tmp_path)
+    assert r["default"]["psnr"] > 100.0 and np.isfinite(r["oracle"])
