@@ -9,8 +9,9 @@ The Phong fit is plain least squares by default (``robust="auto"``): on the scen
 flake-free scene. The flake stage first asks whether the detections are glints at all: misfit
 gives residuals of both signs, glints positive ones, so detections must exceed those of the
 mirrored residual (:func:`~torchmetal.flakes.stage.glint_excess`). Only then is the Phong fit
-redone with Huber weights (glints are outliers of the Phong model: without them the flake
-density came out up to 60 % high and the colour 30 % high), and before the flake statistics the
+redone with Huber weights for the flake statistics (glints are outliers of the Phong model:
+without them the flake density came out up to 60 % high and the colour 30 % high; the material's
+coating keeps the least-squares fit, 0.2 dB better away from the flakes), and before them the
 texture under a first round of detections is re-solved without the shots where it glints
 (:mod:`torchmetal.flakes.texture`); otherwise the per-pixel texture absorbs part of every glint
 and the statistics see weakened glints.
@@ -52,9 +53,10 @@ def render_shots(fit, capture, *, chunk: int = 4) -> torch.Tensor:
 
 def _flake_stage(capture, fit, seed: int, refit=None):
     """Detect; stop when the detections do not exceed the mirrored residual's (misfit, not
-    glints); otherwise, with ``refit`` given, replace the fit by ``refit()`` (the Huber fit) and
-    detect again; re-solve the texture under the detections when there are more than noise
-    gives, then the flake stage on the renders with it. Returns (stage result, fit, texture)."""
+    glints); otherwise, with ``refit`` given, detect again on ``refit()`` (the Huber fit); re-solve
+    the texture under the detections, then the flake stage on the renders with it. The coating
+    (returned texture) is ``fit``'s, re-solved under the same detections.
+    Returns (stage result, the fit the statistics used, texture)."""
     from torchmetal.flakes.stage import FlakeStageResult, detect_capture, flake_stage, glint_excess, mirrored_detection
     from torchmetal.flakes.texture import texture_without_glints
 
@@ -72,6 +74,7 @@ def _flake_stage(capture, fit, seed: int, refit=None):
                   "particles": len(det.particles), "null_test": counts,
                   "times": {"total": time.perf_counter() - t0}}
         return FlakeStageResult(None, det.particles, report), fit, fit.texture
+    coat = fit
     if refit is not None:
         fit = refit()
         phong_images = render_shots(fit, capture)
@@ -79,6 +82,9 @@ def _flake_stage(capture, fit, seed: int, refit=None):
     texture, phong_images, _ = texture_without_glints(capture, fit.texture, phong_images, det.labels)
     result = flake_stage(capture, phong_images, seed=seed)
     result.report["null_test"] = counts
+    if refit is not None:  # the statistics came from the robust fit; the coating stays least squares
+        texture, _, _ = texture_without_glints(capture, coat.texture, render_shots(coat, capture), det.labels)
+        result.report["robust_fit"] = {"s": fit.s.tolist(), "alpha": fit.alpha.tolist()}
     return result, fit, texture
 
 
@@ -132,9 +138,8 @@ def fit_material(
         flake_result, new_fit, texture = _flake_stage(capture, fit, seed, refit)
         stage_times["flakes"] = time.perf_counter() - t
         if new_fit is not fit:
-            fit = new_fit
-            skipped = [f"phong: refitted with {ROBUST_GLINTS} weights (the detections are glints)", *fit.skipped]
-            stage_times.update({f"phong.{k}": v for k, v in fit.stage_times.items()})
+            skipped.append(f"phong: the flake statistics use a {ROBUST_GLINTS}-weighted refit (the detections are "
+                           "glints); the coating keeps the least-squares fit")
         flake_model = flake_result.model
         if flake_model is not None:
             fit = replace(fit, texture=texture)  # the sparkles now carry the glints
