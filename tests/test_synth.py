@@ -210,6 +210,9 @@ class TestFiles:
         meta = json.loads((path / "truth" / "truth.json").read_text())
         assert meta["format"] == "torchmetal-synth-truth" and meta["normals"] == "../normals.npy"
         assert np.load(path / "truth" / "texture.npy").shape == (32, 32, 3)
+        # the noise-free, unclipped render of every shot: what held-out shots are scored against
+        assert torch.equal(t["clean"], r.render_clean().float())
+        assert float(t["clean"].max()) > 1.0  # exposure 2: the clean render is not clipped at 1
 
     def test_rewrite_replaces(self, tmp_path):
         write_synth(synth_capture(texture="procedural", **SMALL), tmp_path / "syn")

@@ -404,8 +404,10 @@ def write_synth(result: SynthResult, out_dir: str | os.PathLike, *, bits: int | 
             — either way the capture re-loads bit-exactly.
 
     ``truth/``: truth.json (format "torchmetal-synth-truth": s, alpha, cluster s/α, flake
-    model dict, params), texture.npy (H, W, 3) float32, spec_labels.npy (H, W) int32 when
-    clustered, height.npy (H, W) when bumpy (the normals are the capture's normals.npy).
+    model dict, params), texture.npy (H, W, 3) float32, clean.npy (N, H, W, 3) float32 — the
+    noise-free, unclipped linear render of every shot (score any held-out shot against it, not
+    against its noisy photo), spec_labels.npy (H, W) int32 when clustered, height.npy (H, W) when
+    bumpy (the normals are the capture's normals.npy).
     """
     if bits is None:
         bits = result.params.get("bits") or "npy"
@@ -425,6 +427,9 @@ def write_synth(result: SynthResult, out_dir: str | os.PathLike, *, bits: int | 
             "params": result.params,
         }
         (tdir / "texture.npy").write_bytes(_npy_bytes(_hwc(t["texture"])))
+        clean = result.render_clean().detach().cpu().float().permute(0, 2, 3, 1).numpy()
+        (tdir / "clean.npy").write_bytes(_npy_bytes(np.ascontiguousarray(clean)))
+        meta["clean"] = "clean.npy"
         if t.get("spec_labels") is not None:
             (tdir / "spec_labels.npy").write_bytes(_npy_bytes(t["spec_labels"].cpu().numpy().astype(np.int32)))
             meta["clusters"] = {"labels": "spec_labels.npy", "s": t["cluster_s"].double().tolist(),
@@ -444,7 +449,8 @@ def read_synth_truth(path: str | os.PathLike) -> dict:
     """Read ``truth/`` written by :func:`write_synth` (path: the capture dir or its truth dir).
 
     Returns a dict with texture (3, H, W) float32, s, alpha (3,), flakes (FlakeModel or None),
-    params, and spec_labels (H, W) int64 / cluster_s / cluster_alpha (K, 3) when clustered.
+    params, clean (N, 3, H, W) float32 noise-free renders of the shots (when written), and
+    spec_labels (H, W) int64 / cluster_s / cluster_alpha (K, 3) when clustered.
     """
     root = Path(path)
     tdir = root if (root / "truth.json").is_file() else root / "truth"
@@ -463,6 +469,8 @@ def read_synth_truth(path: str | os.PathLike) -> dict:
         "s": torch.tensor(meta["s"], dtype=torch.float32), "alpha": torch.tensor(meta["alpha"], dtype=torch.float32),
         "flakes": FlakeModel.from_dict(meta["flakes"]) if meta.get("flakes") else None, "params": meta.get("params", {}),
     }
+    if meta.get("clean"):
+        out["clean"] = torch.from_numpy(np.load(tdir / meta["clean"], allow_pickle=False)).permute(0, 3, 1, 2).contiguous()
     if meta.get("clusters"):
         cl = meta["clusters"]
         out["spec_labels"] = torch.from_numpy(np.load(tdir / cl["labels"], allow_pickle=False).astype(np.int64))
