@@ -265,7 +265,9 @@ def choose_specular(
     """Fit global and K-cluster specular on all shots but ``hold``; keep the best on ``hold``.
 
     ``force`` picks the best K even when global is better (specular="clustered"); ``hold=None``
-    (too few shots) ranks the candidates by in-sample error and always picks one.
+    (too few shots) ranks the candidates by in-sample error and always picks one. Otherwise,
+    within a feature set, larger K are tried only while the last K beat global on ``hold``
+    (on a sample without clusters that is 3 fits instead of 9).
     """
     n = int(capture.images.shape[0])
     fit_shots = [i for i in range(n) if i != hold]
@@ -285,7 +287,7 @@ def choose_specular(
     ij = grid_coords(obs.height, obs.width, stride, obs.g.device).to(obs.dtype)
     best_k, best_mse, best_lab = 1, math.inf, None
     for feats in feature_sets:
-        for k in candidates:
+        for k in sorted(candidates):
             if k < 2 or k > int(usable.sum()):
                 continue
             lab = make_labeler(obs.tmin, ij, usable, k, spec=spec, features=feats, seed=seed)
@@ -297,6 +299,8 @@ def choose_specular(
             mse[f"{feats}:K={k}"] = m
             if m < best_mse:
                 best_k, best_mse, best_lab = k, m, lab
+            if not force and ho is not None and m >= mse["global"]:
+                break  # the coarsest split of these features does not beat global: finer ones are not tried
     obs.labels = None
     if best_lab is None:
         return Selection(1, None, hold, mse, "no cluster candidate fits the image")
