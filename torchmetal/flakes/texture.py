@@ -31,7 +31,7 @@ _FILL_RADII = (2, 4, 8, 16)  # neighbourhoods tried for pixels with no undetecte
 
 
 def texture_without_glints(
-    capture, texture: Tensor, phong_images: Tensor, labels: Tensor, *, chunk: int = 4
+    capture, texture: Tensor, phong_images: Tensor, labels: Tensor, *, chunk: int = 4, guard: bool = True
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Re-solve the texture under detected flakes and update the Phong renders to match.
 
@@ -42,6 +42,10 @@ def texture_without_glints(
         labels: (N, H, W) detection labels (> 0 on a detected particle), e.g.
             :attr:`~torchmetal.flakes.detect.Detection.labels`.
         chunk: shots processed at once.
+        guard: leave out shots > 2.5 robust σ above the median and cap by ``texture`` (the
+            statistics' texture: no sub-threshold glint may weaken a detected one). False gives
+            the plain least-squares re-solve, unbiased where a detection was only noise (the
+            material's coating).
 
     Returns:
         (texture (3, H, W), phong_images (N, 3, H, W), changed (1, H, W) bool): the new texture,
@@ -73,7 +77,7 @@ def texture_without_glints(
     # more than 2.5 robust σ above the median are left out of the weighted mean
     med = torch.nanquantile(est, 0.5, dim=0)  # (3, M)
     mad = 1.4826 * torch.nanquantile((est - med).abs(), 0.5, dim=0)
-    keep = (gain > 0) & ~(est > med + 2.5 * mad + 1e-6)
+    keep = (gain > 0) & ~(est > med + 2.5 * mad + 1e-6) if guard else gain > 0
     wk = torch.where(keep, gain * gain, torch.zeros_like(gain))
     num = (wk * torch.nan_to_num(est)).sum(0)
     den = wk.sum(0)
@@ -83,7 +87,8 @@ def texture_without_glints(
     d = torch.zeros(3, h * w, dtype=dt, device=texture.device)
     d[:, idx] = num / den.clamp_min(1e-30)
     # glints only add light: the clean solve never exceeds the all-shot one (noise of few shots)
-    d = torch.where(solved, torch.minimum(d.view(3, h, w), texture), torch.zeros_like(texture))
+    d = d.view(3, h, w)
+    d = torch.where(solved, torch.minimum(d, texture) if guard else d, torch.zeros_like(texture))
     # pixels detected in every shot: mean of the solved/untouched neighbours
     known = (~changed | solved.all(0, keepdim=True)).to(dt)  # (1, H, W)
     base = torch.where(changed, d, texture)

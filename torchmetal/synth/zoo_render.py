@@ -10,7 +10,8 @@ held-out shots kept *outside* the capture with their noise-free, unclipped linea
 
 Truth lobes: ``phong`` (DESIGN 2.2), ``blinn`` (s·(n·h)^{4α}, about the same width) and ``ggx``
 (Trowbridge–Reitz D(n·h) with a² = 2/(α+2), normalised to peak s). Flakes are elliptical discs
-(Poisson positions, log-normal area, uniform orientation) with Rayleigh-distributed tilt and a
+(Poisson positions, log-normal area, uniform orientation) with Rayleigh-distributed tilt about the
+surface normal under each flake and a
 Gaussian glint in the angle between the flake normal and the half vector, added on top of the
 coating — unlike the project's hash field. Noise is signal-dependent: σ = noise·√I + 0.1·noise.
 
@@ -331,6 +332,20 @@ def render_clean(truth: Truth, light: np.ndarray, intensity: np.ndarray, camera:
     return img
 
 
+def flake_normals(truth: Truth) -> np.ndarray:
+    """(3, F) flake normals in the world: each flake's tilt applied around the surface normal under it."""
+    fl = truth.flakes
+    n = truth.texture.shape[-1]
+    cx = np.clip(fl["centre"][:, 0].astype(int), 0, n - 1)
+    cy = np.clip(fl["centre"][:, 1].astype(int), 0, n - 1)
+    base = truth.normals[:, cy, cx]  # (3, F)
+    helper = np.where(np.abs(base[0:1]) < 0.9, np.array([[1.0], [0.0], [0.0]]), np.array([[0.0], [1.0], [0.0]]))
+    t1 = _unit(helper - (helper * base).sum(0, keepdims=True) * base)  # x on a flat sample
+    t2 = np.cross(base.T, t1.T).T  # y on a flat sample
+    local = fl["normal"].T  # (3, F) in the frame (t1, t2, n)
+    return _unit(local[0:1] * t1 + local[1:2] * t2 + local[2:3] * base)
+
+
 def _flake_glints(truth: Truth, l: np.ndarray, v: np.ndarray, e: np.ndarray) -> np.ndarray:
     fl, spec = truth.flakes, truth.flakes["spec"]
     n = truth.texture.shape[-1]
@@ -338,7 +353,7 @@ def _flake_glints(truth: Truth, l: np.ndarray, v: np.ndarray, e: np.ndarray) -> 
     cx = np.clip(fl["centre"][:, 0].astype(int), 0, n - 1)
     cy = np.clip(fl["centre"][:, 1].astype(int), 0, n - 1)
     h = _unit(l[:, cy, cx] + v[:, cy, cx])  # (3, F) half vector at each flake
-    cosang = np.clip((fl["normal"].T * h).sum(0), -1.0, 1.0)
+    cosang = np.clip((flake_normals(truth) * h).sum(0), -1.0, 1.0)
     amp = np.exp(-np.arccos(cosang) ** 2 / (2 * spec["glint_sigma"] ** 2))  # (F,)
     lit = (l[2, cy, cx] > 0) & (v[2, cy, cx] > 0)
     for f, (rr, cc, cov) in enumerate(truth.cover):
