@@ -49,3 +49,34 @@ class TestFlakeStage:
     def test_bad_phong_shape(self, scene):
         with pytest.raises(InputError, match="phong_images"):
             flake_stage(capture_of(scene), scene.phong[:, :, :-1])
+
+
+class TestGlintNull:
+    """glint_excess / mirrored_detection: glints exceed their mirror; symmetric misfit does not."""
+
+    def test_glints_exceed_the_mirror(self, scene):
+        from torchmetal.flakes.stage import detect_capture, glint_excess, mirrored_detection
+
+        cap = capture_of(scene)
+        kept, counts = glint_excess(detect_capture(cap, scene.phong).particles,
+                                    mirrored_detection(cap, scene.phong).particles, tuple(cap.images.shape[-2:]))
+        assert kept and counts["positive"][0] > 2 * counts["mirrored"][0] + 10, counts
+
+    def test_symmetric_misfit_is_not_glints(self, scene):
+        """Bright and dark specks in equal numbers (a misfit of either sign) give no excess."""
+        from dataclasses import replace
+
+        from torchmetal.flakes.stage import detect_capture, glint_excess, mirrored_detection
+
+        cap = capture_of(scene)
+        g = torch.Generator().manual_seed(5)
+        n, _, h, w = cap.images.shape
+        specks = torch.zeros(n, 1, h, w)
+        idx = torch.randint(0, h * w, (n, 120), generator=g)
+        sign = torch.where(torch.rand(n, 120, generator=g) < 0.5, -1.0, 1.0)
+        specks.view(n, -1).scatter_(1, idx, 0.15 * sign)
+        photo = (scene.phong + specks * scene.irradiance).clamp_min(0.0)
+        cap2 = replace(cap, images=photo)
+        kept, counts = glint_excess(detect_capture(cap2, scene.phong).particles,
+                                    mirrored_detection(cap2, scene.phong).particles, (h, w))
+        assert not kept and counts["positive"][0] > 50, counts  # plenty detected, none in excess
