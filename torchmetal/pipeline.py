@@ -94,7 +94,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     texture, phong_images, _ = texture_without_glints(capture, fit.texture, phong_images, det.labels)
     result = flake_stage(capture, phong_images, seed=seed)
     result.report["null_test"] = counts
-    if coat_fit is not None:  # the statistics came from the robust fit; the coating is least squares away from glints
+    if coat_fit is not None and result.model is not None:  # the coating: least squares away from the glints
         coat = coat_fit(_without_glints(capture, det.labels))
         texture, _, _ = texture_without_glints(capture, coat.texture, render_shots(coat, capture), det.labels,
                                                guard=False)
