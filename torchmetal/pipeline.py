@@ -31,7 +31,7 @@ from torchmetal.material import Material
 
 FLAKE_MODES = ("auto", "on", "off")
 ROBUST_GLINTS = "huber"  # robust="auto": the Phong fit's weights once the detections are glints
-CLEAN_MIN_PARTICLES = 20  # fewer first-round detections than this: no texture re-solve (stats' min_flakes)
+CLEAN_MIN_PARTICLES = 20  # fewer first-round detections: no statistics (flake_statistics' min_flakes)
 
 
 @dataclass
@@ -75,8 +75,11 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     t0 = time.perf_counter()
     phong_images = render_shots(fit, capture)
     det = detect_capture(capture, phong_images)
-    if len(det.particles) < CLEAN_MIN_PARTICLES:  # a few noise peaks: keep the texture and the detection
-        return flake_stage(capture, phong_images, seed=seed, detection=det), fit, fit.texture
+    if len(det.particles) < CLEAN_MIN_PARTICLES:  # fewer particles than the statistics' minimum flake count
+        report = {"skipped": (f"{len(det.particles)} detections, fewer than {CLEAN_MIN_PARTICLES} (the flake "
+                              "statistics' minimum): consistent with noise"),
+                  "particles": len(det.particles), "times": {"total": time.perf_counter() - t0, **det.times}}
+        return FlakeStageResult(None, det.particles, report), fit, fit.texture
     kept, counts = glint_excess(det.particles, mirrored_detection(capture, phong_images).particles,
                                  tuple(capture.images.shape[-2:]))
     if not kept:
