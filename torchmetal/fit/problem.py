@@ -399,7 +399,7 @@ def build_observations(
             fb[:, sl] = torch.where(den > 0, (la * tgt).sum(0) / torch.where(den > 0, den, torch.ones_like(den)), zero)
         lmax[:, j] = torch.where(u > 0, L, LOG_OFF).amax(-1)[:, 0]  # u > 0 ⇔ lit
         if stats_acc is not None:
-            e, st = chunk_stats(yc, a, b, t, wts, isaa_c, wa=wa)
+            e, _, st = chunk_stats(yc, a, b, t, wts, isaa_c, wa=wa)
             eb_all[:, sl] = e
             reduce_stats(st, lab, ref.k, stats_acc)
     return Observations(

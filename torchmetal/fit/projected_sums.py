@@ -16,7 +16,7 @@ from torch import Tensor
 
 def chunk_stats(
     y: Tensor, a: Tensor, b: Tensor, t: Tensor, w: Tensor, isaa: Tensor, wa: Tensor | None = None
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """Per-pixel projected sums of one chunk.
 
     Args:
@@ -25,16 +25,9 @@ def chunk_stats(
         isaa (3, c) = 1/Σ w·a² (0 where none); wa (n, 3, c) = w·a when the caller has it.
 
     Returns:
-        e_b (3, c) and the stats (6, 3, c): B, C, Bc, Cc, Yc, Sbb (see :mod:`torchmetal.fit.refine`).
+        e_b (3, c), e_c (3, c) and the stats (6, 3, c): B, C, Bc, Cc, Yc, Sbb (see
+        :mod:`torchmetal.fit.refine`).
     """
-    e_b, e_c, stats = chunk_stats_full(y, a, b, t, w, isaa, wa)
-    return e_b, stats
-
-
-def chunk_stats_full(
-    y: Tensor, a: Tensor, b: Tensor, t: Tensor, w: Tensor, isaa: Tensor, wa: Tensor | None = None
-) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`chunk_stats` that also returns e_c (3, c): (e_b, e_c, stats)."""
     wa = w * a if wa is None else wa
     wab = wa * b
     sab = wab.sum(0)
@@ -50,15 +43,23 @@ def chunk_stats_full(
     return eb, ec, stats
 
 
-def add_skipped_shots(stats: Tensor, eb: Tensor, ec: Tensor, saa_rest: Tensor, say_rest: Tensor) -> Tensor:
-    """Stats (6, 3, c) of a chunk whose shots with a negligible lobe (b = 0) were left out.
+def add_skipped_shots(stats: Tensor, eb: Tensor, ec: Tensor, y: Tensor, a: Tensor, wa: Tensor, saa: Tensor,
+                      d0: Tensor) -> Tensor:
+    """Stats (6, 3, c) of a chunk computed on some shots only, completed for the shots left out
+    because their lobe is negligible (b = 0).
 
-    A left-out shot has b = 0 but still couples through the texture: its b⊥ = −a·e_b and
-    c⊥ = −a·e_c, so it adds e_b²·Σ'w·a² to C, −e_b·Σ'w·a·y to B, e_b·e_c·Σ'w·a² to Bc,
-    e_c²·Σ'w·a² to Cc and −e_c·Σ'w·a·y to Yc (Σ' over the left-out shots: ``saa_rest``,
-    ``say_rest`` (3, c)). Σ w·b² itself is unchanged, but :func:`chunk_stats` forms it as
-    C + e_b·Σ w·a·b, so Sbb takes C's correction too.
+    A left-out shot still couples through the texture: its b⊥ = −a·e_b and c⊥ = −a·e_c, so it
+    adds e_b²·Σ'w·a² to C, −e_b·Σ'w·a·y to B, e_b·e_c·Σ'w·a² to Bc, e_c²·Σ'w·a² to Cc and
+    −e_c·Σ'w·a·y to Yc, Σ' over the left-out shots. Σ w·b² itself is unchanged, but
+    :func:`chunk_stats` forms it as C + e_b·Σ w·a·b, so Sbb takes C's correction too.
+
+    Args:
+        stats, eb, ec: :func:`chunk_stats` of the shots kept; y, a, wa (n, 3, c) those shots'
+            data, texture basis and weighted basis w·a; saa = Σ w·a² and d0 = Σ w·a·y / Σ w·a² (3, c) over
+            all shots (:class:`~torchmetal.fit.problem.Observations`), so Σ' = all − kept.
     """
+    saa_rest = (saa - (wa * a).sum(0)).clamp_min(0.0)
+    say_rest = d0 * saa - (wa * y).sum(0)
     B, C, Bc, Cc, Yc, sbb = stats.unbind(0)
     return torch.stack([B - eb * say_rest, C + eb * eb * saa_rest, Bc + eb * ec * saa_rest, Cc + ec * ec * saa_rest,
                         Yc - ec * say_rest, sbb + eb * eb * saa_rest])

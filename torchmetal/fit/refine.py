@@ -28,7 +28,7 @@ from torch import Tensor
 
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Observations
-from torchmetal.fit.projected_sums import add_skipped_shots, chunk_stats_full, reduce_stats
+from torchmetal.fit.projected_sums import add_skipped_shots, chunk_stats, reduce_stats
 
 ALPHA_MIN = 1.0
 ALPHA_MAX = 1.0e4
@@ -109,12 +109,10 @@ def spec_sums(obs: Observations, alpha: Tensor, *, per_pixel: bool = False) -> t
         lab = obs.labels[p0:p1] if (k > 1 and obs.labels is not None) else None
         al = a_glob if lab is None else alpha[lab].T.to(obs.dtype).unsqueeze(0)
         a, b, t = lobe_terms(g, u, L, inten, al)
-        e, ec, st = chunk_stats_full(y, a, b, t, w, isaa[:, p0:p1])
-        if shots is not None:  # the left-out shots' texture coupling (projected_sums.add_skipped_shots)
-            wa = w * a
-            saa_rest = (obs.saa[:, p0:p1] - (wa * a).sum(0)).clamp_min(0.0)
-            say_rest = obs.d0[:, p0:p1] * obs.saa[:, p0:p1] - (wa * y).sum(0)
-            st = add_skipped_shots(st, e, ec, saa_rest, say_rest)
+        wa = w * a
+        e, ec, st = chunk_stats(y, a, b, t, w, isaa[:, p0:p1], wa=wa)
+        if shots is not None:  # the left-out shots still couple through the texture
+            st = add_skipped_shots(st, e, ec, y, a, wa, obs.saa[:, p0:p1], obs.d0[:, p0:p1])
         eb[:, p0:p1] = e
         if pix is not None:
             pix[:, :, p0:p1] = st
