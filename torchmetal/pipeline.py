@@ -69,7 +69,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     not steer the specular (a held-out shot shows the same flakes glinting, so a "glinty" specular
     cluster wins there) — and its texture is re-solved under the detections.
     Returns (stage result, the coating's fit, its texture)."""
-    from torchmetal.flakes.stage import FlakeStageResult, detect_capture, flake_stage, glint_excess, mirrored_detection
+    from torchmetal.flakes.stage import FlakeStageResult, detect_capture, flake_stage, glint_excess
     from torchmetal.flakes.texture import texture_without_glints
 
     t0 = time.perf_counter()
@@ -80,7 +80,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
                               "statistics' minimum): consistent with noise"),
                   "particles": len(det.particles), "times": {"total": time.perf_counter() - t0, **det.times}}
         return FlakeStageResult(None, det.particles, report), fit, fit.texture
-    kept, counts = glint_excess(det.particles, mirrored_detection(capture, phong_images).particles,
+    kept, counts = glint_excess(det.particles, detect_capture(capture, phong_images, mirrored=True).particles,
                                  tuple(capture.images.shape[-2:]))
     if not kept:
         report = {"skipped": ("detections consistent with the Phong fit's misfit: no SNR at which they exceed the "

@@ -52,21 +52,22 @@ class TestFlakeStage:
 
 
 class TestGlintNull:
-    """glint_excess / mirrored_detection: glints exceed their mirror; symmetric misfit does not."""
+    """glint_excess / detect_capture(mirrored=True): glints exceed their mirror; symmetric misfit does not."""
 
     def test_glints_exceed_the_mirror(self, scene):
-        from torchmetal.flakes.stage import detect_capture, glint_excess, mirrored_detection
+        from torchmetal.flakes.stage import detect_capture, glint_excess
 
         cap = capture_of(scene)
         kept, counts = glint_excess(detect_capture(cap, scene.phong).particles,
-                                    mirrored_detection(cap, scene.phong).particles, tuple(cap.images.shape[-2:]))
+                                    detect_capture(cap, scene.phong, mirrored=True).particles,
+                                    tuple(cap.images.shape[-2:]))
         assert kept and counts["positive"][0] > 2 * counts["mirrored"][0] + 10, counts
 
     def test_symmetric_misfit_is_not_glints(self, scene):
         """Bright and dark specks in equal numbers (a misfit of either sign) give no excess."""
         from dataclasses import replace
 
-        from torchmetal.flakes.stage import detect_capture, glint_excess, mirrored_detection
+        from torchmetal.flakes.stage import detect_capture, glint_excess
 
         cap = capture_of(scene)
         g = torch.Generator().manual_seed(5)
@@ -78,5 +79,5 @@ class TestGlintNull:
         photo = (scene.phong + specks * scene.irradiance).clamp_min(0.0)
         cap2 = replace(cap, images=photo)
         kept, counts = glint_excess(detect_capture(cap2, scene.phong).particles,
-                                    mirrored_detection(cap2, scene.phong).particles, (h, w))
+                                    detect_capture(cap2, scene.phong, mirrored=True).particles, (h, w))
         assert not kept and counts["positive"][0] > 50, counts  # plenty detected, none in excess

@@ -45,35 +45,27 @@ def irradiance_maps(capture, *, dtype: torch.dtype = torch.float32) -> Tensor:
     return capture.intensities.to(dtype)[:, :, None, None] / dist2.unsqueeze(1)
 
 
-def detect_capture(capture, phong_images: Tensor, **detect) -> Detection:
+def detect_capture(capture, phong_images: Tensor, *, mirrored: bool = False, **detect) -> Detection:
     """:func:`~torchmetal.flakes.detect.detect_flakes` on every shot of ``capture``: residual
     against ``phong_images`` (N, 3, H, W), irradiance from the shots' lights, and only mask pixels
-    that are not saturated in any channel."""
+    that are not saturated in any channel.
+
+    ``mirrored``: detect in the residual's mirror image instead, photo' = 2·Phong − photo — the
+    empirical null of :func:`glint_excess`. Noise and a misfit of the Phong model (texture edges,
+    an imperfect lobe, quantisation) give residuals of both signs; glints are positive only, so
+    what the detector finds in the mirror is what misfit alone produces at each SNR.
+    """
     images = capture.images
     n, _, h, w = images.shape
     check_shape(phong_images, (n, 3, h, w), "phong_images")
     irr = irradiance_maps(capture, dtype=images.dtype)
     valid = capture.mask.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)
-    return detect_flakes(images, phong_images.to(images.dtype), irr, valid=valid, **detect)
+    ph = phong_images.to(images.dtype)
+    return detect_flakes(2.0 * ph - images if mirrored else images, ph, irr, valid=valid, **detect)
 
 
 SNR_LADDER = (5.0, 7.0, 10.0, 15.0, 20.0, 30.0)  # detection SNRs at which glints and their mirror are compared
 MIN_EXCESS = 10  # glint detections beyond the mirrored ones needed at some SNR (and 3 σ of Poisson noise)
-
-
-def mirrored_detection(capture, phong_images: Tensor, **detect) -> Detection:
-    """The detector on the residual's mirror image, photo' = 2·Phong − photo: the empirical null.
-
-    Noise and a misfit of the Phong model (texture edges, an imperfect lobe, quantisation) give
-    residuals of both signs; glints are positive only. What the detector finds in the mirrored
-    residual is what misfit alone produces at each SNR.
-    """
-    images = capture.images
-    check_shape(phong_images, tuple(images.shape), "phong_images")
-    irr = irradiance_maps(capture, dtype=images.dtype)
-    valid = capture.mask.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)
-    ph = phong_images.to(images.dtype)
-    return detect_flakes(2.0 * ph - images, ph, irr, valid=valid, **detect)
 
 
 def _locations(h: int, w: int, *parts: Particles) -> list[Tensor]:
