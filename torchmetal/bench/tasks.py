@@ -476,13 +476,10 @@ def task_zoo(cfg: dict) -> dict:
     """One scene of the zoo (``cfg['scene']``; its CI size when ``cfg['ci']``) fitted with each of
     ``cfg['methods']`` (name → ``fit_material`` options) and scored against the noise-free truth."""
     SCENES, ci_scenes = _need("torchmetal.synth.zoo", "SCENES", "ci_scenes")
-    run_scene = _need("torchmetal.bench.zoo", "run_scene")
+    run_scene, METHODS = _need("torchmetal.bench.zoo", "run_scene", "METHODS")
     scenes = {s.name: s for s in ci_scenes()} if cfg.get("ci") else dict(SCENES)
     scene = scenes[cfg["scene"]]
-    methods = cfg.get("methods") or {"default": {}, "paper": {"scheme": "paper", "flakes": "off"}}
-    r = run_scene(scene, methods)
-    for name in methods:
-        r[name].pop("specular", None)  # a fit object's field, not JSON
+    r = run_scene(scene, cfg.get("methods") or METHODS)
     r["size"], r["shots"] = int(scene.size), int(scene.shots)
     return r
 

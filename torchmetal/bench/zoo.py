@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from torchmetal.bench.tasks import rel_err
+
 METHODS = {
     "default": {},
     "paper": {"scheme": "paper", "flakes": "off"},
@@ -44,10 +46,6 @@ def render_material(material, lights: np.ndarray, intensities: np.ndarray, camer
         return r(f32(lights), f32(intensities), f32(cameras)).numpy()
 
 
-def _rel(est: float, true: float) -> float:
-    return abs(est - true) / max(abs(true), 1e-12)
-
-
 def score_fit(case, result, seconds: float) -> dict:
     """One method's numbers on one case."""
     m = result.material
@@ -61,13 +59,13 @@ def score_fit(case, result, seconds: float) -> dict:
            "stage_times": dict(result.report.get("stage_times", {})), "skipped": list(result.report.get("skipped", [])),
            "flake_model": m.flakes is not None, "specular": getattr(result.fit, "specular", None)}
     if case.scene.phong_truth or case.scene.flakes is not None:
-        row["s_err"] = _rel(s, case.truth_stats["s"])
-        row["alpha_err"] = _rel(alpha, case.truth_stats["alpha"])
+        row["s_err"] = rel_err(s, case.truth_stats["s"])
+        row["alpha_err"] = rel_err(alpha, case.truth_stats["alpha"])
     if m.flakes is not None and "density" in case.truth_stats:
         fm, ts = m.flakes, case.truth_stats
-        row["density_err"] = _rel(fm.density, ts["density"])
-        row["area_err"] = _rel(fm.median_area, ts["median_area"])
-        row["tilt_err"] = _rel(fm.tilt_sigma, ts["tilt_sigma"])
+        row["density_err"] = rel_err(fm.density, ts["density"])
+        row["area_err"] = rel_err(fm.median_area, ts["median_area"])
+        row["tilt_err"] = rel_err(fm.tilt_sigma, ts["tilt_sigma"])
     return row
 
 
@@ -87,24 +85,3 @@ def run_scene(scene, methods: dict | None = None, *, workdir: str | Path | None 
             res = fit_material(capture, **kw)
             out[name] = score_fit(case, res, time.perf_counter() - t0)
     return out
-
-
-def zoo_table(rows: list[dict], methods: list[str]) -> str:
-    """Markdown table of :func:`run_scene` rows."""
-    head = ["scene", *[f"{m} dB" for m in methods], "oracle dB", *[f"{m} s/α err" for m in methods], "flakes (default)",
-            "default time s"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        cells = [r["scene"], *[f"{r[m]['psnr']:.2f}" for m in methods], f"{r['oracle']:.2f}"]
-        for m in methods:
-            e = r[m]
-            cells.append("–" if "s_err" not in e else f"{e['s_err']:.1%} / {e['alpha_err']:.1%}")
-        d = r[methods[0]]
-        if d["flake_model"]:
-            fl = "model" + (f" (density {d['density_err']:.0%}, area {d['area_err']:.0%}, tilt {d['tilt_err']:.0%})"
-                            if "density_err" in d else " (FALSE)")
-        else:
-            fl = "none" + (" (MISSED)" if "density" in r["truth"] else "")
-        cells += [fl, f"{d['time']:.2f}"]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)

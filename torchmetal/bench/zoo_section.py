@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import math
 
-#: fit_material options of each compared method (the same as :data:`torchmetal.bench.zoo.METHODS`)
-ZOO_METHODS = {"default": {}, "paper": {"scheme": "paper", "flakes": "off"}}
 VERDICT_DB = 0.2  # "default ≥ paper − 0.2 dB" (coat PSNR)
 
 
@@ -20,7 +18,10 @@ def zoo_scene_names(names: tuple[str, ...] | None) -> list[str]:
 
 
 def zoo_jobs(ci: bool, names: list[str]) -> list[tuple[str, dict]]:
-    return [("zoo", {"scene": n, "ci": bool(ci), "methods": ZOO_METHODS}) for n in names]
+    """One job per scene, each fitting :data:`torchmetal.bench.zoo.METHODS`."""
+    from torchmetal.bench.zoo import METHODS
+
+    return [("zoo", {"scene": n, "ci": bool(ci), "methods": METHODS}) for n in names]
 
 
 def _f(x) -> float:
