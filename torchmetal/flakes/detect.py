@@ -28,6 +28,7 @@ from torch import Tensor
 from torchmetal.checks import check_finite, check_float, check_shape
 from torchmetal.errors import InputError
 from torchmetal.flakes import regions
+from torchmetal.io.images import linear_to_srgb
 
 _CANDIDATE = 0.85  # hysteresis seeds at 0.85·k_hi on the box high-pass; the final cut is k_hi on the ring peak
 
@@ -62,12 +63,6 @@ def box_mean(x: Tensor, radius: int, weight: Tensor | None = None) -> Tensor:
     den = _window_sum(wt, radius)
     num = _window_sum(x * wt, radius)
     return torch.where(den > 0.5, num / den.clamp_min(0.5), torch.zeros_like(num))
-
-
-def srgb_encode(x: Tensor) -> Tensor:
-    """Linear [0, 1] → sRGB-encoded [0, 1] (IEC 61966-2-1)."""
-    x = x.clamp(0.0, 1.0)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
 
 
 def tile_noise(x: Tensor, valid: Tensor, tile: int = 32, *, floor: float = 1e-6) -> Tensor:
@@ -298,7 +293,7 @@ def _lab(rgb_px: Tensor) -> Tensor:
         return rgb_px.new_zeros(0, 3)
     from kornia.color import rgb_to_lab
 
-    img = srgb_encode(rgb_px).t().reshape(1, 3, -1, 1)
+    img = linear_to_srgb(rgb_px.clamp(0.0, 1.0)).t().reshape(1, 3, -1, 1)
     return rgb_to_lab(img).reshape(3, -1).t()
 
 

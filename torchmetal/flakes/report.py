@@ -11,7 +11,8 @@ from torch import Tensor
 
 from torchmetal.checks import check_shape
 from torchmetal.errors import InputError
-from torchmetal.flakes.detect import Particles, srgb_encode
+from torchmetal.flakes.detect import Particles
+from torchmetal.io.images import linear_to_srgb
 
 
 def overlay_detections(
@@ -35,7 +36,7 @@ def overlay_detections(
     import cv2
 
     check_shape(image, (3, "H", "W"), "image")
-    rgb = (srgb_encode(image.detach().float().cpu() * gain) * 255 + 0.5).to(torch.uint8)
+    rgb = (linear_to_srgb((image.detach().float().cpu() * gain).clamp(0.0, 1.0)) * 255 + 0.5).to(torch.uint8)
     canvas = np.ascontiguousarray(rgb.permute(1, 2, 0).numpy()[:, :, ::-1])  # BGR for cv2
     bgr = (int(color[2]), int(color[1]), int(color[0]))
     p = particles.to("cpu")
