@@ -332,12 +332,15 @@ def render_clean(truth: Truth, light: np.ndarray, intensity: np.ndarray, camera:
     return img
 
 
+def _centre_pixels(fl: dict, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(F,) row and column of the pixel under each flake's centre."""
+    return (np.clip(fl["centre"][:, 1].astype(int), 0, n - 1), np.clip(fl["centre"][:, 0].astype(int), 0, n - 1))
+
+
 def flake_normals(truth: Truth) -> np.ndarray:
     """(3, F) flake normals in the world: each flake's tilt applied around the surface normal under it."""
     fl = truth.flakes
-    n = truth.texture.shape[-1]
-    cx = np.clip(fl["centre"][:, 0].astype(int), 0, n - 1)
-    cy = np.clip(fl["centre"][:, 1].astype(int), 0, n - 1)
+    cy, cx = _centre_pixels(fl, truth.texture.shape[-1])
     base = truth.normals[:, cy, cx]  # (3, F)
     helper = np.where(np.abs(base[0:1]) < 0.9, np.array([[1.0], [0.0], [0.0]]), np.array([[0.0], [1.0], [0.0]]))
     t1 = _unit(helper - (helper * base).sum(0, keepdims=True) * base)  # x on a flat sample
@@ -350,10 +353,9 @@ def _flake_glints(truth: Truth, l: np.ndarray, v: np.ndarray, e: np.ndarray) -> 
     fl, spec = truth.flakes, truth.flakes["spec"]
     n = truth.texture.shape[-1]
     out = np.zeros((3, n, n))
-    cx = np.clip(fl["centre"][:, 0].astype(int), 0, n - 1)
-    cy = np.clip(fl["centre"][:, 1].astype(int), 0, n - 1)
+    cy, cx = _centre_pixels(fl, n)
     h = _unit(l[:, cy, cx] + v[:, cy, cx])  # (3, F) half vector at each flake
-    cosang = np.clip((flake_normals(truth) * h).sum(0), -1.0, 1.0)
+    cosang = np.clip((fl["world_normal"] * h).sum(0), -1.0, 1.0)
     amp = np.exp(-np.arccos(cosang) ** 2 / (2 * spec["glint_sigma"] ** 2))  # (F,)
     lit = (l[2, cy, cx] > 0) & (v[2, cy, cx] > 0)
     for f, (rr, cc, cov) in enumerate(truth.cover):
@@ -436,6 +438,7 @@ def make_truth(scene: Scene) -> Truth:
         fl = make_flakes(scene.flakes, n, _rng(scene.seed, 2))
         fl["spec"] = dict(scene.flakes)
         truth.flakes, truth.cover = fl, _flake_cover(fl, n)
+        fl["world_normal"] = flake_normals(truth)  # (3, F), fixed: computed once, not per shot
     return truth
 
 
