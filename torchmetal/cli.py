@@ -7,10 +7,16 @@ traceback. Heavy imports happen inside the verbs so ``--help`` stays instant.
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from pathlib import Path
 
 from torchmetal.errors import TorchmetalError
+from torchmetal.formats import FORMATS
+
+# Verbs that live beside their feature: each module imports only argparse at the top and has
+# ``register(sub)`` that adds its sub-parser(s), whose ``func`` does the heavy imports.
+EXTRA_VERBS: tuple[str, ...] = ()
 
 
 def _vec(n: int):
@@ -95,13 +101,15 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from torchmetal.formats import default_output, export_material
     from torchmetal.material import load_material
-    from torchmetal.onnx_export import export_onnx
 
     material = load_material(args.material)
-    out = Path(args.output) if args.output else Path(args.material) / "renderer.onnx"
-    path = export_onnx(material, out, opset=args.opset)
-    print(f"exported {material.height}x{material.width} renderer ({path.stat().st_size / 2**20:.1f} MiB) -> {path}")
+    out = Path(args.output) if args.output else default_output(args.material, args.format)
+    options = {"opset": args.opset} if args.format == "onnx" else {}
+    path = export_material(material, args.format, out, **options)
+    size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
+    print(f"exported {material.height}x{material.width} material as {args.format} ({size / 2**20:.1f} MiB) -> {path}")
     return 0
 
 
@@ -178,10 +186,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-flakes", action="store_true", help="render without sparkles")
     r.set_defaults(func=cmd_render)
 
-    e = sub.add_parser("export", help="export a material's renderer to ONNX")
+    e = sub.add_parser("export", help="export a material: ONNX renderer (default) or an engine format")
     e.add_argument("material", help="material directory")
-    e.add_argument("-o", "--output", help="output .onnx (default: MATERIAL/renderer.onnx)")
-    e.add_argument("--opset", type=int, default=20)
+    e.add_argument("--format", choices=list(FORMATS), default="onnx", help="what to write (default: %(default)s)")
+    e.add_argument("-o", "--output", help="output path (default: inside MATERIAL, e.g. MATERIAL/renderer.onnx)")
+    e.add_argument("--opset", type=int, default=20, help="ONNX opset (onnx only)")
     e.set_defaults(func=cmd_export)
 
     s = sub.add_parser("synth", help="write a synthetic capture with ground truth")
@@ -198,6 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--flake-density", type=float, default=0.003, help="flakes per pixel")
     s.add_argument("--spec-clusters", type=int, default=1, help="regions with their own specular terms")
     s.set_defaults(func=cmd_synth)
+
+    for name in EXTRA_VERBS:
+        importlib.import_module(name).register(sub)
 
     b = sub.add_parser("bench", help="benchmark run time against error (see: torchmetal bench --help)", add_help=False)
     b.add_argument("rest", nargs=argparse.REMAINDER)

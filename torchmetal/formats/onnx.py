@@ -1,0 +1,13 @@
+"""ONNX writer for ``export --format onnx`` (the renderer itself lives in ``torchmetal.onnx_export``)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def write(material, path: str | os.PathLike, *, opset: int = 20) -> Path:
+    """Export ``material``'s renderer to one self-contained ONNX file (DESIGN 2.4)."""
+    from torchmetal.onnx_export import export_onnx
+
+    return export_onnx(material, path, opset=opset)
