@@ -16,7 +16,7 @@ from torchmetal.formats import FORMATS
 
 # Verbs that live beside their feature: each module imports only argparse at the top and has
 # ``register(sub)`` that adds its sub-parser(s), whose ``func`` does the heavy imports.
-EXTRA_VERBS: tuple[str, ...] = ()
+EXTRA_VERBS: tuple[str, ...] = ("torchmetal.viewer.cli",)
 
 
 def _vec(n: int):
@@ -107,6 +107,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     material = load_material(args.material)
     out = Path(args.output) if args.output else default_output(args.material, args.format)
     options = {"opset": args.opset} if args.format == "onnx" else {}
+    if args.format == "web":
+        options = {"capture": args.capture, "webgpu": args.webgpu}
     path = export_material(material, args.format, out, **options)
     size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
     print(f"exported {material.height}x{material.width} material as {args.format} ({size / 2**20:.1f} MiB) -> {path}")
@@ -191,6 +193,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--format", choices=list(FORMATS), default="onnx", help="what to write (default: %(default)s)")
     e.add_argument("-o", "--output", help="output path (default: inside MATERIAL, e.g. MATERIAL/renderer.onnx)")
     e.add_argument("--opset", type=int, default=20, help="ONNX opset (onnx only)")
+    e.add_argument("--capture", help="capture directory whose photos the viewer shows beside the render (web only)")
+    e.add_argument("--webgpu", action="store_true", help="also copy onnxruntime-web's WebGPU build (web only)")
     e.set_defaults(func=cmd_export)
 
     s = sub.add_parser("synth", help="write a synthetic capture with ground truth")

@@ -14,6 +14,11 @@ from pathlib import Path
 
 FORMATS: dict[str, str] = {
     "onnx": "torchmetal.formats.onnx:write",
+    "gltf": "torchmetal.formats.gltf:write_gltf",
+    "glb": "torchmetal.formats.gltf:write_glb",
+    "mtlx": "torchmetal.formats.mtlx:write",
+    "usd": "torchmetal.formats.usd:write",
+    "web": "torchmetal.formats.web:write",
 }
 
 

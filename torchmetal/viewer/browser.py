@@ -1,0 +1,52 @@
+"""Drive the viewer page in a real Chromium (tests and the frame-rate script).
+
+Debian's ``chromium`` through Playwright's ``executable_path`` (no browser download), started with
+the flags CI uses. :func:`serve_folder` serves a static site (``export --format web``) on
+127.0.0.1 with the MIME types the page needs (``.mjs``, ``.wasm``).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import threading
+from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+CHROMIUM = os.environ.get("TORCHMETAL_CHROMIUM", "/usr/bin/chromium")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run"]
+
+
+def launch_chromium(playwright, **kwargs):
+    """``playwright.chromium.launch`` of :data:`CHROMIUM` with :data:`CHROMIUM_ARGS`."""
+    return playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, **kwargs)
+
+
+class _Quiet(SimpleHTTPRequestHandler):
+    extensions_map = {**SimpleHTTPRequestHandler.extensions_map, ".mjs": "text/javascript", ".js": "text/javascript",
+                      ".wasm": "application/wasm", ".onnx": "application/octet-stream", ".json": "application/json"}
+
+    def log_message(self, format: str, *args) -> None:
+        pass
+
+
+def serve_folder(folder: str | os.PathLike, port: int = 0) -> tuple[ThreadingHTTPServer, str]:
+    """Serve ``folder`` on 127.0.0.1 from a daemon thread; returns (server, url). ``server.shutdown()`` stops it."""
+    httpd = ThreadingHTTPServer(("127.0.0.1", port), functools.partial(_Quiet, directory=str(Path(folder))))
+    httpd.daemon_threads = True
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    return httpd, f"http://127.0.0.1:{httpd.server_address[1]}/"
+
+
+def open_viewer(browser, url: str, *, timeout_ms: float = 60_000, viewport=None):
+    """A new page at ``url`` whose first frame has been drawn; raises RuntimeError with the page's error."""
+    page = browser.new_page(viewport=viewport or {"width": 1280, "height": 900}, accept_downloads=True)
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(url)
+    page.wait_for_function("window.tmviewer && (window.tmviewer.frames > 0 || window.tmviewer.error)", timeout=timeout_ms)
+    err = page.evaluate("window.tmviewer.error")
+    if err or errors:
+        raise RuntimeError(f"viewer at {url}: {err or errors[0]}")
+    return page

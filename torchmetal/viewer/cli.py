@@ -1,0 +1,41 @@
+"""``torchmetal view MATERIAL``: relight a material live in the browser (served from 127.0.0.1).
+
+Only argparse at the top: the server, onnxruntime and torch load inside the verb.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    import sys
+
+    from torchmetal.viewer.server import make_server
+
+    server = make_server(args.material, capture=args.capture, port=args.port, threads=args.threads)
+    cfg = server.viewer.config
+    flakes = "flakes on/off" if "flakes" in cfg["graphs"] else "no flakes"
+    print(f"viewing {args.material} ({cfg['height']}x{cfg['width']}, {flakes}, {len(cfg['shots'])} shots) at {server.url} "
+          "(Ctrl-C stops)", flush=True)
+    if not args.no_open:
+        import webbrowser
+
+        webbrowser.open(server.url)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        print("stopped", file=sys.stderr)
+    finally:
+        server.close()
+    return 0
+
+
+def register(sub) -> None:
+    v = sub.add_parser("view", help="relight a material live in the browser (local server on 127.0.0.1)")
+    v.add_argument("material", help="material directory (its renderer.onnx is used when it matches)")
+    v.add_argument("--port", type=int, default=8765, help="port on 127.0.0.1 (default: %(default)s; 0: any free port)")
+    v.add_argument("--no-open", action="store_true", help="do not open a browser tab")
+    v.add_argument("--capture", help="capture directory whose photos the page shows beside the render (A/B)")
+    v.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: one per core)")
+    v.set_defaults(func=cmd_view)
