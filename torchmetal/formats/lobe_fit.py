@@ -1,0 +1,353 @@
+"""Numeric fit of an engine's GGX specular lobe to a torchmetal lobe (Phong, Blinn, GGX, glints).
+
+Engines (glTF, OpenPBR, UsdPreviewSurface) shade a dielectric specular layer with the GGX
+microfacet lobe; torchmetal's coat is the Phong lobe of DESIGN 2.2. There is no exact mapping, so
+the exporters fit one: over a set of (light, view) direction pairs around the mirror direction of
+the views a capture sees, find the GGX roughness ``r`` (α_GGX = r²), the per-channel reflectance at
+normal incidence ``F0_c`` and the grazing reflectance ``F90`` minimising
+
+    Σ_samples Σ_c (π·F_c(v·h)·D(n·h)·V(n·l, n·v)·(n·l) − target_c(l, v))²,
+
+with the glTF/KHR_materials_specular forms: D the GGX (Trowbridge–Reitz) distribution, V the
+height-correlated Smith visibility, F_c = F0_c + (F90 − F0_c)(1 − v·h)^5 (Schlick). The factor π is
+the light convention of every exporter here: an engine light of irradiance π·E reproduces a
+torchmetal render under irradiance E (equivalently the base colour is the texture d itself,
+an albedo). The sample directions are uniform in solid angle over a cone around each mirror
+direction, wide enough for the lobe to fall to 1e-3 of its peak, so the error is an energy error.
+
+``target`` is any function ``(l (N, 3), v (N, 3)) -> (N, C)`` of unit directions in the local frame
+(normal (0, 0, 1)); :func:`phong_target`, :func:`blinn_target`, :func:`ggx_target` and
+:func:`glint_target` build the ones torchmetal's materials need. The fit is a coarse scan of
+log r, a bounded 1-D refinement, and a closed-form least-squares amplitude at every r.
+The reported error is the relative L2 error ‖fit − target‖/‖target‖ per channel.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchmetal.errors import ExportError
+from torchmetal.phong import specular_lobe
+
+Target = Callable[[Tensor, Tensor], Tensor]
+
+MIN_ROUGHNESS = 0.01
+MAX_ROUGHNESS = 1.0
+DEFAULT_VIEW_ANGLES = (0.0, 15.0, 30.0, 45.0, 60.0)  # degrees from the normal
+
+
+@dataclass
+class LobeFit:
+    """A GGX lobe fitted to a target lobe.
+
+    Attributes:
+        roughness: engine roughness r (α_GGX = r²).
+        f0: (C,) reflectance at normal incidence per channel (Schlick F0, ≤ f90).
+        f90: grazing reflectance (glTF ``specularFactor``), in [0, 1].
+        error: (C,) relative L2 lobe error per channel, ‖ggx − target‖ / ‖target‖ (0 when the
+            target is 0).
+        textbook_roughness: the closed-form mapping of the target's exponent when it has one
+            (Phong α → Blinn 4α → α_GGX = √(2/(n+2)) → r = √α_GGX), else None.
+        textbook_error: (C,) the lobe error of that mapping with its best amplitude, or None.
+        samples: number of (light, view) pairs the fit used.
+    """
+
+    roughness: float
+    f0: tuple[float, ...]
+    f90: float
+    error: tuple[float, ...]
+    textbook_roughness: float | None = None
+    textbook_error: tuple[float, ...] | None = None
+    samples: int = 0
+
+    @property
+    def max_error(self) -> float:
+        return max(self.error)
+
+    def to_dict(self) -> dict:
+        return {"roughness": self.roughness, "f0": list(self.f0), "f90": self.f90, "error": list(self.error),
+                "textbook_roughness": self.textbook_roughness,
+                "textbook_error": None if self.textbook_error is None else list(self.textbook_error),
+                "samples": self.samples}
+
+
+# ------------------------------------------------------------------------------------ the GGX side
+def ggx_terms(l: Tensor, v: Tensor, n: Tensor, roughness: Tensor | float) -> tuple[Tensor, Tensor]:
+    """π·D·V·(n·l) and the Schlick weight (1 − v·h)^5 for unit directions along the last axis.
+
+    Args:
+        l, v, n: (..., 3) unit light, view and normal directions (broadcast).
+        roughness: engine roughness r (α = r²), broadcast against (...,).
+
+    Returns:
+        ``lobe`` (...,) = π·D·V·max(n·l, 0), zero where n·l ≤ 0 or n·v ≤ 0; ``schlick`` (...,).
+    """
+    h = l + v
+    h = h / torch.sqrt((h * h).sum(-1, keepdim=True).clamp_min(1e-24))
+    nl = (n * l).sum(-1)
+    nv = (n * v).sum(-1)
+    nh = (n * h).sum(-1).clamp(-1.0, 1.0)
+    vh = (v * h).sum(-1).clamp(0.0, 1.0)
+    r = torch.as_tensor(roughness, dtype=l.dtype, device=l.device)
+    a2 = (r * r) ** 2
+    lit = (nl > 0) & (nv > 0)
+    nl_c, nv_c = nl.clamp_min(1e-9), nv.clamp_min(1e-9)
+    den = nh * nh * (a2 - 1.0) + 1.0
+    d = a2 / (math.pi * den * den)
+    vis = 0.5 / (nl_c * torch.sqrt(nv_c * nv_c * (1.0 - a2) + a2) + nv_c * torch.sqrt(nl_c * nl_c * (1.0 - a2) + a2))
+    lobe = torch.where(lit, math.pi * d * vis * nl_c, torch.zeros_like(nl))
+    return lobe, (1.0 - vh) ** 5
+
+
+def ggx_specular(l: Tensor, v: Tensor, n: Tensor, roughness, f0: Tensor, f90) -> Tensor:
+    """π·F·D·V·(n·l): the glTF dielectric specular radiance per unit irradiance.
+
+    Args:
+        l, v, n: (..., 3) unit directions; roughness, f90: broadcast against (...,);
+        f0: (..., C) or (C,) reflectance at normal incidence.
+
+    Returns:
+        (..., C) specular radiance (times E for an engine light of irradiance π·E).
+    """
+    lobe, s = ggx_terms(l, v, n, roughness)
+    f90 = torch.as_tensor(f90, dtype=l.dtype, device=l.device)
+    fres = f0 + (f90 - f0) * s.unsqueeze(-1) if f90.dim() == 0 else f0 + (f90.unsqueeze(-1) - f0) * s.unsqueeze(-1)
+    return fres * lobe.unsqueeze(-1)
+
+
+# ------------------------------------------------------------------------------- source lobes
+def _lit(l: Tensor) -> Tensor:
+    return (l[..., 2] > 0).unsqueeze(-1)
+
+
+def phong_target(s: Tensor, alpha: Tensor) -> Target:
+    """s_c·max(r·v, 0)^α_c for n·l > 0 (DESIGN 2.2), through :func:`torchmetal.phong.specular_lobe`."""
+    s = torch.as_tensor(s, dtype=torch.float64).reshape(-1)
+    alpha = torch.as_tensor(alpha, dtype=torch.float64).reshape(-1)
+
+    def f(l: Tensor, v: Tensor) -> Tensor:
+        r = torch.stack([-l[..., 0], -l[..., 1], l[..., 2]], -1)  # mirror about n = z
+        q = 0.5 * ((r - v) ** 2).sum(-1)  # 1 − r·v, precise near the peak
+        lobe = specular_lobe(q.reshape(-1, 1, 1, 1), alpha.to(l)).reshape(-1, alpha.numel())
+        return torch.where(_lit(l), s.to(l) * lobe, torch.zeros_like(lobe))
+
+    return f
+
+
+def blinn_target(s: Tensor, alpha: Tensor) -> Target:
+    """s_c·max(n·h, 0)^α_c for n·l > 0 (the Blinn–Phong lobe)."""
+    s = torch.as_tensor(s, dtype=torch.float64).reshape(-1)
+    alpha = torch.as_tensor(alpha, dtype=torch.float64).reshape(-1)
+
+    def f(l: Tensor, v: Tensor) -> Tensor:
+        h = l + v
+        h = h / torch.sqrt((h * h).sum(-1, keepdim=True).clamp_min(1e-24))
+        nh = h[..., 2:3].clamp(0.0, 1.0)
+        lobe = torch.exp(alpha.to(l) * torch.log(nh.clamp_min(1e-300)))
+        return torch.where(_lit(l), s.to(l) * lobe, torch.zeros_like(lobe))
+
+    return f
+
+
+def ggx_target(s: Tensor, roughness: Tensor) -> Target:
+    """s_c·π·D·V·(n·l) with per-channel roughness (a GGX coat without Fresnel)."""
+    s = torch.as_tensor(s, dtype=torch.float64).reshape(-1)
+    rough = torch.as_tensor(roughness, dtype=torch.float64).reshape(-1)
+
+    def f(l: Tensor, v: Tensor) -> Tensor:
+        n = torch.zeros_like(l)
+        n[..., 2] = 1.0
+        lobes = torch.stack([ggx_terms(l, v, n, float(r))[0] for r in rough], -1)
+        return s.to(l) * lobes
+
+    return f
+
+
+def glint_target(color: Tensor, sigma: float) -> Target:
+    """c_c·exp(−|m − h|²/(2σ²)) for n·l > 0 with the flake normal m = (0, 0, 1): one glint
+    of :func:`torchmetal.flakes.field.sparkle_shading` in its flake's frame."""
+    color = torch.as_tensor(color, dtype=torch.float64).reshape(-1)
+
+    def f(l: Tensor, v: Tensor) -> Tensor:
+        h = l + v
+        h = h / torch.sqrt((h * h).sum(-1, keepdim=True).clamp_min(1e-24))
+        m = torch.zeros_like(h)
+        m[..., 2] = 1.0
+        g = torch.exp(-((m - h) ** 2).sum(-1, keepdim=True) / (2.0 * sigma * sigma))
+        return torch.where(_lit(l), color.to(l) * g, torch.zeros_like(g * color.to(l)))
+
+    return f
+
+
+def lobe_target(kind: str, s: Tensor, alpha: Tensor) -> Target:
+    """The target of a material lobe kind ("phong", "blinn" or "ggx"; for "ggx" ``alpha`` is the
+    roughness)."""
+    makers = {"phong": phong_target, "blinn": blinn_target, "ggx": ggx_target}
+    if kind not in makers:
+        raise ExportError(f"lobe: expected one of {', '.join(makers)}, found {kind!r}")
+    return makers[kind](s, alpha)
+
+
+def textbook_roughness(alpha: float) -> float:
+    """Phong α → Blinn n ≈ 4α → α_GGX = √(2/(n + 2)) → engine roughness √α_GGX."""
+    return math.sqrt(math.sqrt(2.0 / (4.0 * float(alpha) + 2.0)))
+
+
+# ---------------------------------------------------------------------------------- directions
+def phong_cone(alpha: float, floor: float = 1e-3) -> float:
+    """Angle (rad) from the mirror direction where max(r·v, 0)^α falls to ``floor``."""
+    return math.acos(floor ** (1.0 / max(float(alpha), 1e-6)))
+
+
+def lobe_directions(cone: float, views: Tensor | None = None, per_view: int = 512,
+                    dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
+    """(light, view) pairs around the mirror direction of each view, uniform in solid angle.
+
+    Args:
+        cone: half-angle (rad) of the cone of lights around each mirror direction (≤ π/2·0.98).
+        views: (V, 3) unit view directions in the local frame (z = normal, z > 0); default
+            :data:`DEFAULT_VIEW_ANGLES` polar angles in the x–z plane.
+        per_view: lights per view (a Fibonacci spiral on the cone's cap).
+
+    Returns:
+        l (N, 3), v (N, 3) unit directions with l above the horizon, N ≤ V·per_view.
+    """
+    if views is None:
+        th = torch.tensor(DEFAULT_VIEW_ANGLES, dtype=dtype) * (math.pi / 180.0)
+        views = torch.stack([torch.sin(th), torch.zeros_like(th), torch.cos(th)], -1)
+    views = torch.as_tensor(views, dtype=dtype).reshape(-1, 3)
+    views = views / views.norm(dim=-1, keepdim=True)
+    if not bool((views[:, 2] > 0).all()):
+        raise ExportError(f"views: expected directions above the surface (z > 0), found z = {views[:, 2].tolist()}")
+    cone = min(float(cone), 0.49 * math.pi)
+    k = torch.arange(per_view, dtype=dtype) + 0.5
+    cos_d = 1.0 - (1.0 - math.cos(cone)) * k / per_view
+    sin_d = torch.sqrt((1.0 - cos_d * cos_d).clamp_min(0.0))
+    phi = k * (math.pi * (3.0 - math.sqrt(5.0)))
+    local = torch.stack([sin_d * torch.cos(phi), sin_d * torch.sin(phi), cos_d], -1)  # around +z
+    ls, vs = [], []
+    for v in views:
+        m = torch.stack([-v[0], -v[1], v[2]])  # mirror direction of v
+        t1 = torch.linalg.cross(m, torch.tensor([0.0, 1.0, 0.0], dtype=dtype))
+        if float(t1.norm()) < 1e-6:
+            t1 = torch.linalg.cross(m, torch.tensor([1.0, 0.0, 0.0], dtype=dtype))
+        t1 = t1 / t1.norm()
+        t2 = torch.linalg.cross(m, t1)
+        l = local[:, :1] * t1 + local[:, 1:2] * t2 + local[:, 2:] * m
+        keep = l[:, 2] > 0.02
+        ls.append(l[keep])
+        vs.append(v.expand(int(keep.sum()), 3))
+    return torch.cat(ls), torch.cat(vs)
+
+
+# ------------------------------------------------------------------------------------- the fit
+def _amplitudes(lobe: Tensor, schlick: Tensor, target: Tensor, f90_max: float = 1.0) -> tuple[Tensor, Tensor]:
+    """Least-squares F0 (C,) and F90 for fixed D·V: target_c ≈ lobe·(F0_c(1 − S) + F90·S),
+    with 0 ≤ F0_c ≤ F90 ≤ f90_max."""
+    a = lobe * (1.0 - schlick)
+    b = lobe * schlick
+    c = target.shape[1]
+    # joint linear least squares for (F0_1..F0_C, F90)
+    m = torch.zeros(target.shape[0] * c, c + 1, dtype=lobe.dtype)
+    for i in range(c):
+        m[i::c, i] = a
+        m[i::c, c] = b
+    sol = torch.linalg.lstsq(m, target.reshape(-1, 1)).solution.reshape(-1)
+    f0 = sol[:c].clamp(0.0, f90_max)
+    f90 = float(sol[c].clamp(float(f0.max()), f90_max)) if c else 0.0
+    # F0 again for the clipped F90, each channel clipped to [0, F90]
+    rest = target - b.unsqueeze(1) * f90
+    den = float((a * a).sum())
+    f0 = ((a.unsqueeze(1) * rest).sum(0) / max(den, 1e-300)).clamp(0.0, f90)
+    return f0, torch.tensor(f90, dtype=lobe.dtype)
+
+
+def _errors(pred: Tensor, target: Tensor) -> tuple[float, ...]:
+    num = ((pred - target) ** 2).sum(0)
+    den = (target**2).sum(0)
+    return tuple(float(torch.sqrt(n / d)) if float(d) > 0 else 0.0 for n, d in zip(num, den))
+
+
+def fit_ggx(target: Target, *, cone: float, views: Tensor | None = None, per_view: int = 512,
+            alpha_hint: float | None = None, f90_max: float = 1.0) -> LobeFit:
+    """Fit the GGX lobe (roughness, F0 per channel, F90) to ``target`` (see the module docstring).
+
+    Args:
+        target: ``(l (N, 3), v (N, 3)) -> (N, C)`` float64, local frame (normal +z).
+        cone: half-angle (rad) of the lights around each mirror direction.
+        views: (V, 3) view directions (default :data:`DEFAULT_VIEW_ANGLES`).
+        alpha_hint: a Phong exponent: also evaluate the textbook mapping for the report.
+        f90_max: upper bound of F90 (and so of every F0).
+
+    Returns:
+        :class:`LobeFit`.
+    """
+    from scipy.optimize import minimize_scalar
+
+    l, v = lobe_directions(cone, views, per_view)
+    n = torch.zeros_like(l)
+    n[:, 2] = 1.0
+    y = target(l, v).to(torch.float64)
+    if y.dim() != 2 or y.shape[0] != l.shape[0]:
+        raise ExportError(f"lobe target: expected values of shape ({l.shape[0]}, C), found {tuple(y.shape)}")
+    if not bool(torch.isfinite(y).all()):
+        raise ExportError("lobe target: expected finite values, found NaN/Inf")
+    c = y.shape[1]
+    if float(y.abs().max()) == 0.0:  # no specular at all
+        return LobeFit(MAX_ROUGHNESS, (0.0,) * c, 0.0, (0.0,) * c, samples=int(l.shape[0]))
+
+    def solve(log_r: float):
+        lobe, sch = ggx_terms(l, v, n, math.exp(log_r))
+        f0, f90 = _amplitudes(lobe, sch, y, f90_max)
+        pred = (f0 + (f90 - f0) * sch.unsqueeze(1)) * lobe.unsqueeze(1)
+        return float(((pred - y) ** 2).sum()), f0, f90, pred
+
+    lo, hi = math.log(MIN_ROUGHNESS), math.log(MAX_ROUGHNESS)
+    grid = np.linspace(lo, hi, 41)
+    costs = [solve(g)[0] for g in grid]
+    i = int(np.argmin(costs))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    best = minimize_scalar(lambda t: solve(t)[0], bounds=(a, b), method="bounded", options={"xatol": 1e-5})
+    log_r = float(best.x) if best.fun <= costs[i] else float(grid[i])
+    _, f0, f90, pred = solve(log_r)
+    tb_r = tb_err = None
+    if alpha_hint is not None:
+        tb_r = textbook_roughness(alpha_hint)
+        tb_err = _errors(solve(math.log(tb_r))[3], y)
+    return LobeFit(math.exp(log_r), tuple(float(x) for x in f0), float(f90), _errors(pred, y), tb_r, tb_err,
+                   int(l.shape[0]))
+
+
+def fit_lobe(s: Tensor, alpha: Tensor, kind: str = "phong", *, views: Tensor | None = None,
+             per_view: int = 512) -> LobeFit:
+    """Fit the GGX lobe to a material lobe with per-channel s, α (3,) — one shared roughness.
+
+    The cone covers the widest channel's lobe down to 1e-3 of its peak (×1.5 for the tails).
+    """
+    s = torch.as_tensor(s, dtype=torch.float64).reshape(-1)
+    alpha = torch.as_tensor(alpha, dtype=torch.float64).reshape(-1)
+    if not (bool(torch.isfinite(s).all()) and bool(torch.isfinite(alpha).all())):
+        raise ExportError(f"lobe: expected finite s and alpha, found s={s.tolist()}, alpha={alpha.tolist()}")
+    if kind == "ggx":
+        cone = 1.2
+        hint = None
+    else:
+        weight = s.clamp_min(0) + 1e-12
+        a_min = float(alpha[weight > 1e-9 * float(weight.max())].min()) if float(s.max()) > 0 else float(alpha.min())
+        cone = 1.5 * phong_cone(a_min if kind == "phong" else a_min / 4.0)
+        # the textbook mapping, for Phong only, at the s-weighted geometric mean exponent
+        hint = float(torch.exp((weight * torch.log(alpha.clamp_min(1e-6))).sum() / weight.sum())) if kind == "phong" else None
+    return fit_ggx(lobe_target(kind, s, alpha), cone=cone, views=views, per_view=per_view, alpha_hint=hint)
+
+
+def fit_glint(color_mean, glint_sigma: float, *, views: Tensor | None = None, per_view: int = 512) -> LobeFit:
+    """Fit a GGX lobe (F90 free up to 1) to one flake's glint in its own frame."""
+    cone = min(3.0 * glint_sigma * math.sqrt(2.0 * math.log(1e3)), 1.4)  # light moves 2× the half vector
+    return fit_ggx(glint_target(torch.tensor(color_mean, dtype=torch.float64), glint_sigma), cone=cone,
+                   views=views, per_view=per_view)
