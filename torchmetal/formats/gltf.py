@@ -20,7 +20,6 @@ as its binary chunk, so both are one self-contained file written atomically.
 from __future__ import annotations
 
 import base64
-import io
 import json
 import math
 import os
@@ -32,68 +31,10 @@ import torch
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.engine import Coat, EngineMaterial, engine_material
+from torchmetal.formats.textures import (decode_png, hwc, is_constant, is_up, png_bytes, specular_encoding, to_linear,
+                                         to_srgb)
 
 GENERATOR = "torchmetal"
-MIN_F0_IOR = 0.01  # ior ≈ 1.22
-MAX_F0_IOR = 0.9  # ior ≈ 36.9
-
-
-# ---------------------------------------------------------------------------------- encoding
-def _png(planes: np.ndarray) -> bytes:
-    """PNG bytes of an (H, W, C) float array in [0, 1], C = 3 or 4, 8 bits."""
-    from PIL import Image
-
-    q = np.rint(np.clip(planes, 0.0, 1.0) * 255.0).astype(np.uint8)
-    buf = io.BytesIO()
-    Image.fromarray(q, mode="RGBA" if q.shape[2] == 4 else "RGB").save(buf, format="PNG")
-    return buf.getvalue()
-
-
-def _decode_png(data: bytes) -> np.ndarray:
-    from PIL import Image
-
-    return np.asarray(Image.open(io.BytesIO(data))).astype(np.float64) / 255.0
-
-
-def _hwc(x: torch.Tensor) -> np.ndarray:
-    return x.detach().cpu().double().permute(1, 2, 0).numpy()
-
-
-def _srgb(x: np.ndarray) -> np.ndarray:
-    from torchmetal.io.images import linear_to_srgb
-
-    return linear_to_srgb(torch.from_numpy(np.clip(x, 0.0, 1.0))).numpy()
-
-
-def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    from torchmetal.io.images import srgb_to_linear
-
-    return srgb_to_linear(torch.from_numpy(x)).numpy()
-
-
-def _is_up(n: torch.Tensor) -> bool:
-    return bool((n[0] == 0).all() and (n[1] == 0).all() and (n[2] == 1).all())
-
-
-def _constant(x: torch.Tensor) -> bool:
-    return bool((x == x.reshape(x.shape[0], -1)[:, :1].reshape(-1, 1, 1)).all())
-
-
-def specular_encoding(em: EngineMaterial) -> dict:
-    """glTF specular parameters: ior, specularFactor k, specularColorFactor, and the per-texel
-    F90/k (1, H, W) and colour (3, H, W) in [0, 1] such that F0 = F0_ior·colour·factor·F90."""
-    f0 = em.f0.double()
-    f90 = em.f90.double()
-    k = float(f90.max())
-    ratio = torch.where(f90 > 0, f0 / f90.clamp_min(1e-30), torch.zeros_like(f0)).clamp(0.0, 1.0)
-    top = float(ratio.max())
-    f0_ior = min(max(top, MIN_F0_IOR), MAX_F0_IOR)
-    sq = math.sqrt(f0_ior)
-    ior = (1.0 + sq) / (1.0 - sq)
-    colour = ratio / f0_ior
-    factor = max(float(colour.max()), 1e-30) if top > MAX_F0_IOR else 1.0
-    return {"ior": ior, "f0_ior": f0_ior, "specular_factor": k, "color_factor": factor,
-            "f90_map": f90 / k if k > 0 else torch.zeros_like(f90), "color_map": (colour / factor).clamp(0.0, 1.0)}
 
 
 class _Builder:
@@ -116,7 +57,7 @@ class _Builder:
         return len(self.views) - 1
 
     def texture(self, planes: np.ndarray, name: str) -> dict:
-        self.images.append({"bufferView": self.view(_png(planes)), "mimeType": "image/png", "name": name})
+        self.images.append({"bufferView": self.view(png_bytes(planes)), "mimeType": "image/png", "name": name})
         self.textures.append({"source": len(self.images) - 1, "sampler": 0, "name": name})
         return {"index": len(self.textures) - 1}
 
@@ -131,7 +72,7 @@ def gltf_document(em: EngineMaterial, extras: dict) -> tuple[dict, bytes]:
     uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
     idx = np.array([0, 3, 2, 0, 2, 1], np.uint16)  # counter-clockwise seen from +z
     accessors = []
-    tangents = not em.flat or (em.coat is not None and not _is_up(em.coat.normal))  # only with normal maps
+    tangents = not em.flat or (em.coat is not None and not is_up(em.coat.normal))  # only with normal maps
     arrays = ((pos, "VEC3"), (nrm, "VEC3"), (uv, "VEC2")) + (((tan, "VEC4"),) if tangents else ())
     for arr, typ in arrays:
         acc = {"bufferView": b.view(arr.tobytes(), 34962), "componentType": 5126, "count": 4, "type": typ}
@@ -141,23 +82,23 @@ def gltf_document(em: EngineMaterial, extras: dict) -> tuple[dict, bytes]:
     accessors.append({"bufferView": b.view(idx.tobytes(), 34963), "componentType": 5123, "count": 6, "type": "SCALAR"})
 
     attributes = {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2, **({"TANGENT": 3} if tangents else {})}
-    pbr = {"baseColorTexture": b.texture(_srgb(_hwc(em.base_color)), "base_color"), "metallicFactor": 0.0}
-    if _constant(em.roughness):
+    pbr = {"baseColorTexture": b.texture(to_srgb(hwc(em.base_color)), "base_color"), "metallicFactor": 0.0}
+    if is_constant(em.roughness):
         pbr["roughnessFactor"] = float(em.roughness.reshape(-1)[0])
     else:
-        rough = _hwc(em.roughness)
+        rough = hwc(em.roughness)
         pbr["metallicRoughnessTexture"] = b.texture(np.concatenate([np.ones_like(rough), rough, np.zeros_like(rough)], 2), "roughness")
         pbr["roughnessFactor"] = 1.0
     mat: dict = {"name": "torchmetal", "pbrMetallicRoughness": pbr, "extensions": {}}
     if not em.flat:
-        mat["normalTexture"] = b.texture(0.5 * (_hwc(em.normal) + 1.0), "normal")
+        mat["normalTexture"] = b.texture(0.5 * (hwc(em.normal) + 1.0), "normal")
     enc = specular_encoding(em)
     spec: dict = {"specularFactor": enc["specular_factor"], "specularColorFactor": [enc["color_factor"]] * 3}
-    if not _constant(enc["f90_map"]):
-        f90 = _hwc(enc["f90_map"])
+    if not is_constant(enc["f90_map"]):
+        f90 = hwc(enc["f90_map"])
         spec["specularTexture"] = b.texture(np.concatenate([np.ones_like(f90).repeat(3, 2), f90], 2), "specular")
-    if not _constant(enc["color_map"]):
-        spec["specularColorTexture"] = b.texture(_srgb(_hwc(enc["color_map"])), "specular_color")
+    if not is_constant(enc["color_map"]):
+        spec["specularColorTexture"] = b.texture(to_srgb(hwc(enc["color_map"])), "specular_color")
     else:
         spec["specularColorFactor"] = [enc["color_factor"] * float(c) for c in enc["color_map"][:, 0, 0]]
     mat["extensions"]["KHR_materials_specular"] = spec
@@ -191,17 +132,17 @@ def _clearcoat(b: _Builder, coat: Coat) -> dict:
     cc: dict = {}
     wmax = float(coat.weight.max())
     cc["clearcoatFactor"] = wmax
-    if not _constant(coat.weight) and wmax > 0:
-        wmap = _hwc(coat.weight / wmax)
+    if not is_constant(coat.weight) and wmax > 0:
+        wmap = hwc(coat.weight / wmax)
         cc["clearcoatTexture"] = b.texture(np.concatenate([wmap, wmap, wmap], 2), "clearcoat")
-    if _constant(coat.roughness):
+    if is_constant(coat.roughness):
         cc["clearcoatRoughnessFactor"] = float(coat.roughness.reshape(-1)[0])
     else:
-        r = _hwc(coat.roughness)
+        r = hwc(coat.roughness)
         cc["clearcoatRoughnessFactor"] = 1.0
         cc["clearcoatRoughnessTexture"] = b.texture(np.concatenate([r, r, r], 2), "clearcoat_roughness")
-    if not _is_up(coat.normal):
-        cc["clearcoatNormalTexture"] = b.texture(0.5 * (_hwc(coat.normal) + 1.0), "clearcoat_normal")
+    if not is_up(coat.normal):
+        cc["clearcoatNormalTexture"] = b.texture(0.5 * (hwc(coat.normal) + 1.0), "clearcoat_normal")
     return cc
 
 
@@ -282,13 +223,13 @@ def read(path: str | os.PathLike) -> EngineMaterial:
     def tex(info) -> np.ndarray:
         image = doc["images"][doc["textures"][info["index"]]["source"]]
         v = doc["bufferViews"][image["bufferView"]]
-        return _decode_png(blob[v.get("byteOffset", 0):v.get("byteOffset", 0) + v["byteLength"]])
+        return decode_png(blob[v.get("byteOffset", 0):v.get("byteOffset", 0) + v["byteLength"]])
 
     def chw(a: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1))).float()
 
     pbr = mat["pbrMetallicRoughness"]
-    base = chw(_srgb_to_linear(tex(pbr["baseColorTexture"])[:, :, :3]))
+    base = chw(to_linear(tex(pbr["baseColorTexture"])[:, :, :3]))
     _, hh, ww = base.shape
     full = lambda c, x: torch.full((c, hh, ww), float(x))  # noqa: E731
     if "metallicRoughnessTexture" in pbr:
@@ -304,7 +245,7 @@ def read(path: str | os.PathLike) -> EngineMaterial:
     f90 = full(1, k) * (chw(tex(spec["specularTexture"])[:, :, 3:4]) if "specularTexture" in spec else 1.0)
     colour = torch.tensor(spec.get("specularColorFactor", [1.0] * 3), dtype=torch.float32).view(3, 1, 1)
     if "specularColorTexture" in spec:
-        colour = colour * chw(_srgb_to_linear(tex(spec["specularColorTexture"])[:, :, :3]))
+        colour = colour * chw(to_linear(tex(spec["specularColorTexture"])[:, :, :3]))
     f0 = (f0_ior * colour).clamp(max=1.0) * f90
     coat = None
     cc = mat["extensions"].get("KHR_materials_clearcoat")
