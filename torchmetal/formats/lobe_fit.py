@@ -78,8 +78,15 @@ class LobeFit:
 
 
 # ------------------------------------------------------------------------------------ the GGX side
-def ggx_terms(l: Tensor, v: Tensor, n: Tensor, roughness: Tensor | float) -> tuple[Tensor, Tensor]:
+def _xp(x):
+    return torch if isinstance(x, Tensor) else np
+
+
+def ggx_terms(l, v, n, roughness):
     """π·D·V·(n·l) and the Schlick weight (1 − v·h)^5 for unit directions along the last axis.
+
+    Works on torch tensors (the engine renderer) and on numpy arrays (the fit: many small
+    evaluations, where numpy has no thread overhead).
 
     Args:
         l, v, n: (..., 3) unit light, view and normal directions (broadcast).
@@ -88,20 +95,21 @@ def ggx_terms(l: Tensor, v: Tensor, n: Tensor, roughness: Tensor | float) -> tup
     Returns:
         ``lobe`` (...,) = π·D·V·max(n·l, 0), zero where n·l ≤ 0 or n·v ≤ 0; ``schlick`` (...,).
     """
+    xp = _xp(l)
     h = l + v
-    h = h / torch.sqrt((h * h).sum(-1, keepdim=True).clamp_min(1e-24))
+    h = h / xp.sqrt(xp.clip((h * h).sum(-1, keepdims=True) if xp is np else (h * h).sum(-1, keepdim=True), 1e-24, None))
     nl = (n * l).sum(-1)
     nv = (n * v).sum(-1)
-    nh = (n * h).sum(-1).clamp(-1.0, 1.0)
-    vh = (v * h).sum(-1).clamp(0.0, 1.0)
-    r = torch.as_tensor(roughness, dtype=l.dtype, device=l.device)
+    nh = xp.clip((n * h).sum(-1), -1.0, 1.0)
+    vh = xp.clip((v * h).sum(-1), 0.0, 1.0)
+    r = torch.as_tensor(roughness, dtype=l.dtype, device=l.device) if xp is torch else np.asarray(roughness, dtype=np.float64)
     a2 = (r * r) ** 2
     lit = (nl > 0) & (nv > 0)
-    nl_c, nv_c = nl.clamp_min(1e-9), nv.clamp_min(1e-9)
+    nl_c, nv_c = xp.clip(nl, 1e-9, None), xp.clip(nv, 1e-9, None)
     den = nh * nh * (a2 - 1.0) + 1.0
     d = a2 / (math.pi * den * den)
-    vis = 0.5 / (nl_c * torch.sqrt(nv_c * nv_c * (1.0 - a2) + a2) + nv_c * torch.sqrt(nl_c * nl_c * (1.0 - a2) + a2))
-    lobe = torch.where(lit, math.pi * d * vis * nl_c, torch.zeros_like(nl))
+    vis = 0.5 / (nl_c * xp.sqrt(nv_c * nv_c * (1.0 - a2) + a2) + nv_c * xp.sqrt(nl_c * nl_c * (1.0 - a2) + a2))
+    lobe = xp.where(lit, math.pi * d * vis * nl_c, 0.0 * nl)
     return lobe, (1.0 - vh) ** 5
 
 
@@ -247,31 +255,30 @@ def lobe_directions(cone: float, views: Tensor | None = None, per_view: int = 51
 
 
 # ------------------------------------------------------------------------------------- the fit
-def _amplitudes(lobe: Tensor, schlick: Tensor, target: Tensor, f90_max: float = 1.0) -> tuple[Tensor, Tensor]:
+def _amplitudes(lobe: np.ndarray, schlick: np.ndarray, target: np.ndarray, f90_max: float = 1.0):
     """Least-squares F0 (C,) and F90 for fixed D·V: target_c ≈ lobe·(F0_c(1 − S) + F90·S),
-    with 0 ≤ F0_c ≤ F90 ≤ f90_max."""
+    with 0 ≤ F0_c ≤ F90 ≤ f90_max (normal equations of the C + 1 unknowns, then clipped)."""
     a = lobe * (1.0 - schlick)
     b = lobe * schlick
     c = target.shape[1]
-    # joint linear least squares for (F0_1..F0_C, F90)
-    m = torch.zeros(target.shape[0] * c, c + 1, dtype=lobe.dtype)
-    for i in range(c):
-        m[i::c, i] = a
-        m[i::c, c] = b
-    sol = torch.linalg.lstsq(m, target.reshape(-1, 1)).solution.reshape(-1)
-    f0 = sol[:c].clamp(0.0, f90_max)
-    f90 = float(sol[c].clamp(float(f0.max()), f90_max)) if c else 0.0
+    aa, ab, bb = float(a @ a), float(a @ b), float(b @ b)
+    m = np.zeros((c + 1, c + 1))
+    m[np.arange(c), np.arange(c)] = aa
+    m[:c, c] = m[c, :c] = ab
+    m[c, c] = c * bb
+    rhs = np.concatenate([a @ target, [float((b @ target).sum())]])
+    sol = np.linalg.lstsq(m, rhs, rcond=None)[0]
+    f0 = np.clip(sol[:c], 0.0, f90_max)
+    f90 = float(np.clip(sol[c], f0.max(), f90_max))
     # F0 again for the clipped F90, each channel clipped to [0, F90]
-    rest = target - b.unsqueeze(1) * f90
-    den = float((a * a).sum())
-    f0 = ((a.unsqueeze(1) * rest).sum(0) / max(den, 1e-300)).clamp(0.0, f90)
-    return f0, torch.tensor(f90, dtype=lobe.dtype)
+    f0 = np.clip((a @ (target - b[:, None] * f90)) / max(aa, 1e-300), 0.0, f90)
+    return f0, f90
 
 
-def _errors(pred: Tensor, target: Tensor) -> tuple[float, ...]:
+def _errors(pred: np.ndarray, target: np.ndarray) -> tuple[float, ...]:
     num = ((pred - target) ** 2).sum(0)
     den = (target**2).sum(0)
-    return tuple(float(torch.sqrt(n / d)) if float(d) > 0 else 0.0 for n, d in zip(num, den))
+    return tuple(float(np.sqrt(n / d)) if d > 0 else 0.0 for n, d in zip(num, den))
 
 
 def fit_ggx(target: Target, *, cone: float, views: Tensor | None = None, per_view: int = 512,
@@ -290,22 +297,23 @@ def fit_ggx(target: Target, *, cone: float, views: Tensor | None = None, per_vie
     """
     from scipy.optimize import minimize_scalar
 
-    l, v = lobe_directions(cone, views, per_view)
-    n = torch.zeros_like(l)
-    n[:, 2] = 1.0
-    y = target(l, v).to(torch.float64)
-    if y.dim() != 2 or y.shape[0] != l.shape[0]:
-        raise ExportError(f"lobe target: expected values of shape ({l.shape[0]}, C), found {tuple(y.shape)}")
-    if not bool(torch.isfinite(y).all()):
+    l_t, v_t = lobe_directions(cone, views, per_view)
+    y_t = target(l_t, v_t).to(torch.float64)
+    if y_t.dim() != 2 or y_t.shape[0] != l_t.shape[0]:
+        raise ExportError(f"lobe target: expected values of shape ({l_t.shape[0]}, C), found {tuple(y_t.shape)}")
+    if not bool(torch.isfinite(y_t).all()):
         raise ExportError("lobe target: expected finite values, found NaN/Inf")
+    l, v, y = l_t.numpy(), v_t.numpy(), y_t.numpy()
+    n = np.zeros_like(l)
+    n[:, 2] = 1.0
     c = y.shape[1]
-    if float(y.abs().max()) == 0.0:  # no specular at all
+    if float(np.abs(y).max()) == 0.0:  # no specular at all
         return LobeFit(MAX_ROUGHNESS, (0.0,) * c, 0.0, (0.0,) * c, samples=int(l.shape[0]))
 
     def solve(log_r: float):
         lobe, sch = ggx_terms(l, v, n, math.exp(log_r))
         f0, f90 = _amplitudes(lobe, sch, y, f90_max)
-        pred = (f0 + (f90 - f0) * sch.unsqueeze(1)) * lobe.unsqueeze(1)
+        pred = (f0 + (f90 - f0) * sch[:, None]) * lobe[:, None]
         return float(((pred - y) ** 2).sum()), f0, f90, pred
 
     lo, hi = math.log(MIN_ROUGHNESS), math.log(MAX_ROUGHNESS)

@@ -1,0 +1,314 @@
+"""MaterialX writer and reader (``export --format mtlx``): ``open_pbr_surface`` + ``flake2d``.
+
+The document (no library ``xi:include``s; MaterialX ≥ 1.39.5 resolves the nodes from its
+standard libraries) holds one node graph feeding one ``open_pbr_surface`` and a
+``surfacematerial``. Textures are 8-bit PNGs in ``<stem>.textures/`` beside the ``.mtlx``.
+
+Without flakes the specular layer is the coat lobe, fitted as for glTF
+(:mod:`torchmetal.formats.engine`): ``specular_roughness`` (factor or texture), ``specular_ior``,
+``specular_color`` and ``specular_weight`` (F0 = F0(ior)·colour·weight, F90 = weight).
+With flakes the coat lobe moves to OpenPBR's coat (``coat_weight`` = F0/F0(coat_ior) per texel,
+``coat_ior`` from the brightest F0, ``coat_roughness``, ``geometry_coat_normal`` = the surface
+normals), and the base specular becomes the flakes: ``flake2d`` (inputs from
+:func:`~torchmetal.formats.flake2d.flake2d_inputs`: size, roughness, coverage) drives
+``geometry_normal`` with its ``flakenormal``; ``specular_weight`` is 1 on a flake (``presence`` > 0)
+and 0 elsewhere; ``specular_roughness``/``specular_ior``/``specular_color`` come from the GGX fit
+of one glint (:func:`~torchmetal.formats.lobe_fit.fit_glint`) at the mean glint colour.
+The flake statistics and the mapping are stored in the document's ``doc`` string as JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchmetal.errors import ExportError
+from torchmetal.formats.engine import EngineMaterial, engine_material
+from torchmetal.formats.textures import (f0_to_ior, gray, hwc, is_constant, is_up, png_bytes, specular_encoding,
+                                         to_srgb)
+
+TARGETS = ("glsl", "osl", "mdl")
+
+
+def _mx():
+    try:
+        import MaterialX as mx
+    except ImportError as e:  # pragma: no cover - materialx is a dependency
+        raise ExportError(f"mtlx: expected the materialx package (>= 1.39.5), found none ({e})") from None
+    return mx
+
+
+def stdlib():
+    """The MaterialX standard data libraries (loaded once per call; ~0.1 s)."""
+    mx = _mx()
+    lib = mx.createDocument()
+    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), lib)
+    return lib
+
+
+def mtlx_plan(material, views=None) -> tuple[EngineMaterial, dict, dict[str, np.ndarray]]:
+    """What the document holds: the engine maps (no flake bake), the shader/flake2d input values
+    (floats, lists, or ``("texture", name)``) and the textures to write (name → (H, W, 3) planes)."""
+    em = engine_material(replace(material, flakes=None), views=views)
+    textures: dict[str, np.ndarray] = {"base_color": to_srgb(hwc(em.base_color))}
+    ins: dict = {"base_color": ("texture", "base_color"), "base_weight": 1.0, "base_metalness": 0.0}
+    normal = None if is_up(em.normal) else "normal"
+    if normal:
+        textures["normal"] = 0.5 * (hwc(em.normal) + 1.0)
+
+    def scalar_or_map(name: str, x: torch.Tensor, scale: float = 1.0):
+        if is_constant(x):
+            return float(x.reshape(-1)[0]) * scale
+        textures[name] = gray(hwc(x))
+        return ("texture", name, scale)
+
+    flake = None
+    if material.flakes is None:
+        enc = specular_encoding(em)
+        ins["specular_roughness"] = scalar_or_map("roughness", em.roughness)
+        ins["specular_ior"] = enc["ior"]
+        ins["specular_weight"] = scalar_or_map("specular_weight", enc["f90_map"], enc["specular_factor"])
+        if is_constant(enc["color_map"]):
+            ins["specular_color"] = [enc["color_factor"] * float(c) for c in enc["color_map"][:, 0, 0]]
+        else:
+            textures["specular_color"] = to_srgb(hwc(enc["color_map"]))
+            ins["specular_color"] = ("texture", "specular_color", enc["color_factor"])
+        ins["coat_weight"] = 0.0
+    else:
+        from torchmetal.formats.flake2d import flake2d_inputs
+        from torchmetal.formats.lobe_fit import fit_glint
+
+        model = material.flakes
+        coat_f0 = em.f0.mean(0, keepdim=True)
+        top = float(coat_f0.max())
+        ins["coat_ior"] = f0_to_ior(top)
+        f0_ior = ((ins["coat_ior"] - 1) / (ins["coat_ior"] + 1)) ** 2
+        ins["coat_weight"] = scalar_or_map("coat_weight", (coat_f0 / f0_ior).clamp(0.0, 1.0))
+        ins["coat_roughness"] = scalar_or_map("roughness", em.roughness)
+        ins["coat_color"] = [1.0, 1.0, 1.0]
+        glint = fit_glint(model.color_mean, model.glint_sigma, views=views)
+        f0 = np.array(glint.f0)
+        ins["specular_ior"] = f0_to_ior(float(f0.max()))
+        f0_spec = ((ins["specular_ior"] - 1) / (ins["specular_ior"] + 1)) ** 2
+        ins["specular_color"] = [float(min(c / f0_spec, 1.0)) if f0_spec > 0 else 0.0 for c in f0]
+        ins["specular_roughness"] = glint.roughness
+        ins["specular_weight"] = ("flake_presence",)
+        ins["geometry_normal"] = ("flake_normal",)
+        fi = flake2d_inputs(model, em.width)
+        flake = {"size": fi.size, "roughness": fi.roughness, "coverage": fi.coverage,
+                 "aspect": em.height / em.width, "mapping": vars(fi), "glint_fit": glint.to_dict(),
+                 "statistics": model.to_dict()}
+    if normal:
+        ins["geometry_coat_normal" if flake else "geometry_normal"] = ("normal_map",)
+        if flake:
+            ins["flake_surface_normal"] = ("normal_map",)
+    plan = {"inputs": ins, "flake2d": flake, "lobe_fit": em.extras.get("lobe_fit"),
+            "light_convention": em.extras.get("light_convention")}
+    return em, plan, textures
+
+
+_TYPES = {"base_color": "color3", "specular_color": "color3", "coat_color": "color3",
+          "geometry_normal": "vector3", "geometry_coat_normal": "vector3"}
+
+
+def build_document(plan: dict, files: dict[str, str]):
+    """The MaterialX document of a plan; ``files`` maps texture names to (relative) file names."""
+    mx = _mx()
+    doc = mx.createDocument()
+    ng = doc.addNodeGraph("NG_torchmetal")
+    shader = doc.addNode("open_pbr_surface", "SR_torchmetal", "surfaceshader")
+    uv = ng.addNode("texcoord", "uv", "vector2")
+    outputs: dict[str, object] = {}
+
+    def out(name: str, node, typ: str, output: str | None = None):
+        o = ng.addOutput(f"{name}_out", typ)
+        o.setConnectedNode(node)
+        if output:
+            o.setOutputString(output)
+        return o
+
+    def image(name: str, typ: str, srgb: bool):
+        node = ng.addNode("image", f"{name}_image", typ)
+        node.setInputValue("file", files[name], "filename")
+        if srgb:
+            node.getInput("file").setColorSpace("srgb_texture")
+        node.addInput("texcoord", "vector2").setConnectedNode(uv)
+        node.setInputValue("uaddressmode", "clamp", "string")
+        node.setInputValue("vaddressmode", "clamp", "string")
+        return node
+
+    ins = plan["inputs"]
+    normal_node = None
+    if "normal" in files:
+        img = image("normal", "vector3", False)
+        normal_node = ng.addNode("normalmap", "normal_map", "vector3")
+        normal_node.addInput("in", "vector3").setConnectedNode(img)
+    flake = plan.get("flake2d")
+    flake_node = None
+    if flake:
+        coords = uv
+        if abs(flake["aspect"] - 1.0) > 1e-9:  # one texcoord unit = the texture width on both axes
+            coords = ng.addNode("multiply", "flake_uv", "vector2")
+            coords.addInput("in1", "vector2").setConnectedNode(uv)
+            coords.setInputValue("in2", mx.Vector2(1.0, float(flake["aspect"])), "vector2")
+        flake_node = ng.addNode("flake2d", "flakes", "multioutput")
+        for k in ("size", "roughness", "coverage"):
+            flake_node.setInputValue(k, float(flake[k]), "float")
+        flake_node.addInput("texcoord", "vector2").setConnectedNode(coords)
+        if normal_node is not None:
+            flake_node.addInput("normal", "vector3").setConnectedNode(normal_node)
+        presence = ng.addNode("ifgreater", "flake_presence", "float")
+        presence.addInput("value1", "float").setConnectedNode(flake_node)
+        presence.getInput("value1").setOutputString("presence")
+        presence.setInputValue("value2", 0.0, "float")
+        presence.setInputValue("in1", 1.0, "float")
+        presence.setInputValue("in2", 0.0, "float")
+        outputs["flake_presence"] = out("flake_presence", presence, "float")
+        outputs["flake_normal"] = out("flake_normal", flake_node, "vector3", "flakenormal")
+    if normal_node is not None:
+        outputs["normal_map"] = out("normal_map", normal_node, "vector3")
+
+    for name, value in ins.items():
+        if name.startswith("flake_"):
+            continue
+        typ = _TYPES.get(name, "float")
+        inp = shader.addInput(name, typ)
+        if isinstance(value, tuple):
+            if value[0] == "texture":
+                node = image(value[1], typ, typ == "color3")
+                if len(value) > 2 and value[2] != 1.0:
+                    scaled = ng.addNode("multiply", f"{value[1]}_scaled", typ)
+                    scaled.addInput("in1", typ).setConnectedNode(node)
+                    scaled.setInputValue("in2", float(value[2]), "float")
+                    node = scaled
+                key = f"{name}_map"
+                outputs[key] = out(key, node, typ)
+                inp.setConnectedOutput(outputs[key])
+            else:
+                inp.setConnectedOutput(outputs[value[0]])
+        elif typ == "color3":
+            inp.setValue(mx.Color3(*[float(c) for c in value]))
+        else:
+            inp.setValue(float(value))
+    material = doc.addMaterialNode("M_torchmetal", shader)
+    material.setDocString(json.dumps({"torchmetal": {k: v for k, v in plan.items() if k != "inputs"}}, allow_nan=False))
+    return doc
+
+
+def validate(doc, lib=None) -> tuple[bool, str]:
+    """``Document.validate()`` against the standard libraries."""
+    doc.setDataLibrary(lib if lib is not None else stdlib())
+    return doc.validate()
+
+
+def generate(doc, target: str, lib=None) -> str:
+    """Shader source for ``target`` ("glsl", "osl", "mdl") of the document's material; raises
+    :class:`ExportError` when generation fails."""
+    mx = _mx()
+    import MaterialX.PyMaterialXGenShader as gs
+
+    if target not in TARGETS:
+        raise ExportError(f"target: expected one of {', '.join(TARGETS)}, found {target!r}")
+    if target == "glsl":
+        from MaterialX.PyMaterialXGenGlsl import GlslShaderGenerator as Gen
+    elif target == "osl":
+        from MaterialX.PyMaterialXGenOsl import OslShaderGenerator as Gen
+    else:
+        from MaterialX.PyMaterialXGenMdl import MdlShaderGenerator as Gen
+    lib = lib if lib is not None else stdlib()
+    doc.setDataLibrary(lib)
+    gen = Gen.create()
+    ctx = gs.GenContext(gen)
+    ctx.registerSourceCodeSearchPath(mx.getDefaultDataSearchPath())
+    cms = gs.DefaultColorManagementSystem.create(gen.getTarget())
+    cms.loadLibrary(lib)
+    gen.setColorManagementSystem(cms)
+    nodes = gs.findRenderableElements(doc)
+    if not nodes:
+        raise ExportError("mtlx: expected a renderable material, found none")
+    try:
+        shader = gen.generate(nodes[0].getName(), nodes[0], ctx)
+    except Exception as e:  # MaterialX raises its own exception types
+        raise ExportError(f"mtlx: {target} shader generation failed: {e}") from None
+    stage = "pixel" if target == "glsl" else gs.PIXEL_STAGE
+    return shader.getSourceCode(stage)
+
+
+def write(material, path: str | os.PathLike, *, views=None) -> Path:
+    """Write ``material`` as ``path`` (.mtlx) plus ``<stem>.textures/``; validated before it is
+    written (an invalid document raises :class:`ExportError` and writes nothing)."""
+    from torchmetal.io.images import atomic_write_bytes
+
+    mx = _mx()
+    path = Path(path)
+    em, plan, textures = mtlx_plan(material, views)
+    tex_dir = path.with_name(f"{path.stem}.textures")
+    files = {name: f"{tex_dir.name}/{name}.png" for name in textures}
+    doc = build_document(plan, files)
+    ok, msg = validate(doc)
+    if not ok:
+        raise ExportError(f"mtlx: expected a valid MaterialX document, found: {msg.strip()}")
+    opts = mx.XmlWriteOptions()
+    opts.writeXIncludeEnable = False
+    opts.elementPredicate = lambda e: not e.hasSourceUri()  # never the library elements
+    text = mx.writeToXmlString(doc, opts)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{tex_dir.name}.", dir=path.parent))
+    try:
+        for name, planes in textures.items():
+            (tmp / f"{name}.png").write_bytes(png_bytes(planes))
+        old = tex_dir.with_name(f".{tex_dir.name}.old")
+        shutil.rmtree(old, ignore_errors=True)
+        if tex_dir.exists():
+            os.replace(tex_dir, old)
+        os.replace(tmp, tex_dir)
+        shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    atomic_write_bytes(path, text.encode())
+    return path
+
+
+def read(path: str | os.PathLike) -> dict:
+    """Read back a file written by :func:`write`: ``{"inputs": {name: value | {"file", "scale"}},
+    "flake2d": {size, roughness, coverage} | None, "torchmetal": the stored JSON}``."""
+    mx = _mx()
+    path = Path(path)
+    doc = mx.createDocument()
+    try:
+        mx.readFromXmlFile(doc, str(path))
+    except Exception as e:
+        raise ExportError(f"{path}: expected a MaterialX document, found unreadable data ({e})") from None
+    shaders = doc.getNodes("open_pbr_surface") or [n for n in doc.getNodes() if n.getCategory() == "open_pbr_surface"]
+    if not shaders:
+        raise ExportError(f"{path}: expected an open_pbr_surface, found none")
+    ng = doc.getNodeGraph("NG_torchmetal")
+    res: dict = {"inputs": {}, "flake2d": None}
+    for inp in shaders[0].getInputs():
+        if inp.getOutputString():
+            node = ng.getOutput(inp.getOutputString()).getConnectedNode()
+            scale = 1.0
+            if node.getCategory() == "multiply":
+                scale = float(node.getInputValue("in2"))
+                node = node.getInput("in1").getConnectedNode()
+            if node.getCategory() == "image":
+                res["inputs"][inp.getName()] = {"file": str(path.parent / node.getInputValue("file")), "scale": scale}
+            else:
+                res["inputs"][inp.getName()] = {"node": node.getCategory()}
+        else:
+            v = inp.getValue()
+            res["inputs"][inp.getName()] = list(v.asTuple()) if hasattr(v, "asTuple") else float(v)
+    flakes = ng.getNodes("flake2d") if ng is not None else []
+    if flakes:
+        res["flake2d"] = {k: float(flakes[0].getInputValue(k)) for k in ("size", "roughness", "coverage")}
+    mat = doc.getNodes("surfacematerial") or [n for n in doc.getNodes() if n.getCategory() == "surfacematerial"]
+    res["torchmetal"] = json.loads(mat[0].getDocString()).get("torchmetal") if mat and mat[0].getDocString() else None
+    return res
