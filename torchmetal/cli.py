@@ -16,7 +16,7 @@ from torchmetal.formats import FORMATS
 
 # Verbs that live beside their feature: each module imports only argparse at the top and has
 # ``register(sub)`` that adds its sub-parser(s), whose ``func`` does the heavy imports.
-EXTRA_VERBS: tuple[str, ...] = ("torchmetal.viewer.cli", "torchmetal.scale.cli")
+EXTRA_VERBS: tuple[str, ...] = ("torchmetal.viewer.cli", "torchmetal.scale.cli", "torchmetal.photos.cli")
 
 
 def _vec(n: int):

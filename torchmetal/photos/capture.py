@@ -1,0 +1,312 @@
+"""Phone photos of a sample in the board's window → a capture directory (DESIGN 2.1, 2.6).
+
+``capture_from_photos`` runs, in order:
+
+1. per photo (in threads): EXIF, decode, ChArUco corners, edge width, the window's crop
+   (:func:`~torchmetal.photos.detect.inspect_photo`);
+2. the set's camera: the most common (resolution, camera) wins, the others are rejected;
+3. intrinsics calibrated from the usable photos (or given), outliers by reprojection error
+   rejected and the calibration redone once without them;
+4. per photo: pose, camera and flash positions, elevation, how much of the window it sees and
+   how blurred it is at the capture's scale;
+5. rectification onto the N-pixel grid, white balance from the paper band around the window,
+   exposure from EXIF.
+
+Every rejected photo gets a one-line reason in the report; too few usable photos raise a
+:class:`~torchmetal.errors.CaptureError` that lists them. Nothing is written until everything
+succeeded, and then atomically (:func:`save_photo_capture`).
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import os
+import re
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from torchmetal.errors import CaptureError
+from torchmetal.photos.board import Board
+from torchmetal.photos.calibrate import Intrinsics, calibrate, camera_position, flash_position, project, solve_pose
+from torchmetal.photos.detect import Observation, inspect_photo
+from torchmetal.photos.rectify import Rectified, photo_scale, rectify, window_points
+
+__all__ = ["PhotoCapture", "capture_from_photos", "save_photo_capture", "MIN_PHOTOS", "MIN_ELEVATION_DEG"]
+
+MIN_PHOTOS = 3
+MIN_ELEVATION_DEG = 20.0
+MIN_VISIBLE = 0.9  # fraction of the window a photo must see
+MAX_BLUR_PX = 4.0  # edge width (photo px) beyond which a photo counts as blurred …
+MAX_BLUR_CELLS = 1.5  # … when the blur also spans this many capture pixels
+REPROJ_FLOOR_PX = 1.5  # reprojection RMS always tolerated (outliers: above max(this, 3·median))
+REPORT_FORMAT = "torchmetal-photo-report"
+
+
+@dataclass
+class PhotoCapture:
+    """The capture built from photos, with everything the report and contact sheet show."""
+
+    capture: object  # torchmetal.io.capture.Capture
+    board: Board
+    report: dict
+    intrinsics: Intrinsics
+    observations: list[Observation]
+    rectified: dict[int, Rectified] = field(default_factory=dict)  # photo index → rectified
+    poses: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+
+def _stems(paths: list[Path]) -> list[str]:
+    stems = [re.sub(r"[^A-Za-z0-9_.\-]", "_", p.stem) or "photo" for p in paths]
+    stems = [s if re.match(r"[A-Za-z0-9_]", s) else "_" + s for s in stems]
+    if len(set(stems)) != len(stems):
+        stems = [f"{k:03d}_{s}" for k, s in enumerate(stems)]
+    return stems
+
+
+def _consistency(obs: list[Observation], ok: list[int], intrinsics: Intrinsics | None) -> None:
+    """Reject photos from another camera or with another resolution than the set's (in place)."""
+    if intrinsics is not None:
+        want = tuple(intrinsics.image_size)
+        for i in ok:
+            if obs[i].size != want:
+                obs[i].reason = (f"resolution {obs[i].size[0]}x{obs[i].size[1]}, the intrinsics are for "
+                                 f"{want[0]}x{want[1]}")
+    ok = [i for i in ok if obs[i].reason is None]
+    keys = collections.Counter((obs[i].size, obs[i].exif.camera) for i in ok)
+    if not keys:
+        return
+    best = max(keys.values())
+    (size, cam) = next(k for k in ((obs[i].size, obs[i].exif.camera) for i in ok) if keys[k] == best)
+    for i in ok:
+        if obs[i].size != size:
+            obs[i].reason = f"mixed resolutions: {obs[i].size[0]}x{obs[i].size[1]}, the set is {size[0]}x{size[1]}"
+        elif obs[i].exif.camera != cam:
+            obs[i].reason = f"another camera or lens: {obs[i].exif.camera!r}, the set is {cam!r}"
+
+
+def _too_few(obs: list[Observation], used: int, what: str) -> CaptureError:
+    reasons = "; ".join(f"{o.name}: {o.reason}" for o in obs if o.reason)[:600]
+    return CaptureError(f"expected at least {MIN_PHOTOS} usable photos {what}, found {used} of {len(obs)}"
+                        + (f" ({reasons})" if reasons else ""))
+
+
+def _views(obs: list[Observation], idx: list[int], board: Board) -> list[tuple[np.ndarray, np.ndarray]]:
+    pts = board.corner_points()
+    return [(pts[obs[i].ids], obs[i].corners) for i in idx]
+
+
+def _self_calibrate(obs: list[Observation], ok: list[int], board: Board) -> Intrinsics:
+    """Calibrate from the usable photos; photos whose reprojection error is an outlier are rejected
+    and the calibration redone once without them."""
+    if len(ok) < MIN_PHOTOS:
+        raise _too_few(obs, len(ok), "to calibrate the camera")
+    size = obs[ok[0]].size
+    intr, _ = calibrate(_views(obs, ok, board), size)
+    rms = {i: solve_pose(board.corner_points()[obs[i].ids], obs[i].corners, intr)[2] for i in ok}
+    limit = max(REPROJ_FLOOR_PX, 3.0 * float(np.median(list(rms.values()))))
+    bad = [i for i in ok if rms[i] > limit]
+    for i in bad:
+        obs[i].reason = f"reprojection error {rms[i]:.2f} px (limit {limit:.2f}): the sheet is not flat, or the photo moved"
+    if bad:
+        ok = [i for i in ok if i not in bad]
+        if len(ok) < MIN_PHOTOS:
+            raise _too_few(obs, len(ok), "to calibrate the camera")
+        intr, _ = calibrate(_views(obs, ok, board), size)
+    w, h = size
+    f, cx, cy = intr.matrix[0, 0], intr.matrix[0, 2], intr.matrix[1, 2]
+    if not (0.3 * w < f < 5 * w and abs(cx - w / 2) < 0.2 * w and abs(cy - h / 2) < 0.2 * h):
+        raise CaptureError(f"camera calibration failed: expected a plausible lens, found f = {f:.0f} px and principal point "
+                           f"({cx:.0f}, {cy:.0f}) for {w}x{h} (photos from more varied angles, or --intrinsics FILE)")
+    intr.source = f"calibrated from {len(ok)} photos"
+    intr.camera = obs[ok[0]].exif.camera
+    return intr
+
+
+def _visible(board: Board, pose, intr: Intrinsics, size: tuple[int, int]) -> float:
+    p = project(window_points(board, 24, 24), *pose, intr)
+    w, h = size
+    return float(((p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)).mean())
+
+
+def mirror_point(light: np.ndarray, camera: np.ndarray) -> np.ndarray | None:
+    """Where the flash's mirror highlight falls on the plane z = 0 (capture frame, same units)."""
+    if light[2] <= 0 or camera[2] <= 0:
+        return None
+    t = light[2] / (light[2] + camera[2])
+    mirrored = np.array([camera[0], camera[1], -camera[2]])
+    return (light + t * (mirrored - light))[:2]
+
+
+def capture_from_photos(
+    photos, board: Board, *, flash_offset_mm=(0.0, 0.0, 0.0), intrinsics: Intrinsics | None = None,
+    resolution: int = 512, poses: dict | None = None, workers: int | None = None,
+) -> PhotoCapture:
+    """Build a capture from phone photos of the board (DESIGN 2.6).
+
+    Args:
+        photos: image paths (JPEG/PNG, 8-bit), in shot order.
+        board: the printed board's geometry (:func:`~torchmetal.photos.board.load_board`).
+        flash_offset_mm: the flash in the camera frame (OpenCV: x right, y down, z forward), mm.
+        intrinsics: use these instead of calibrating from the photos.
+        resolution: N, the capture's longer side in pixels (square pixels).
+        poses: {photo index: (rvec, tvec)} board → camera (mm) to use instead of the estimated
+            ones (for checks against known geometry).
+        workers: threads for decoding and detection (default: up to 4).
+
+    Raises:
+        CaptureError: fewer than MIN_PHOTOS usable photos, or a failed calibration.
+    """
+    import torch
+
+    from torchmetal.io.capture import Capture
+
+    t0 = time.perf_counter()
+    paths = [Path(p) for p in photos]
+    if not paths:
+        raise CaptureError("expected at least one photo, found none")
+    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 8 <= resolution <= 8192:
+        raise CaptureError(f"resolution: expected an integer in [8, 8192], found {resolution!r}")
+    offset = np.asarray(flash_offset_mm, np.float64)
+    if offset.shape != (3,) or not np.isfinite(offset).all():
+        raise CaptureError(f"flash offset: expected 3 finite numbers (mm), found {list(np.ravel(offset))}")
+    workers = workers or max(1, min(4, os.cpu_count() or 1))
+    with ThreadPoolExecutor(workers) as pool:
+        obs = list(pool.map(lambda p: inspect_photo(p, board), paths))
+    for o in obs:
+        if o.reason is None and o.exif.exposure is None:
+            o.reason = f"missing EXIF {', '.join(o.exif.missing)}: the exposure cannot be normalised"
+    ok = [i for i, o in enumerate(obs) if o.reason is None]
+    _consistency(obs, ok, intrinsics)
+    ok = [i for i in ok if obs[i].reason is None]
+    intr = intrinsics if intrinsics is not None else _self_calibrate(obs, ok, board)
+    ok = [i for i in ok if obs[i].reason is None]
+
+    h, w = board.capture_grid(resolution)
+    ww, wh = board.window_size_mm
+    cell_mm = ww / w
+    entries: dict[int, dict] = {i: {} for i in range(len(obs))}
+    found_poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    rect: dict[int, Rectified] = {}
+    for i in ok:
+        o, e = obs[i], entries[i]
+        obj = board.corner_points()[o.ids]
+        rvec, tvec, rms = solve_pose(obj, o.corners, intr)
+        if poses is not None and i in poses:
+            rvec, tvec = (np.asarray(v, np.float64).ravel() for v in poses[i])
+            rms = float(np.sqrt(((project(obj, rvec, tvec, intr) - o.corners) ** 2).sum(1).mean()))
+        e["reprojection_px"] = round(rms, 4)
+        cam = camera_position(board, rvec, tvec)
+        light = flash_position(board, rvec, tvec, offset)
+        elev = math.degrees(math.asin(np.clip(cam[2] / np.linalg.norm(cam), -1, 1)))
+        e.update(camera_mm=[round(float(v) * 1000, 3) for v in cam], flash_mm=[round(float(v) * 1000, 3) for v in light],
+                 elevation_deg=round(elev, 2), distance_mm=round(float(np.linalg.norm(cam)) * 1000, 2))
+        hl = mirror_point(light, cam)
+        if hl is not None:
+            inside = abs(hl[0]) * 1000 < ww / 2 and abs(hl[1]) * 1000 < wh / 2
+            e["highlight_mm"] = [round(float(v) * 1000, 2) for v in hl]
+            e["highlight"] = "in the window" if inside else "outside the window"
+        found_poses[i] = (rvec, tvec)
+        if elev < MIN_ELEVATION_DEG:
+            o.reason = f"taken from {elev:.0f} deg elevation, below {MIN_ELEVATION_DEG:.0f} deg (too grazing)"
+            continue
+        vis = _visible(board, (rvec, tvec), intr, o.size)
+        if vis < MIN_VISIBLE:
+            o.reason = f"board cut off: the photo sees {vis:.0%} of the window (need {MIN_VISIBLE:.0%})"
+            continue
+        scale = photo_scale(board, (rvec, tvec), intr, h, w)
+        e["photo_px_per_cell"] = round(scale, 3)
+        if o.blur_px is not None:
+            cells = o.blur_px / max(scale, 1e-9)
+            e["blur_cells"] = round(cells, 3)
+            if o.blur_px > MAX_BLUR_PX and cells > MAX_BLUR_CELLS:
+                o.reason = (f"blurred: edges {o.blur_px:.1f} px wide (sharp: ~1-2 px), {cells:.1f} capture pixels at "
+                            f"resolution {resolution}")
+                continue
+        r = rectify(o, board, intr, (rvec, tvec), h, w)
+        if r.paper is None or not np.all(r.paper > 0):
+            o.reason = "no white reference: the paper band around the window is hidden or clipped"
+            continue
+        rect[i] = r
+    used = [i for i in ok if obs[i].reason is None]
+    if len(used) < MIN_PHOTOS:
+        raise _too_few(obs, len(used), "for a capture")
+
+    # exposure (EXIF), white balance (paper → neutral, green kept), the intensity unit (paper albedo 1)
+    e0 = obs[used[0]].exif.exposure
+    rel = {i: obs[i].exif.exposure / e0 for i in used}
+    per_unit = []
+    lights, cams = {}, {}
+    for i in used:
+        r, (rvec, tvec) = rect[i], found_poses[i]
+        light = flash_position(board, rvec, tvec, offset)
+        q = board.board_to_capture(r.paper_points)
+        lv = light[None] - q
+        d2 = (lv * lv).sum(1)
+        irr = np.clip(lv[:, 2], 0, None) / (d2 * np.sqrt(d2))
+        gains = r.paper[1] / r.paper
+        green = r.paper_values[:, 1]
+        per_unit.append(float(np.median(green / np.maximum(irr, 1e-12))) / rel[i])
+        r.image *= gains[:, None, None].astype(np.float32)
+        entries[i]["white_balance"] = [round(float(g), 4) for g in gains]
+        lights[i], cams[i] = light, camera_position(board, rvec, tvec)
+    unit = float(np.median(per_unit))
+    stems = _stems([paths[i] for i in used])
+    n = len(used)
+    capture = Capture(
+        images=torch.from_numpy(np.stack([rect[i].image for i in used])),
+        mask=torch.from_numpy(np.stack([rect[i].seen for i in used]).all(0))[None],
+        saturated=torch.from_numpy(np.stack([rect[i].saturated for i in used])),
+        lights=torch.tensor([[*lights[i], 1.0] for i in used], dtype=torch.float64).float(),
+        intensities=torch.tensor([[unit * rel[i]] * 3 for i in used], dtype=torch.float64).float(),
+        cameras=torch.tensor([[*cams[i], 1.0] for i in used], dtype=torch.float64).float(),
+        size=(ww / 1000.0, wh / 1000.0), names=[f"images/{s}.npy" for s in stems], color_space="srgb",
+    )
+    shot_of = {i: k for k, i in enumerate(used)}
+    rows = []
+    for i, o in enumerate(obs):
+        e = entries[i]
+        row = {"file": o.name, "used": i in shot_of, "shot": shot_of.get(i), "reason": o.reason,
+               "reprojection_px": e.pop("reprojection_px", None), "corners": 0 if o.ids is None else int(len(o.ids)),
+               "markers": o.markers, "blur_px": None if o.blur_px is None else round(o.blur_px, 3)}
+        if i in rect:
+            sat = rect[i].saturated.any(0)
+            row["saturated_pct"] = round(100.0 * float(sat.mean()), 3)
+            row["exposure"] = round(rel[i], 6)
+        row.update(e)
+        rows.append(row)
+    report = {
+        "format": REPORT_FORMAT, "version": 1, "photos": rows, "intrinsics": intr.to_json(),
+        "board": board.to_json(), "resolution": [h, w], "surface_m": [ww / 1000.0, wh / 1000.0],
+        "flash_offset_mm": [float(v) for v in offset], "intensity_unit": unit,
+        "used": n, "rejected": len(obs) - n, "seconds": round(time.perf_counter() - t0, 3),
+        "mask_pct": round(100.0 * float(capture.mask.float().mean()), 3),
+    }
+    return PhotoCapture(capture, board, report, intr, obs, rect, found_poses)
+
+
+def save_photo_capture(result: PhotoCapture, out: str | os.PathLike, *, contact_sheet: bool = True) -> Path:
+    """Write the capture directory plus ``report.json``, ``intrinsics.json`` and ``contact.png``, atomically."""
+    import json
+    import shutil
+
+    from torchmetal.io.capture import prepare_target, replace_dir, write_capture_files
+
+    path, tmp = prepare_target(out)
+    try:
+        write_capture_files(result.capture, tmp, bits="npy")
+        result.intrinsics.save(tmp / "intrinsics.json")
+        if contact_sheet:
+            from torchmetal.photos.report import contact_sheet as sheet
+
+            sheet(result, tmp / "contact.png")
+        (tmp / "report.json").write_text(json.dumps(result.report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+        replace_dir(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path

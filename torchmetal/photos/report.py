@@ -1,0 +1,111 @@
+"""The contact sheet: every photo as a thumbnail with what the capture made of it.
+
+Per tile: the photo (sensor orientation) with the detected corners (green), the window as the
+pose projects it (green: used, red: rejected), the flash's mirror point (yellow cross), the
+rectified window in the corner, and below it the file name, used / rejected with the reason,
+reprojection error, corners, saturation and elevation. One PNG, the check to look at after a
+capture (docs/capture.md).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["contact_sheet", "contact_image"]
+
+COLUMNS = 4
+TEXT_ROWS = 3
+ROW_PX = 16
+
+
+def _text_lines(row: dict) -> list[str]:
+    first = f"{row['file']}: " + (f"shot {row['shot']}" if row["used"] else "REJECTED")
+    if row["used"]:
+        second = (f"reproj {row['reprojection_px']:.2f} px, {row['corners']} corners, sat {row.get('saturated_pct', 0):.1f} %")
+        third = f"elev {row.get('elevation_deg', 0):.0f} deg, highlight {row.get('highlight', 'none')}"
+    else:
+        reason = row["reason"] or ""
+        second, third = reason[:58], reason[58:116]
+    return [first, second, third]
+
+
+def _tile(result, i: int, width: int) -> np.ndarray:
+    import cv2
+
+    from torchmetal.io.images import linear_to_srgb
+    from torchmetal.photos.calibrate import project
+
+    import torch
+
+    obs = result.observations[i]
+    row = result.report["photos"][i]
+    thumb_h = round(width * 3 / 4)
+    canvas = np.full((thumb_h + TEXT_ROWS * ROW_PX + 6, width, 3), 255, np.uint8)
+    if obs.thumb is not None:
+        th, tw = obs.thumb.shape[:2]
+        f = min(width / tw, thumb_h / th)
+        img = cv2.resize(obs.thumb, (max(1, round(tw * f)), max(1, round(th * f))), interpolation=cv2.INTER_AREA)
+        canvas[: img.shape[0], : img.shape[1]] = img
+        s = obs.thumb_scale * f
+        to_px = lambda p: np.round((p + 0.5) * s - 0.5).astype(np.int32)  # noqa: E731
+        if obs.corners is not None:
+            for p in to_px(obs.corners):
+                cv2.circle(canvas, tuple(int(v) for v in p), 1, (0, 200, 0), -1)
+        pose = result.poses.get(i)
+        if pose is not None:
+            board = result.board
+            ww, wh = board.window_size_mm
+            cx, cy = board.window_centre_board
+            corners = np.array([[cx - ww / 2, cy - wh / 2, 0], [cx + ww / 2, cy - wh / 2, 0],
+                                [cx + ww / 2, cy + wh / 2, 0], [cx - ww / 2, cy + wh / 2, 0]])
+            poly = to_px(project(corners, *pose, result.intrinsics)).reshape(-1, 1, 2)
+            colour = (0, 180, 0) if row["used"] else (0, 0, 230)
+            cv2.polylines(canvas, [poly], True, colour, 1, cv2.LINE_AA)
+            hl = row.get("highlight_mm")
+            if hl is not None:
+                p = board.capture_to_board(np.array([[hl[0] / 1000, hl[1] / 1000, 0.0]]))
+                q = to_px(project(p, *pose, result.intrinsics))[0]
+                if 0 <= q[0] < width and 0 <= q[1] < thumb_h:
+                    cv2.drawMarker(canvas, (int(q[0]), int(q[1])), (0, 220, 255), cv2.MARKER_CROSS, 10, 2)
+    r = result.rectified.get(i)
+    if r is not None:
+        lin = torch.from_numpy(np.clip(r.image / max(float(np.percentile(r.image, 99.5)), 1e-6), 0, 1))
+        rgb = (linear_to_srgb(lin).numpy().transpose(1, 2, 0) * 255).round().astype(np.uint8)[:, :, ::-1]
+        side = width // 4
+        h, w = rgb.shape[:2]
+        f = side / max(h, w)
+        small = cv2.resize(rgb, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA)
+        canvas[2: 2 + small.shape[0], width - 2 - small.shape[1]: width - 2] = small
+    for k, line in enumerate(_text_lines(row)):
+        colour = (0, 0, 0) if row["used"] or k == 0 else (0, 0, 200)
+        cv2.putText(canvas, line, (4, thumb_h + (k + 1) * ROW_PX), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, 1, cv2.LINE_AA)
+    return canvas
+
+
+def contact_image(result, width: int = 360) -> np.ndarray:
+    """(H, W, 3) uint8 BGR: the tiles of every photo, COLUMNS per row."""
+    tiles = [_tile(result, i, width) for i in range(len(result.observations))]
+    th, tw = tiles[0].shape[:2]
+    rows = -(-len(tiles) // COLUMNS)
+    cols = min(COLUMNS, len(tiles))
+    sheet = np.full((rows * (th + 4), cols * (tw + 4), 3), 230, np.uint8)
+    for k, t in enumerate(tiles):
+        r, c = divmod(k, COLUMNS)
+        sheet[r * (th + 4): r * (th + 4) + th, c * (tw + 4): c * (tw + 4) + tw] = t
+    return sheet
+
+
+def contact_sheet(result, path: str | os.PathLike) -> Path:
+    """Write the contact sheet PNG (atomically)."""
+    import cv2
+
+    from torchmetal.io.images import atomic_write_bytes
+
+    ok, buf = cv2.imencode(".png", contact_image(result))
+    if not ok:
+        raise ValueError("contact sheet: PNG encoding failed")
+    atomic_write_bytes(path, buf.tobytes())
+    return Path(path)
