@@ -112,12 +112,14 @@ def specular_fits(material, views: Tensor | None = None) -> tuple[Tensor, Tensor
     report = []
     for g in range(uniq.shape[0]):
         sel = inverse == g
-        # one fit at unit strength per channel (s scales the target, hence F0/F90, linearly)
-        fit: LobeFit = fit_lobe(torch.ones(3, dtype=torch.float64), uniq[g], kind, views=views)
-        unit_f0 = torch.tensor(fit.f0, dtype=torch.float64)
+        # one fit at the group's mean s (the channel weights of the shared roughness); s scales
+        # the target, hence F0/F90, linearly, so each pixel gets F0 = s/s_mean·F0_mean
         s_sel = s_px[sel].clamp_min(0.0)
-        f0_sel = s_sel * unit_f0
-        f90_sel = torch.maximum(f0_sel.max(1).values, fit.f90 * s_sel.max(1).values)
+        s_mean = s_sel.mean(0)
+        fit: LobeFit = fit_lobe(s_mean, uniq[g], kind, views=views)
+        ratio = torch.where(s_mean > 0, s_sel / s_mean.clamp_min(1e-300), torch.zeros_like(s_sel))
+        f0_sel = ratio * torch.tensor(fit.f0, dtype=torch.float64)
+        f90_sel = torch.maximum(f0_sel.max(1).values, fit.f90 * ratio.max(1).values)
         rough[sel] = fit.roughness
         f0[sel] = f0_sel
         f90[sel] = f90_sel
