@@ -154,7 +154,7 @@ def flake2d_pattern(points: np.ndarray, size: float, roughness: float, coverage:
     j = prio.argmax(1)
     found = np.take_along_axis(prio, j[:, None], 1)[:, 0] > 0.0
     win = cell[np.arange(len(p)), j]
-    key = np.where(found, (win[:, 0] * 1_000_003 + win[:, 1]) * 7 + win[:, 2], -1)
+    key = np.where(found, (((win[:, 0] + 2**20) << 21) + (win[:, 1] + 2**20)) * 4 + (win[:, 2] + 1), -1)  # ≥ 0
     xi = cell_noise_vec3_4(*_cells(win), 2)
     a = roughness * roughness
     tan_t = a * np.sqrt(xi[:, 1]) / np.sqrt(1.0 - xi[:, 1])
