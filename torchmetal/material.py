@@ -46,6 +46,8 @@ class Material:
         normals: (3, H, W) unit normals, or None for flat (0, 0, 1).
         flakes: the flake model, or None when the sample has no flakes.
         report: the fit report (per-stage times, iterations, errors, what was skipped).
+        lobe: the specular lobe of ``s``/``alpha``: "phong" (DESIGN 2.2, the default), "blinn" or
+            "ggx" (:mod:`torchmetal.lobes`); saved as ``"lobe"`` in material.json (absent = phong).
     """
 
     texture: Tensor
@@ -58,8 +60,13 @@ class Material:
     cluster_alpha: Tensor | None = None
     flakes: FlakeModel | None = None
     report: dict = field(default_factory=dict)
+    lobe: str = "phong"
 
     def __post_init__(self) -> None:
+        from torchmetal.lobes import LOBES
+
+        if self.lobe not in LOBES:
+            raise MaterialError(f"lobe: expected one of {list(LOBES)}, found {self.lobe!r}")
         t = self.texture
         if not isinstance(t, Tensor) or t.dim() != 3 or t.shape[0] != 3:
             found = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
@@ -114,6 +121,7 @@ class Material:
         return Material(
             move(self.texture), move(self.s), move(self.alpha), self.size, move(self.normals),
             move(self.spec_labels), move(self.cluster_s), move(self.cluster_alpha), self.flakes, dict(self.report),
+            lobe=self.lobe,
         )
 
 
@@ -129,6 +137,7 @@ def material_to_json(m: Material) -> dict:
         "resolution": [m.height, m.width],
         "texture": "texture.npy",
         "normals": "normals.npy" if m.normals is not None else None,
+        "lobe": m.lobe,
         "phong": {
             "s": _to_list(m.s),
             "alpha": _to_list(m.alpha),
@@ -228,6 +237,7 @@ def load_material(path: str | os.PathLike) -> Material:
             ca = torch.tensor(cl["alpha"], dtype=torch.float32)
         flakes = FlakeModel.from_dict(meta["flakes"]) if meta.get("flakes") else None
         size = (float(meta["surface"]["width"]), float(meta["surface"]["height"]))
+        lobe = meta.get("lobe", "phong")  # absent: a material from before the lobe choice
     except KeyError as e:
         raise MaterialError(f"{meta_file}: expected key {e.args[0]!r}, found it missing") from None
     except (TypeError, ValueError) as e:
@@ -235,4 +245,4 @@ def load_material(path: str | os.PathLike) -> Material:
     for name, x in (("texture", texture), ("s", s), ("alpha", alpha)):
         if not bool(torch.isfinite(x).all()):
             raise MaterialError(f"{root}: expected finite {name}, found NaN/Inf")
-    return Material(texture, s, alpha, size, normals, labels, cs, ca, flakes, meta.get("fit") or {})
+    return Material(texture, s, alpha, size, normals, labels, cs, ca, flakes, meta.get("fit") or {}, lobe=lobe)

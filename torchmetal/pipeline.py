@@ -116,6 +116,7 @@ def fit_material(
     robust: str | None = "auto",
     seed: int = 0,
     progress: bool = False,
+    lobe: str = "phong",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -129,6 +130,8 @@ def fit_material(
             (see the module docstring).
         seed: seed of the material's flake field.
         progress: show progress bars.
+        lobe: the specular lobe, "phong" (DESIGN 2.2), "blinn", "ggx" or "auto" (chosen on
+            held-out shots by the first fit; the refits keep that choice).
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,
@@ -141,7 +144,9 @@ def fit_material(
     auto = robust == "auto"
     t0 = time.perf_counter()
     kw = dict(scheme=scheme, specular=specular, tol=tol, max_iters=max_iters, progress=progress)
-    fit = fit_phong(capture, robust=None if auto else robust, **kw)
+    fit = fit_phong(capture, robust=None if auto else robust, lobe=lobe, **kw)
+    kw["lobe"] = fit.lobe  # refits keep the lobe the first fit chose
+    lobe_selection = fit.lobe_selection
     stage_times = {f"phong.{k}": v for k, v in fit.stage_times.items()}
     skipped = list(fit.skipped)
     flake_result = None
@@ -173,6 +178,8 @@ def fit_material(
         "iterations": fit.iterations,
         "rmse": fit.rmse,
         "flakes": None if flake_result is None else flake_result.report,
+        "lobe": fit.lobe,
+        "lobe_selection": lobe_selection,
     }
     material = fit.to_material(report_extra=report)
     material.flakes = flake_model

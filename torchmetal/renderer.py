@@ -29,6 +29,10 @@ and for a small ONNX graph (DESIGN 2.4):
   light" is folded into the separable sums, and sparkles are scatter-added into the specular
   term so that the last op writes the output.
 
+- **Lobes.** ``material.lobe`` "blinn" takes the Phong path with 1 − n·h (from the half vector,
+  |n − h|²/2) in place of 1 − r·v; "ggx" evaluates :func:`torchmetal.lobes.ggx_lobe` on the same
+  separable geometry.
+
 All state lives in buffers, so ``.to()``, ``state_dict`` and ONNX export need no extra code.
 The specular lobe uses the same Kahan ``log1p`` form as :func:`torchmetal.phong.specular_lobe`
 and only ops that export bit-for-bit or within a few ulp (no ``log1p``, no RNG, no ``pow``).
@@ -43,6 +47,7 @@ from torchmetal.checks import check_finite, check_float, check_shape
 from torchmetal.errors import InputError
 from torchmetal.flakes.field import FlakeField, flake_field, sparkle_shading
 from torchmetal.geometry import shading_geometry, surface_points
+from torchmetal.lobes import ggx_lobe
 from torchmetal.material import Material
 
 __all__ = ["MaterialRenderer", "DENSE_FLAKE_FRACTION"]
@@ -74,8 +79,8 @@ class MaterialRenderer(nn.Module):
 
     ``forward(light (B,4), light_intensity (B,3), camera (B,4)) -> (B,3,H,W)`` float32 linear
     radiance. Attributes: ``height``, ``width``, ``flat`` (normals folded), ``clustered``
-    (per-pixel specular), ``has_flakes``, ``flake_pixels`` (number of sparse flake pixels, or
-    −1 for dense maps).
+    (per-pixel specular), ``lobe``, ``has_flakes``, ``flake_pixels`` (number of sparse flake
+    pixels, or −1 for dense maps).
     """
 
     def __init__(self, material: Material, *, flakes: bool = True) -> None:
@@ -87,6 +92,7 @@ class MaterialRenderer(nn.Module):
         dev = m.texture.device
         self.height, self.width = m.height, m.width
         self.size = (float(m.size[0]), float(m.size[1]))
+        self.lobe = m.lobe
         self.register_buffer("texture", m.texture.detach().to(f32).clone())
         # pixel-centre coordinates, bit-identical to geometry.surface_points
         self.register_buffer("xs", surface_points(1, m.width, self.size, dtype=f32, device=dev)[0, 0].clone())
@@ -115,7 +121,7 @@ class MaterialRenderer(nn.Module):
         self.alpha_uniform = (not self.clustered) and bool((self.alpha == self.alpha[0]).all())
         # With α ≥ 1 the clipped log-lobe past the horizon gives a lobe ≤ 1e-38; smaller
         # exponents get an exact zero there (two more single-channel ops).
-        self.exact_horizon = not alpha_min >= 1.0
+        self.exact_horizon = not alpha_min >= 1.0 and self.lobe != "ggx"  # GGX: no clipped log-lobe
 
         self.has_flakes = bool(flakes and m.flakes is not None)
         self.flake_pixels = 0
@@ -155,7 +161,7 @@ class MaterialRenderer(nn.Module):
 
     def extra_repr(self) -> str:
         return (
-            f"{self.height}x{self.width}, flat={self.flat}, clustered={self.clustered}, "
+            f"{self.height}x{self.width}, flat={self.flat}, clustered={self.clustered}, lobe={self.lobe}, "
             f"flakes={'off' if not self.has_flakes else ('dense' if self.flake_pixels < 0 else f'{self.flake_pixels} px')}"
         )
 
@@ -197,21 +203,31 @@ class MaterialRenderer(nn.Module):
         # y·log(u)/(u − 1), u = fl(1 + y). u is clipped to [tiny, 1 − 2⁻²⁴]: the upper clip only
         # touches u == 1 (then the ratio is 1 to 1 ulp), the lower one gives a log-lobe ≤ −87·|y|
         # past the horizon (r·v ≤ 0), i.e. a lobe ≤ 1e-38 for α ≥ 1 instead of selects.
-        yq = -0.5 * (ex * ex + ey * ey + ez * ez)
-        if lit is None:
-            yq = torch.where(n_dot_l > 0, yq, -2.0)  # unlit pixel: no lobe
-        u = (1.0 + yq).clamp(_TINY, _BELOW_ONE)
-        t = torch.log(u) * (yq / (u - 1.0))
+        ggx = None  # GGX geometry (1 − n·h, n·l, n·v, v·h)
+        if self.lobe == "phong":
+            yq = -0.5 * (ex * ex + ey * ey + ez * ez)
+        else:  # blinn: the same log-lobe of n·h; ggx: its own lobe of the half-vector terms
+            hq, n_dot_v, v_dot_h = self._half_terms(ux, uy, uz, wx, wy, wz)
+            yq = -hq
+            if self.lobe == "ggx":
+                ggx = (hq, n_dot_l, n_dot_v, v_dot_h)
+        if ggx is None:
+            if lit is None:
+                yq = torch.where(n_dot_l > 0, yq, -2.0)  # unlit pixel: no lobe
+            u = (1.0 + yq).clamp(_TINY, _BELOW_ONE)
+            t = torch.log(u) * (yq / (u - 1.0))
 
         shade = light_intensity.reshape(-1, 3, 1, 1)  # (B,3,1,1)
         q_diffuse = shade * (n_dot_l.clamp_min(0.0) * inv_d2)  # outer products (B,3,H,W)
         q_spec = (shade if lit is None else shade * lit)
         if self.clustered:
             s, alpha = self._specular_maps()
-            spec = s * torch.exp(alpha * t)
+            spec = s * (torch.exp(alpha * t) if ggx is None else ggx_lobe(*ggx, alpha))
         else:
             q_spec = q_spec * self.s.view(1, 3, 1, 1)
-            if self.alpha_uniform:  # one exponent for all channels: one (B,1,H,W) exp
+            if ggx is not None:  # G₁(n·l) = 0 at n·l ≤ 0: unlit pixels get no lobe
+                spec = ggx_lobe(*ggx, self.alpha)
+            elif self.alpha_uniform:  # one exponent for all channels: one (B,1,H,W) exp
                 spec = torch.exp(self.alpha[0] * t)
             else:
                 spec = torch.exp(self.alpha.view(1, 3, 1, 1) * t)
@@ -223,6 +239,19 @@ class MaterialRenderer(nn.Module):
             # directly (onnxruntime copies a reshape that produces a graph output)
             spec = self._add_sparkle(spec, light, light_intensity, camera)
         return self.texture * q_diffuse + spec
+
+    def _half_terms(self, ux, uy, uz, wx, wy, wz) -> tuple[Tensor, Tensor, Tensor]:
+        """1 − n·h = |n − h|²/2, n·v and v·h from unit l and v components (broadcasting pieces)."""
+        hx, hy, hz = ux + wx, uy + wy, uz + wz
+        inv = 1.0 / torch.sqrt((hx * hx + hy * hy + hz * hz).clamp_min(_EPS2))
+        hx, hy, hz = hx * inv, hy * inv, hz * inv
+        v_dot_h = wx * hx + wy * hy + wz * hz
+        if self.flat:
+            dz = 1.0 - hz
+            return 0.5 * (hx * hx + hy * hy + dz * dz), wz, v_dot_h
+        nx, ny, nz = self.normals[0:1].unsqueeze(0), self.normals[1:2].unsqueeze(0), self.normals[2:3].unsqueeze(0)
+        dx, dy, dz = nx - hx, ny - hy, nz - hz
+        return 0.5 * (dx * dx + dy * dy + dz * dz), nx * wx + ny * wy + nz * wz, v_dot_h
 
     def _specular_maps(self) -> tuple[Tensor, Tensor]:
         if torch.compiler.is_exporting():

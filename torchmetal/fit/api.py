@@ -24,6 +24,8 @@ from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
 from torchmetal.fit.clusters import Labeler, Selection, choose_specular, evidence, fit_clustered, heldout_evidence
+from torchmetal.fit.lobe_choice import LOBE_GRID, choose_lobe
+from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.paper import paper_scheme
 from torchmetal.fit.problem import (
     ROBUST, Observations, Reference, Weighting, build_observations, compute_dtype, grid_stride,
@@ -32,6 +34,7 @@ from torchmetal.fit.refine import (
     ALPHA_MIN, SpecFit, evaluate_specular, fill_unobserved, fit_specular, grid_beta, residual_scale, texture_map, unobserved,
 )
 from torchmetal.fit.result import FitResult, IterationCounts
+from torchmetal.lobes import LOBES, check_lobe
 
 SCHEMES = ("paper", "refine")
 SPECULARS = ("auto", "global", "clustered", "none")
@@ -151,6 +154,7 @@ def fit_phong(
     sub_pixels: int = 1 << 16,
     select_pixels: int = 1 << 13,
     seed: int = 0,
+    lobe: str = "phong",
 ) -> FitResult:
     """Fit the Phong model of DESIGN 2.2 (texture d(p), s, α per channel) to a capture.
 
@@ -175,6 +179,10 @@ def fit_phong(
             ~N·3·chunk values each); results do not depend on it.
         sub_pixels, select_pixels: pixel budgets of the init and selection subsamples.
         seed: k-means seed.
+        lobe: the specular lobe (:mod:`torchmetal.lobes`): "phong" (DESIGN 2.2, the default),
+            "blinn", "ggx", or "auto" (the lowest error on held-out shots,
+            :mod:`torchmetal.fit.lobe_choice`; phong unless another lobe wins by 1 %). Other
+            lobes than phong need scheme="refine".
 
     Returns:
         :class:`FitResult`.
@@ -184,17 +192,32 @@ def fit_phong(
     """
     clusters = tuple(clusters)
     _check_args(capture, scheme, specular, tol, max_iters, robust, outliers, clusters)
+    check_lobe(lobe, (*LOBES, "auto"))
+    if scheme == "paper" and lobe != "phong":
+        raise InputError(f"lobe: expected 'phong' with scheme='paper' (the paper's lobe), found {lobe!r}")
     run = _Run(progress)
+    lobe_sel = None
     try:
+        if lobe == "auto" and specular != "none":
+            h, w = capture.images.shape[-2:]
+            with run.stage("lobe"):
+                lobe_sel = choose_lobe(capture, stride=grid_stride(h, w, select_pixels), tol=max(tol, 1e-4),
+                                       max_iters=max_iters, dtype=compute_dtype(capture.images), chunk=max_pixels_per_chunk)
+            lobe = lobe_sel.lobe
+        elif lobe == "auto":
+            lobe = "phong"
+            run.skipped.append("lobe: specular='none', no lobe to choose; phong")
         if scheme == "paper":
             res = _fit_paper(capture, run, specular=specular, tol=tol, max_iters=max_iters, chunk=max_pixels_per_chunk,
                              robust=robust)
         else:
             res = _fit_refine(capture, run, specular=specular, tol=tol, max_iters=max_iters, robust=robust,
                               outliers=outliers, clusters=clusters, chunk=max_pixels_per_chunk, sub_pixels=sub_pixels,
-                              select_pixels=select_pixels, seed=seed)
+                              select_pixels=select_pixels, seed=seed, lobe=lobe)
     finally:
         run.close()
+    res.lobe = lobe
+    res.lobe_selection = None if lobe_sel is None else lobe_sel.to_dict()
     _check_finite("fit_phong", res.texture, res.s, res.alpha, torch.tensor(res.rmse))
     return res
 
@@ -272,13 +295,13 @@ def _hold_shot(obs: Observations, fit: SpecFit) -> int:
     s3, a3 = fit.s[0].to(obs.dtype).view(1, 3, 1), alpha[0].to(obs.dtype).view(1, 3, 1)
     for j in range(len(obs.chunks)):
         y, g, u, L, w, inten = obs.chunk(j)
-        b = s3 * inten * u * torch.exp(a3 * L)
+        b = s3 * inten * u * lobe_factor(L, a3, obs.geo_chunk(j), obs.lobe)
         energy += (w * b * b).sum((1, 2)).double()
     return int(energy.argmax())
 
 
 def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outliers, clusters, chunk, sub_pixels,
-                select_pixels, seed) -> FitResult:
+                select_pixels, seed, lobe="phong") -> FitResult:
     imgs = capture.images
     dt = compute_dtype(imgs)
     n_shots, _, h, w = imgs.shape
@@ -288,18 +311,19 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
 
     # 1. init on a small subsample: the paper's scheme (loose tolerance) + a coarse α grid
     with run.stage("init"):
-        sub = build_observations(capture, stride=stride, dtype=dt, chunk=chunk)
+        sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk)
         sel_stride = grid_stride(h, w, select_pixels)
-        coarse = sub if sel_stride == stride else build_observations(capture, stride=sel_stride, dtype=dt, chunk=chunk)
+        coarse = sub if sel_stride == stride else build_observations(capture, lobe=lobe, stride=sel_stride, dtype=dt, chunk=chunk)
     if specular == "none":
         glob = None
         run.skipped.append("specular: disabled by the caller (specular='none')")
     else:
-        with run.stage("paper"):
-            pf = paper_scheme(coarse, tol=max(tol, INIT_TOL), max_iters=min(max_iters, INIT_ITERS),
-                              on_iter=lambda st, it, r, a: run.log(st, it, r, a, coarse.num_pixels))
-        with run.stage("init"):
-            beta0 = grid_beta(coarse, 1, extra=pf.alpha.view(1, 3))
+        if lobe == "phong":
+            with run.stage("paper"):
+                pf = paper_scheme(coarse, tol=max(tol, INIT_TOL), max_iters=min(max_iters, INIT_ITERS),
+                                  on_iter=lambda st, it, r, a: run.log(st, it, r, a, coarse.num_pixels))
+        with run.stage("init"):  # other lobes: no paper scheme (its control points are Phong's), a finer α grid
+            beta0 = grid_beta(coarse, 1, extra=pf.alpha.view(1, 3)) if lobe == "phong" else grid_beta(coarse, 1, grid=LOBE_GRID)
             del coarse
         # 2. variable projection on the subsample, then weights and a refit
         with run.stage("refine"):
@@ -316,7 +340,7 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
             weighting = Weighting(sigma=sigma, robust=robust, outlier_k=outliers)
             n_base = float(sub.n.double().sum())
             for _ in range(2 if robust is not None else 1):
-                sub = build_observations(capture, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob0.s, glob0.alpha),
+                sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob0.s, glob0.alpha),
                                          weighting=weighting)
                 if glob is None:
                     break
@@ -375,7 +399,7 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
     labeler: Labeler | None = sel.labeler if sel is not None and sel.k > 1 else None
     if labeler is not None:
         with run.stage("refine"):
-            sub = build_observations(capture, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
+            sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
                                      weighting=weighting, labeler=labeler, want_tmin=True)
             spec = fit_clustered(sub, labeler, glob, tol=sub_tol, max_iters=max_iters)
     else:
@@ -387,7 +411,7 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
         if ref is None and weighting is not None:
             ref = Reference(torch.zeros(1, 3, dtype=torch.float64, device=imgs.device),
                             torch.ones(1, 3, dtype=torch.float64, device=imgs.device))
-        full = build_observations(capture, dtype=dt, chunk=chunk, ref=ref, weighting=weighting, labeler=labeler,
+        full = build_observations(capture, lobe=lobe, dtype=dt, chunk=chunk, ref=ref, weighting=weighting, labeler=labeler,
                                   with_stats=spec is not None)
     n_obs = max(1.0, float(full.n.double().sum()))
     if spec is None:

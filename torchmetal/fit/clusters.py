@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.fit.lm import solve_2x2
+from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, weighted
 from torchmetal.fit.refine import SpecFit, fit_specular, pixel_map, spec_sums, texture_map
 
@@ -185,8 +186,8 @@ def heldout_evidence(capture, glob: SpecFit, *, stride: int, hold: int, tol: flo
     """
     n = int(capture.images.shape[0])
     obs = build_observations(capture, stride=stride, shots=[i for i in range(n) if i != hold], dtype=dtype, chunk=chunk,
-                             ref=Reference(glob.s, glob.alpha), weighting=weighting)
-    ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk)
+                             ref=Reference(glob.s, glob.alpha), weighting=weighting, lobe=glob.lobe)
+    ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk, lobe=glob.lobe)
     g = fit_specular(obs, torch.log(glob.alpha), tol=tol, max_iters=max_iters)
     with_spec = heldout_mse(ho, texture_map(obs, g.s, g.eb), g.s, g.alpha, None)
     zero = torch.zeros_like(g.s)
@@ -228,7 +229,7 @@ def heldout_mse(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor, l
         y, g, u, L, w, inten = hold.chunk(j)
         sp = s_pix if s_pix.shape[1] == 1 else s_pix[:, p0:p1]
         ap = a_pix if a_pix.shape[1] == 1 else a_pix[:, p0:p1]
-        r = y - inten * g * texture[:, p0:p1] - sp * (inten * u) * torch.exp(ap * L)
+        r = y - inten * g * texture[:, p0:p1] - sp * (inten * u) * lobe_factor(L, ap, hold.geo_chunk(j), hold.lobe)
         sse += (weighted(r, w) * r).double().sum()
         cnt += float(w.sum())
     return float(sse) / max(cnt, 1.0)
@@ -273,13 +274,13 @@ def choose_specular(
     fit_shots = [i for i in range(n) if i != hold]
     ref = Reference(glob.s, glob.alpha)
     obs = build_observations(capture, stride=stride, shots=fit_shots, dtype=dtype, chunk=chunk, ref=ref,
-                             weighting=weighting, want_tmin=True)
+                             weighting=weighting, want_tmin=True, lobe=glob.lobe)
     g = fit_specular(obs, torch.log(glob.alpha), tol=tol, max_iters=max_iters)
     if hold is None:  # no shot to spare: in-sample error (only to rank candidates when forced)
         ho = None
         score = lambda fit, labels: float(fit.cost.sum()) / max(1.0, float(obs.n.double().sum()))  # noqa: E731
     else:
-        ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk)
+        ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk, lobe=glob.lobe)
         score = lambda fit, labels: heldout_mse(ho, texture_map(obs, fit.s, fit.eb), fit.s, fit.alpha, labels)  # noqa: E731
     mse = {"global": score(g, None)}
     usable = obs.n.sum(0) > 0

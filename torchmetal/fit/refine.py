@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
+from torchmetal.fit.lobes import lobe_factor, lobe_terms
 from torchmetal.fit.problem import Observations
 from torchmetal.fit.projected_sums import add_skipped_shots, chunk_stats, reduce_stats
 
@@ -60,6 +61,7 @@ class SpecFit:
     status: str = "converged"
     active: float = 1.0
     pinned: Tensor | None = None  # (K, 3) bool: elements held at given (global) terms
+    lobe: str = "phong"  # the observations' lobe (torchmetal.fit.lobes)
 
     @property
     def k(self) -> int:
@@ -75,12 +77,6 @@ def pixel_map(x: Tensor, labels: Tensor | None) -> Tensor:
     if x.shape[0] == 1 or labels is None:
         return x[0].view(3, 1)
     return x[labels].T
-
-
-def lobe_terms(g: Tensor, u: Tensor, L: Tensor, inten: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """a = i·g, t = α·L, b = i·u·exp(t), all (n, 3, c); alpha (1, 3, 1) or (1, 3, c)."""
-    t = alpha * L
-    return inten * g, (inten * u) * torch.exp(t), t
 
 
 def spec_sums(obs: Observations, alpha: Tensor, *, per_pixel: bool = False) -> tuple[Tensor, Tensor, float]:
@@ -108,7 +104,7 @@ def spec_sums(obs: Observations, alpha: Tensor, *, per_pixel: bool = False) -> t
         y, g, u, L, w, inten = obs.chunk(j, shots)
         lab = obs.labels[p0:p1] if (k > 1 and obs.labels is not None) else None
         al = a_glob if lab is None else alpha[lab].T.to(obs.dtype).unsqueeze(0)
-        a, b, t = lobe_terms(g, u, L, inten, al)
+        a, b, t = lobe_terms(g, u, L, inten, al, obs.geo_chunk(j, shots), obs.lobe)
         wa = w * a
         e, ec, st = chunk_stats(y, a, b, t, w, isaa[:, p0:p1], wa=wa)
         if shots is not None:  # the left-out shots still couple through the texture
@@ -208,7 +204,7 @@ def fit_specular(
     eb, s = res.eval.aux
     return SpecFit(
         s=s.view(k, 3), alpha=torch.exp(res.x.view(k, 3)), eb=eb, cost=res.eval.cost.view(k, 3), A=A, Y=Y,
-        iterations=res.iterations, status=res.status, active=state["active"],
+        iterations=res.iterations, status=res.status, active=state["active"], lobe=obs.lobe,
     )
 
 
@@ -218,7 +214,8 @@ def evaluate_specular(obs: Observations, s: Tensor | None, alpha: Tensor) -> Spe
     A = obs.element_sum(obs.A, k)
     stats, eb, frac = spec_sums(obs, alpha.to(torch.float64))
     s_opt, cost, _, _ = element_terms(stats, A, s_fixed=s)
-    return SpecFit(s=s_opt, alpha=alpha.to(torch.float64), eb=eb, cost=cost, A=A, Y=obs.element_sum(obs.Y, k), active=frac)
+    return SpecFit(s=s_opt, alpha=alpha.to(torch.float64), eb=eb, cost=cost, A=A, Y=obs.element_sum(obs.Y, k), active=frac,
+                   lobe=obs.lobe)
 
 
 def grid_beta(
@@ -257,7 +254,7 @@ def residual_scale(obs: Observations, s: Tensor, alpha: Tensor, eb: Tensor, max_
         y, g, u, L, w, inten = obs.chunk(j)
         sp = s_pix if s_pix.shape[1] == 1 else s_pix[:, p0:p1]
         ap = a_pix if a_pix.shape[1] == 1 else a_pix[:, p0:p1]
-        r = y - inten * g * d[:, p0:p1] - sp * (inten * u) * torch.exp(ap * L)
+        r = y - inten * g * d[:, p0:p1] - sp * (inten * u) * lobe_factor(L, ap, obs.geo_chunk(j), obs.lobe)
         ok = w > 0
         for c in range(3):
             v = r[:, c][ok[:, c]].abs()
@@ -274,10 +271,14 @@ def residual_scale(obs: Observations, s: Tensor, alpha: Tensor, eb: Tensor, max_
 def model_terms(obs: Observations, alpha: Tensor, labels: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Dense per-observation model terms (N, 3, P) — the analytic Jacobian of I = a·d + s·b(β):
 
-    ∂I/∂d = a,  ∂I/∂s = b,  ∂I/∂β = s·α·L·b (returned without the factor s).
+    ∂I/∂d = a,  ∂I/∂s = b,  ∂I/∂β = s·t·b (returned without the factor s; t = α·L for
+    phong/blinn, :func:`torchmetal.fit.lobes.lobe_terms`'s t for ggx).
     For small problems (tests, diagnostics); α (K, 3) with ``labels`` (P,) when K > 1.
     """
     a_pix = pixel_map(alpha.to(obs.dtype), labels if alpha.shape[0] > 1 else None).unsqueeze(0)
+    if obs.lobe != "phong":
+        a, b, t = lobe_terms(obs.g, obs.u, obs.L, obs.inten, a_pix, obs.geo, obs.lobe)
+        return a, b, t * b
     t = a_pix * obs.L
     a = obs.inten * obs.g
     b = obs.inten * obs.u * torch.exp(t)

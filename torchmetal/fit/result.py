@@ -15,8 +15,9 @@ import torch
 from torch import Tensor, nn
 
 from torchmetal.geometry import shading_geometry, surface_points
+from torchmetal.lobes import LobeModel, lobe_render, lobe_shading
 from torchmetal.material import Material
-from torchmetal.phong import PhongModel, phong_render, phong_shading
+from torchmetal.phong import PhongModel
 
 
 class IterationCounts(dict):
@@ -34,8 +35,9 @@ class ClusteredPhongModel(nn.Module):
     """
 
     def __init__(self, texture: Tensor, labels: Tensor, cluster_s: Tensor, cluster_alpha: Tensor,
-                 normals: Tensor, size: tuple[float, float]) -> None:
+                 normals: Tensor, size: tuple[float, float], lobe: str = "phong") -> None:
         super().__init__()
+        self.lobe = lobe
         h, w = texture.shape[-2:]
         self.size = (float(size[0]), float(size[1]))
         self.texture = nn.Parameter(texture.detach().clone())
@@ -52,7 +54,7 @@ class ClusteredPhongModel(nn.Module):
     def forward(self, light: Tensor, intensity: Tensor, camera: Tensor) -> Tensor:
         geom = shading_geometry(self.normals, light, intensity, camera, points=self.points)
         s, alpha = self.maps()
-        return phong_shading(self.texture, s, alpha, geom)
+        return lobe_shading(self.texture, s, alpha, geom, self.lobe)
 
 
 @dataclass
@@ -72,6 +74,8 @@ class FitResult:
         scheme, specular: what ran ("paper"/"refine"; "global"/"clustered"/"none").
         selection: the held-out comparison behind specular="auto"/"clustered", if any.
         flat: True when every normal is (0, 0, 1).
+        lobe: the specular lobe ("phong", DESIGN 2.2; "blinn"; "ggx"), see :mod:`torchmetal.lobes`.
+        lobe_selection: the held-out comparison behind lobe="auto", if any.
     """
 
     texture: Tensor
@@ -92,6 +96,8 @@ class FitResult:
     specular: str = "global"
     selection: dict | None = None
     flat: bool = True
+    lobe: str = "phong"
+    lobe_selection: dict | None = None
 
     @property
     def clustered(self) -> bool:
@@ -107,7 +113,8 @@ class FitResult:
         """Render B shots (B, 3, H, W) with the fitted parameters, the capture's normals and size."""
         dt = self.texture.dtype
         s, alpha = self.specular_maps()
-        return phong_render(self.texture, s, alpha, self.normals, light.to(dt), intensity.to(dt), camera.to(dt), self.size)
+        return lobe_render(self.texture, s, alpha, self.normals, light.to(dt), intensity.to(dt), camera.to(dt), self.size,
+                           self.lobe)
 
     def report(self) -> dict:
         """JSON-able summary: stage times, iterations, history summary, status, skipped."""
@@ -122,6 +129,7 @@ class FitResult:
             "iterations": {k: int(v) for k, v in self.iterations.items()},
             "history": stages, "skipped": list(self.skipped),
             "selection": self.selection,
+            "lobe": self.lobe, "lobe_selection": self.lobe_selection,
         }
 
     def to_material(self, report_extra: dict | None = None) -> Material:
@@ -135,11 +143,15 @@ class FitResult:
             spec_labels=None if self.spec_labels is None else self.spec_labels.detach(),
             cluster_s=None if self.cluster_s is None else self.cluster_s.detach().float(),
             cluster_alpha=None if self.cluster_alpha is None else self.cluster_alpha.detach().float(),
-            report=rep,
+            report=rep, lobe=self.lobe,
         )
 
     def to_module(self) -> nn.Module:
-        """A trainable module: :class:`PhongModel` (global) or :class:`ClusteredPhongModel`."""
+        """A trainable module: :class:`PhongModel` (global; :class:`~torchmetal.lobes.LobeModel` for
+        another lobe) or :class:`ClusteredPhongModel`."""
         if self.spec_labels is None:
+            if self.lobe != "phong":
+                return LobeModel(self.texture, self.s, self.alpha, self.normals, self.size, lobe=self.lobe)
             return PhongModel(self.texture, self.s, self.alpha, self.normals, self.size)
-        return ClusteredPhongModel(self.texture, self.spec_labels, self.cluster_s, self.cluster_alpha, self.normals, self.size)
+        return ClusteredPhongModel(self.texture, self.spec_labels, self.cluster_s, self.cluster_alpha, self.normals, self.size,
+                                   lobe=self.lobe)

@@ -1,0 +1,129 @@
+"""``lobe="auto"``: pick the specular lobe (phong, blinn, ggx) on shots left out of the fit.
+
+On the selection subsample (the same strided pixel grid as the cluster choice), a global Phong
+fit on all shots ranks the shots by predicted specular energy; the ``holds`` most telling ones
+are left out in turn. For each candidate lobe and each left-out shot: a coarse α grid, then the
+variable-projection LM (:func:`~torchmetal.fit.refine.fit_specular`) on the other shots, and the
+mean squared error of rendering the left-out shot (:func:`~torchmetal.fit.clusters.heldout_mse`).
+Phong — DESIGN 2.2's model — is kept unless another lobe lowers the summed held-out error by more
+than ``min_gain`` (and by more than rounding noise), so a Phong-like sample keeps the paper's lobe.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from torchmetal.fit.clusters import MIN_GAIN_ABS, evidence, heldout_mse, mean_square
+from torchmetal.fit.lobes import lobe_factor
+from torchmetal.fit.problem import Observations, build_observations
+from torchmetal.fit.refine import SpecFit, fit_specular, grid_beta, texture_map
+from torchmetal.lobes import LOBES
+
+__all__ = ["LobeSelection", "choose_lobe", "LOBE_GRID", "MIN_GAIN", "HOLDS"]
+
+LOBE_GRID = tuple(float(2**i) for i in range(14))  # α = 1 … 8192, ×2 steps: every lobe starts near its optimum
+MIN_GAIN = 0.01  # another lobe must lower the held-out MSE by 1 % to replace Phong
+HOLDS = 3  # shots left out in turn (the ones with most predicted specular energy)
+
+
+@dataclass
+class LobeSelection:
+    """Outcome of the held-out comparison: the chosen lobe and the evidence."""
+
+    lobe: str
+    holds: list[int] = field(default_factory=list)
+    mse: dict = field(default_factory=dict)  # lobe → mean held-out MSE over ``holds``
+    alpha: dict = field(default_factory=dict)  # lobe → fitted α (3,) on the first fold
+    reason: str = ""
+
+    def to_dict(self) -> dict:
+        psnr = {k: (10.0 * math.log10(1.0 / v) if v > 0 else math.inf) for k, v in self.mse.items()}
+        return {"lobe": self.lobe, "holds": list(self.holds), "mse": dict(self.mse), "psnr_heldout": psnr,
+                "alpha": dict(self.alpha), "reason": self.reason}
+
+
+def fit_lobe(obs: Observations, *, tol: float, max_iters: int, grid: tuple[float, ...] = LOBE_GRID) -> SpecFit:
+    """Global specular fit of ``obs``'s lobe: best α of ``grid``, then the LM."""
+    return fit_specular(obs, grid_beta(obs, 1, grid=grid), tol=tol, max_iters=max_iters)
+
+
+def specular_energy(obs: Observations, fit: SpecFit) -> Tensor:
+    """(N,) float64 Σ w·(s·b)² per shot: how much of each shot the specular term predicts."""
+    s3, a3 = fit.s[0].to(obs.dtype).view(1, 3, 1), fit.alpha[0].to(obs.dtype).view(1, 3, 1)
+    energy = torch.zeros(obs.num_shots, dtype=torch.float64, device=obs.g.device)
+    for j in range(len(obs.chunks)):
+        y, g, u, L, w, inten = obs.chunk(j)
+        b = s3 * inten * u * lobe_factor(L, a3, obs.geo_chunk(j), obs.lobe)
+        energy += (w * b * b).sum((1, 2)).double()
+    return energy
+
+
+def heldout_errors(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor) -> Tensor:
+    """Squared errors (M,) float64 of the valid held-out observations, in a fixed order (the valid
+    set does not depend on the lobe, so two lobes' errors pair up element by element)."""
+    s3, a3 = s[0].to(hold.dtype).view(1, 3, 1), alpha[0].to(hold.dtype).view(1, 3, 1)
+    out = []
+    for j, (p0, p1) in enumerate(hold.chunks):
+        y, g, u, L, w, inten = hold.chunk(j)
+        r = y - inten * g * texture[:, p0:p1] - s3 * (inten * u) * lobe_factor(L, a3, hold.geo_chunk(j), hold.lobe)
+        out.append((r * r)[w > 0].double())
+    return torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)
+
+
+def paired_z(err: Tensor, ref: Tensor) -> float:
+    """z of the mean paired difference ref − err (> 0: ``err`` is lower), over M observations."""
+    d = ref - err
+    if d.numel() < 2:
+        return 0.0
+    sd = float(d.std())
+    return float(d.mean()) / (sd / math.sqrt(d.numel())) if sd > 0 else (math.inf if float(d.mean()) > 0 else 0.0)
+
+
+def choose_lobe(
+    capture, *, stride: int, tol: float, max_iters: int, dtype: torch.dtype, chunk: int,
+    candidates: tuple[str, ...] = LOBES, holds: int = HOLDS, min_gain: float = MIN_GAIN,
+) -> LobeSelection:
+    """Fit each candidate lobe on all shots but one (in turn, ``holds`` shots) on a pixel grid of
+    ``stride``; keep the lowest summed held-out MSE, Phong unless beaten by ``min_gain``."""
+    n = int(capture.images.shape[0])
+    if n < 3:
+        return LobeSelection("phong", reason=f"a held-out test needs >= 3 shots, found {n}: phong (DESIGN 2.2)")
+    every = build_observations(capture, stride=stride, dtype=dtype, chunk=chunk)
+    base = fit_lobe(every, tol=tol, max_iters=max_iters)
+    if not bool(evidence(base).any()):
+        return LobeSelection("phong", reason="no highlight evidence: the lobe shape is not observable; phong (DESIGN 2.2)")
+    order = torch.argsort(specular_energy(every, base), descending=True).tolist()
+    del every
+    held = order[: max(1, min(holds, n - 2))]
+    sel = LobeSelection("phong", holds=held)
+    sq = {}
+    for lobe in candidates:
+        sse = 0.0
+        for i, hold in enumerate(held):
+            obs = build_observations(capture, stride=stride, shots=[k for k in range(n) if k != hold], dtype=dtype,
+                                     chunk=chunk, lobe=lobe)
+            fit = fit_lobe(obs, tol=tol, max_iters=max_iters)
+            ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk, lobe=lobe)
+            sse += heldout_mse(ho, texture_map(obs, fit.s, fit.eb), fit.s, fit.alpha, None)
+            if i == 0:
+                sel.alpha[lobe] = [float(a) for a in fit.alpha[0]]
+                sq[lobe] = mean_square(ho)
+        sel.mse[lobe] = sse / len(held)
+    ref = "phong" if "phong" in sel.mse else min(sel.mse, key=sel.mse.get)
+    best = min(sel.mse, key=sel.mse.get)
+    floor = MIN_GAIN_ABS * sq[ref]
+    if best != ref and sel.mse[best] < (1.0 - min_gain) * sel.mse[ref] - floor:
+        sel.lobe = best
+        sel.reason = (f"{best} lowers the held-out MSE (shots {held}) {sel.mse[ref]:.4g} → {sel.mse[best]:.4g} "
+                      f"vs {ref}")
+    else:
+        sel.lobe = ref
+        sel.reason = (f"held-out MSE (shots {held}): {ref} {sel.mse[ref]:.4g}, best other {best} "
+                      f"{sel.mse[best]:.4g}: gain below {min_gain:.0%}, {ref} kept")
+        if best == ref:
+            sel.reason = (f"held-out MSE (shots {held}): {ref} {sel.mse[ref]:.4g} is the lowest; {ref} kept")
+    return sel
