@@ -38,12 +38,26 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from torchmetal.material import save_material
     from torchmetal.pipeline import fit_material
 
-    capture = load_capture(args.capture)
-    result = fit_material(
-        capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
-        tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
-        progress=not args.quiet,
-    )
+    scratch = None
+    if args.tile is not None:  # tile by tile from memory-mapped files (torchmetal.scale.tiled); scratch files beside the output
+        import tempfile
+
+        from torchmetal.scale.tiled import fit_tiled_material
+
+        Path(args.output).resolve().parent.mkdir(parents=True, exist_ok=True)
+        scratch = tempfile.TemporaryDirectory(prefix=f".{Path(args.output).name}.tiles.", dir=Path(args.output).resolve().parent)
+        result = fit_tiled_material(
+            args.capture, tile=args.tile, scheme=args.scheme, specular=args.specular, flakes=args.flakes, tol=args.tol,
+            max_iters=args.max_iters, robust=args.robust, seed=args.seed, progress=not args.quiet, scratch=scratch.name,
+        )
+        capture = result.capture
+    else:
+        capture = load_capture(args.capture)
+        result = fit_material(
+            capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
+            tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
+            progress=not args.quiet,
+        )
     extra = {}
     if args.export:
         from torchmetal.onnx_export import export_onnx
@@ -52,6 +66,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         export_onnx(result.material, onnx_path)
         extra["renderer.onnx"] = onnx_path
     save_material(result.material, args.output, extra_files=extra)
+    if scratch is not None:
+        scratch.cleanup()
     for p in extra.values():
         p.unlink(missing_ok=True)
     rep = result.report
@@ -173,6 +189,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--max-iters", type=int, default=100)
     f.add_argument("--seed", type=int, default=0, help="seed of the flake field")
     f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
+    f.add_argument("--tile", type=int, default=None, metavar="N",
+                   help="fit tile by tile (N x N pixels; memory bounded by the tile, not the capture; docs/scale.md)")
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     f.set_defaults(func=cmd_fit)
 

@@ -1,0 +1,82 @@
+"""Tiled vs in-memory fit of the same capture: s, α and texture equal to 1e-6 relative."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from torchmetal.cli import main
+from torchmetal.errors import InputError
+from torchmetal.fit import fit_phong
+from torchmetal.io.capture import load_capture
+from torchmetal.scale.tiled import fit_tiled
+from torchmetal.scale.tiles import convert_capture
+
+REL = 1e-6
+
+
+def rel_err(x, y):
+    x, y = x.double(), y.double()
+    return float(((x - y).abs() / y.abs().clamp_min(1e-12)).max())
+
+
+@pytest.fixture(scope="module")
+def tiled256(tmp_path_factory):
+    from torchmetal.synth import synth_capture, write_synth
+
+    root = tmp_path_factory.mktemp("t256")
+    write_synth(synth_capture(size=256, shots=8, seed=5, noise=0.003, bumpy=True, bits=16), root / "png")
+    return convert_capture(root / "png", root / "tiled")
+
+
+def assert_same_fit(a, b):
+    assert rel_err(b.s, a.s) <= REL and rel_err(b.alpha, a.alpha) <= REL, (a.s, b.s, a.alpha, b.alpha)
+    assert rel_err(b.texture, a.texture) <= REL
+    assert b.specular == a.specular and b.skipped == a.skipped and b.flat == a.flat
+
+
+def test_tiled_equals_in_memory_256(tiled256, tmp_path):
+    """256² × 8 shots, bumpy normals, texels saturated in every shot (inpainted), 64² tiles."""
+    a = fit_phong(load_capture(tiled256))
+    b = fit_tiled(tiled256, tile=64, scratch=tmp_path)
+    assert b.tiled["tiles"] == 16 and b.tiled["passes"] >= 3
+    assert_same_fit(a, b)
+    assert any("inpainted" in s for s in b.skipped) and not b.flat
+    assert torch.equal(b.normals, load_capture(tiled256).normals)
+
+
+def test_tiled_strided_subsample_and_clusters(tiled256, tmp_path):
+    """Subsample decisions on a strided grid read from the files, clustered specular per tile,
+    and a tile size that does not divide the image."""
+    kw = dict(sub_pixels=4096, select_pixels=1024, specular="clustered", max_iters=20)
+    a = fit_phong(load_capture(tiled256), **kw)
+    b = fit_tiled(tiled256, tile=100, scratch=tmp_path, **kw)
+    assert a.specular == "clustered"
+    assert_same_fit(a, b)
+    assert torch.equal(b.spec_labels, a.spec_labels)
+    assert rel_err(b.cluster_alpha, a.cluster_alpha) <= REL
+
+
+def test_cli_fit_tile_equals_fit(tmp_path, capsys):
+    from torchmetal.synth import synth_capture, write_synth
+
+    write_synth(synth_capture(size=48, shots=6, seed=1, noise=0.003, bits=16), tmp_path / "cap")  # PNG: converted first
+    assert main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "tiled"), "--tile", "20", "-q"]) == 0
+    assert main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "mem"), "--flakes", "off", "-q"]) == 0
+    a, b = np.load(tmp_path / "mem" / "texture.npy"), np.load(tmp_path / "tiled" / "texture.npy")
+    assert np.abs(b - a).max() <= REL * np.abs(a).max()
+    ja, jb = (json.loads((tmp_path / m / "material.json").read_text()) for m in ("mem", "tiled"))
+    assert np.allclose(jb["phong"]["alpha"], ja["phong"]["alpha"], rtol=REL, atol=0)
+    assert jb["fit"]["tiled"] == {"tile": 20, "tiles": 9, "passes": jb["fit"]["tiled"]["passes"]}
+    assert any("flake detection needs whole images" in s for s in jb["fit"]["skipped"])
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # scratch files removed
+    assert main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "x"), "--tile", "20", "--scheme", "paper"]) == 2
+    assert main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "x"), "--tile", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "expected 'refine' with --tile" in err[0] and "tile: expected an int >= 1" in err[1]
+
+
+def test_bad_arguments(tiled256):
+    with pytest.raises(InputError, match="specular"):
+        fit_tiled(tiled256, specular="shiny")

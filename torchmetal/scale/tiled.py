@@ -1,0 +1,381 @@
+"""The Phong fit of a capture too large for memory, tile by tile (``fit --tile N``).
+
+The in-memory fit (:func:`torchmetal.fit.fit_phong`, scheme "refine") has two parts:
+
+1. decisions on strided pixel subsamples (≤ ``sub_pixels`` pixels): the paper's scheme as init,
+   variable projection, highlight evidence, global vs clustered specular. Here they run on the
+   same subsample, read from the memory-mapped files (:class:`~torchmetal.scale.tiles.TiledCapture`),
+   with the same functions — the same values bit for bit.
+2. the full-resolution solve, where texture and s are projected out and LM runs on β = log α:
+   everything it needs from the pixels is a sum over pixels of per-pixel statistics
+   (:func:`~torchmetal.fit.refine.spec_sums`). Here each LM evaluation is a pass over the tiles:
+   each tile's observations are built (:func:`~torchmetal.fit.problem.build_observations` with a
+   ``window``), its statistics computed, and the statistics added in float64 in a fixed tile
+   order — so the result does not depend on how many workers computed the tiles. A last pass
+   solves the texture of each tile in closed form and writes it to a memory-mapped file.
+
+Memory is that of one tile's observations (~100 bytes per pixel and shot), never the capture's.
+What the tiled fit does not do: the flake stage (detection needs whole images: it is skipped and
+the report says so), scheme "paper", robust weights and outlier masks, and the inpainting of
+texels no shot observes (refused with a one-line error; fit such captures in memory).
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchmetal.errors import FitError, InputError
+from torchmetal.fit.api import INIT_ITERS, INIT_TOL, _hold_shot, _Run
+from torchmetal.fit.clusters import choose_specular, evidence, fit_clustered, heldout_evidence
+from torchmetal.fit.lm import LMEval, levenberg_marquardt
+from torchmetal.fit.paper import paper_scheme
+from torchmetal.fit.problem import Reference, build_observations, compute_dtype, grid_stride
+from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms, fit_specular, grid_beta, spec_sums, texture_map
+from torchmetal.fit.result import FitResult
+from torchmetal.scale.tiled_texture import SeenStats, fill_tiles, unobserved_tile
+from torchmetal.scale.tiles import TiledCapture
+
+SPECULARS = ("auto", "global", "clustered", "none")
+
+
+def tile_grid(height: int, width: int, tile: int) -> list[tuple[slice, slice]]:
+    """Row-major tiles of at most ``tile`` × ``tile`` pixels: the fixed reduction order."""
+    if not (isinstance(tile, int) and tile >= 1):
+        raise InputError(f"tile: expected an int >= 1 (pixels per tile side), found {tile!r}")
+    return [(slice(r, min(height, r + tile)), slice(c, min(width, c + tile)))
+            for r in range(0, height, tile) for c in range(0, width, tile)]
+
+
+class _Tiles:
+    """The full-resolution passes: observations of one tile at a time, sums in tile order."""
+
+    def __init__(self, capture: TiledCapture, tile: int, dt: torch.dtype, chunk: int, bar) -> None:
+        self.capture, self.dt, self.chunk, self.bar = capture, dt, chunk, bar
+        self.tiles = tile_grid(capture.height, capture.width, tile)
+        self.passes = 0
+
+    def observations(self, ref, labeler, with_stats: bool = False):
+        """Yield (rows, cols, observations) for every tile, in order."""
+        self.passes += 1
+        for rows, cols in self.tiles:
+            obs = build_observations(self.capture, dtype=self.dt, chunk=self.chunk, ref=ref, labeler=labeler,
+                                     with_stats=with_stats, window=(rows, cols))
+            yield rows, cols, obs
+            if self.bar is not None:
+                self.bar.update(1)
+
+
+def _solve_specular(tiles: _Tiles, ref, labeler, beta0: Tensor, first: Tensor, A: Tensor, *, tol: float,
+                    max_iters: int, s_fixed: Tensor | None, beta_fixed: Tensor | None, on_iter) -> tuple:
+    """LM on β (K, 3) with per-element sums reduced over tiles — :func:`~torchmetal.fit.refine.fit_specular`'s
+    iteration, its evaluation a pass over the tiles. Returns (s, α, cost, LM result)."""
+    k = int(beta0.shape[0])
+    floor = (0.01 * torch.finfo(tiles.dt).eps * A).reshape(-1)
+
+    def evaluate(stats: Tensor) -> LMEval:
+        s, cost, g, h = element_terms(stats, A, s_fixed=s_fixed)
+        return LMEval(cost.reshape(-1), g.reshape(-1, 1), h.reshape(-1, 1, 1), aux=s.reshape(-1), floor=floor)
+
+    def oracle(x: Tensor) -> LMEval:
+        alpha = torch.exp(x.view(k, 3))
+        total = torch.zeros(6, k, 3, dtype=torch.float64)
+        for _, _, obs in tiles.observations(ref, labeler):
+            total += spec_sums(obs, alpha)[0]
+        return evaluate(total)
+
+    lo = torch.full((k * 3, 1), BETA_MIN, dtype=torch.float64)
+    hi = torch.full_like(lo, BETA_MAX)
+    if beta_fixed is not None:
+        bf = beta_fixed.reshape(-1, 1).to(torch.float64)
+        pin = ~torch.isnan(bf)
+        lo, hi = torch.where(pin, bf, lo), torch.where(pin, bf, hi)
+    x0 = torch.minimum(torch.maximum(beta0.reshape(-1, 1).to(torch.float64), lo), hi)
+    ev0 = evaluate(first) if bool((x0 == beta0.reshape(-1, 1).to(torch.float64)).all()) else oracle(x0)
+    on_iter(0, ev0)
+    res = levenberg_marquardt(oracle, x0, lower=lo, upper=hi, tol=tol, xtol=tol, max_iters=max_iters,
+                              merge=lambda new, old, acc: torch.where(acc, new, old), first=ev0,
+                              on_iter=lambda it, x, ev, done: on_iter(it, ev))
+    return res.eval.aux.view(k, 3), torch.exp(res.x.view(k, 3)), res.eval.cost.view(k, 3), res
+
+
+def fit_tiled(
+    capture: TiledCapture | str,
+    *,
+    tile: int = 1024,
+    specular: str = "auto",
+    tol: float = 1e-6,
+    max_iters: int = 100,
+    clusters: tuple[int, ...] = (2, 3, 4),
+    max_pixels_per_chunk: int = 4096,
+    sub_pixels: int = 1 << 16,
+    select_pixels: int = 1 << 13,
+    seed: int = 0,
+    progress: bool = False,
+    scratch: str | Path | None = None,
+) -> FitResult:
+    """:func:`~torchmetal.fit.fit_phong` (scheme "refine", least squares) of a tiled capture, tile by tile.
+
+    Args:
+        capture: a :class:`TiledCapture` or its directory (``.npy`` images; see
+            :func:`~torchmetal.scale.tiles.convert_capture`).
+        tile: tile side in pixels (memory ∝ tile² × shots).
+        specular, tol, max_iters, clusters, max_pixels_per_chunk, sub_pixels, select_pixels, seed:
+            as :func:`~torchmetal.fit.fit_phong`.
+        scratch: folder for the memory-mapped texture (and normals / labels) of the result
+            (default: a new temporary folder); keep it until the result is saved.
+
+    Returns:
+        :class:`~torchmetal.fit.FitResult` whose texture (3, H, W) is a view of a memory-mapped
+        file in ``scratch``; ``report()["tiled"]`` has the tile count and passes.
+    """
+    cap = capture if isinstance(capture, TiledCapture) else TiledCapture(capture)
+    tile_grid(cap.height, cap.width, tile)  # checks tile
+    if specular not in SPECULARS:
+        raise InputError(f"specular: expected one of {list(SPECULARS)}, found {specular!r}")
+    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+        raise InputError(f"tol: expected a finite number > 0, found {tol!r}")
+    if not (isinstance(max_iters, int) and max_iters >= 1):
+        raise InputError(f"max_iters: expected an int >= 1, found {max_iters!r}")
+    scratch = Path(scratch) if scratch is not None else Path(tempfile.mkdtemp(prefix="torchmetal-tiled-"))
+    scratch.mkdir(parents=True, exist_ok=True)
+    run = _Run(False)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(desc="fit --tile", unit="tile", leave=False)
+    try:
+        return _fit(cap, run, bar, tile=tile, specular=specular, tol=tol, max_iters=max_iters, clusters=tuple(clusters),
+                    chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
+                    scratch=scratch)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _subsample_decisions(cap, run: _Run, *, specular, tol, max_iters, clusters, chunk, stride, sel_stride, seed, dt):
+    """Steps 1–4 of ``fit_phong``'s refine scheme (least squares) on the strided subsamples:
+    returns (spec fit or None, labeler or None, s_fixed or None, selection info or None)."""
+    n_shots = cap.num_shots
+    sub_tol = max(tol, 1e-4)
+    with run.stage("init"):
+        sub = build_observations(cap, stride=stride, dtype=dt, chunk=chunk)
+        coarse = sub if sel_stride == stride else build_observations(cap, stride=sel_stride, dtype=dt, chunk=chunk)
+    if specular == "none":
+        run.skipped.append("specular: disabled by the caller (specular='none')")
+        return None, None, None, None
+    with run.stage("paper"):
+        pf = paper_scheme(coarse, tol=max(tol, INIT_TOL), max_iters=min(max_iters, INIT_ITERS),
+                          on_iter=lambda st, it, r, a: run.log(st, it, r, a, coarse.num_pixels))
+    with run.stage("init"):
+        beta0 = grid_beta(coarse, 1, extra=pf.alpha.view(1, 3))
+        del coarse
+    with run.stage("refine"):
+        glob = fit_specular(sub, beta0, tol=sub_tol, max_iters=max_iters, on_iter=run.logger("refine.sub", sub.num_pixels))
+    s_fixed = None
+    ev = evidence(glob)[0]
+    reason = None
+    if not bool(ev.any()):
+        one = " (one shot cannot separate diffuse and specular)" if n_shots == 1 else ""
+        frac = float(((glob.A - glob.cost) / glob.Y.clamp_min(1e-300)).max().clamp_min(0.0))
+        reason = (f"no highlight evidence{one}: the best specular term explains {frac:.1e} of the image energy "
+                  f"({float(glob.explained().max()):.1%} of the diffuse-only residual)")
+    elif n_shots >= 3:
+        with run.stage("select"):
+            kept, mse_s, mse_d = heldout_evidence(cap, glob, stride=sel_stride, hold=_hold_shot(sub, glob), tol=sub_tol,
+                                                  max_iters=max_iters, dtype=dt, chunk=chunk, weighting=None)
+        if not kept:
+            reason = (f"no highlight evidence on a held-out shot (MSE {mse_s:.4g} with the specular term vs "
+                      f"{mse_d:.4g} diffuse only)")
+    if reason is not None:
+        run.skipped.append(f"specular: {reason}; s = 0")
+        return None, None, None, None
+    if not bool(ev.all()):
+        chans = [c for c, e in zip("RGB", ev.tolist()) if not e]
+        run.skipped.append(f"specular: no highlight evidence in channel(s) {', '.join(chans)}; s = 0 there")
+        s_fixed = torch.where(ev, torch.full_like(glob.s[0], math.nan), torch.zeros_like(glob.s[0])).view(1, 3)
+    sel = None
+    if specular in ("auto", "clustered"):
+        if n_shots < 3 and specular == "auto":
+            run.skipped.append(f"specular clusters: a held-out test needs >= 3 shots, found {n_shots}")
+        elif s_fixed is not None and specular == "auto":
+            run.skipped.append("specular clusters: not tried (some channels show no highlight)")
+        else:
+            with run.stage("select"):
+                hold = _hold_shot(sub, glob) if n_shots >= 3 else None
+                sel = choose_specular(cap, glob, candidates=clusters, stride=sel_stride, hold=hold,
+                                      force=specular == "clustered", tol=sub_tol, max_iters=max_iters, dtype=dt,
+                                      chunk=chunk, weighting=None, seed=seed)
+            if sel.k == 1:
+                run.skipped.append(f"specular clusters: not kept ({sel.reason})")
+    labeler = sel.labeler if sel is not None and sel.k > 1 else None
+    spec = glob
+    if labeler is not None:
+        with run.stage("refine"):
+            sub = build_observations(cap, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
+                                     labeler=labeler, want_tmin=True)
+            spec = fit_clustered(sub, labeler, glob, tol=sub_tol, max_iters=max_iters)
+    info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason}
+    return spec, labeler, s_fixed, info
+
+
+def _memmap(path: Path, shape: tuple[int, ...], dtype) -> np.memmap:
+    return np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape)
+
+
+def _fit(cap: TiledCapture, run: _Run, bar, *, tile, specular, tol, max_iters, clusters, chunk, sub_pixels, select_pixels,
+         seed, scratch: Path) -> FitResult:
+    dt = compute_dtype(cap.images)
+    h, w = cap.height, cap.width
+    stride, sel_stride = grid_stride(h, w, sub_pixels), grid_stride(h, w, select_pixels)
+    spec, labeler, s_fixed, sel_info = _subsample_decisions(
+        cap, run, specular=specular, tol=tol, max_iters=max_iters, clusters=clusters, chunk=chunk, stride=stride,
+        sel_stride=sel_stride, seed=seed, dt=dt)
+    tiles = _Tiles(cap, tile, dt, chunk, bar)
+    k = 1 if spec is None else spec.k
+    ref = None if spec is None else Reference(spec.s, spec.alpha)
+
+    # pass 1: per-pixel constants → element sums, the first LM evaluation, what the texture step needs
+    A = torch.zeros(k, 3, dtype=torch.float64)
+    first = torch.zeros(6, k, 3, dtype=torch.float64)
+    n_total = 0.0
+    seen_stats = SeenStats()
+    flat = True
+    area = torch.zeros(k, dtype=torch.float64)
+    with run.stage("geometry"):
+        for rows, cols, obs in tiles.observations(ref, labeler, with_stats=spec is not None):
+            A += obs.element_sum(obs.A, k)
+            n_total += float(obs.n.double().sum())
+            if spec is not None:
+                first += obs.first_stats[0]
+            seen_stats.add(obs.saa)
+            nrm = cap.normals[:, rows, cols]
+            flat = flat and bool((nrm[0] == 0).all() and (nrm[1] == 0).all() and (nrm[2] == 1).all())
+            if labeler is not None:
+                area += torch.bincount(obs.labels, minlength=k).double()
+    if seen_stats.needs_median():  # the exact median of Σw·a² (one more pass); else any value below it works
+        med = seen_stats.median(lambda: (o.saa for _, _, o in tiles.observations(None, None)))
+    else:
+        med = seen_stats.hi.clone()
+    n_obs = max(1.0, n_total)
+
+    # the LM on β over tile passes
+    status, cost, s, alpha = "converged", None, None, None
+    if spec is not None:
+        s_fix = b_fix = None
+        if labeler is not None:
+            pinned = spec.pinned
+            if pinned is not None and bool(pinned.any()):
+                s_fix = torch.where(pinned, spec.s, torch.full_like(spec.s, math.nan))
+                b_fix = torch.where(pinned, torch.log(spec.alpha), torch.full_like(spec.s, math.nan))
+        elif s_fixed is not None:
+            s_fix = s_fixed
+
+        def log(it: int, ev: LMEval) -> None:
+            run.log("refine", it, math.sqrt(float(ev.cost.sum()) / n_obs), 1.0, h * w)
+
+        with run.stage("refine"):
+            s, alpha, cost, res = _solve_specular(tiles, ref, labeler, torch.log(spec.alpha), first, A, tol=tol,
+                                                  max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix, on_iter=log)
+        status = res.status
+
+    # last pass: the texture of each tile in closed form, into a memory-mapped file
+    raw_file = _memmap(scratch / "texture_raw.npy", (h, w, 3), np.float32)
+    bad_file = _memmap(scratch / "unobserved.npy", (h, w, 3), np.bool_)
+    n_bad = 0
+    lab_file = _memmap(scratch / "specular_labels.npy", (h, w), np.int64) if labeler is not None else None
+    with run.stage("texture"):
+        for rows, cols, obs in tiles.observations(ref, labeler):
+            if spec is None:
+                tex = torch.where(obs.saa > 0, obs.d0, obs.fallback)
+            else:
+                tex = texture_map(obs, s, spec_sums(obs, alpha)[1])
+            bad = unobserved_tile(obs.saa, cap.mask[..., rows, cols].reshape(-1), med)
+            n_bad += int(bad.any(0).sum())
+            raw_file[rows, cols] = tex.reshape(3, obs.height, obs.width).permute(1, 2, 0).numpy()
+            bad_file[rows, cols] = bad.reshape(3, obs.height, obs.width).permute(1, 2, 0).numpy()
+            if lab_file is not None:
+                lab_file[rows, cols] = obs.labels.reshape(obs.height, obs.width).numpy()
+        if n_bad:
+            run.skipped.append(f"texture: {n_bad} mask pixel(s) never observed usefully (grazing, shadowed or saturated "
+                               "in every shot) are inpainted from their neighbours")
+        tex_file = _memmap(scratch / "texture.npy", (h, w, 3), np.float32)
+        fill_tiles(raw_file, bad_file, tiles.tiles, tex_file)
+    tex_file.flush()
+    del raw_file, bad_file
+    for f in ("texture_raw.npy", "unobserved.npy"):
+        (scratch / f).unlink(missing_ok=True)
+    if spec is None:
+        rmse = math.sqrt(float(A.sum()) / n_obs)
+        run.log("texture", 0, rmse, 1.0, h * w)
+    else:
+        rmse = math.sqrt(float(cost.sum()) / n_obs)
+    texture = torch.from_numpy(tex_file).permute(2, 0, 1)
+    normals = torch.tensor([0.0, 0.0, 1.0], dtype=dt).view(3, 1, 1).expand(3, h, w)
+    if not flat:
+        nrm_file = _memmap(scratch / "normals.npy", (h, w, 3), np.float32)
+        for rows, cols in tiles.tiles:
+            nrm_file[rows, cols] = cap.normals[:, rows, cols].permute(1, 2, 0).numpy()
+        nrm_file.flush()
+        normals = torch.from_numpy(nrm_file).permute(2, 0, 1)
+    common = dict(texture=texture, normals=normals, size=tuple(float(v) for v in cap.size), history=run.history,
+                  stage_times=run.times, iterations=run.iterations, skipped=run.skipped, flat=flat, status=status,
+                  rmse=rmse, scheme="refine", selection=sel_info)
+    if spec is None:
+        z = torch.zeros(3, dtype=dt)
+        result = FitResult(s=z, alpha=torch.full_like(z, ALPHA_MIN), specular="none", **common)
+    elif k == 1:
+        result = FitResult(s=s[0].to(dt), alpha=alpha[0].to(dt), specular="global", **common)
+    else:
+        frac = area / area.sum().clamp_min(1.0)
+        result = FitResult(s=(frac @ s).to(dt), alpha=(frac @ alpha).to(dt), spec_labels=torch.from_numpy(lab_file),
+                           cluster_s=s.to(dt), cluster_alpha=alpha.to(dt), specular="clustered", **common)
+    result.tiled = {"tile": tile, "tiles": len(tiles.tiles), "passes": tiles.passes, "scratch": str(scratch)}
+    if not bool(torch.isfinite(result.s).all() and torch.isfinite(result.alpha).all()) or not math.isfinite(rmse):
+        raise FitError("fit --tile: expected finite fit values, found NaN/Inf (non-finite residuals)")
+    return result
+
+
+def fit_tiled_material(capture_path, *, tile: int, scheme: str = "refine", specular: str = "auto",
+                       flakes: str = "auto", tol: float = 1e-6, max_iters: int = 100, robust: str | None = "auto",
+                       seed: int = 0, progress: bool = False, scratch: str | Path):
+    """``fit --tile``: a tiled capture (or any capture, converted into ``scratch`` first, one
+    image at a time) → :class:`~torchmetal.pipeline.PipelineResult` with the flake stage skipped.
+
+    Options as :func:`~torchmetal.pipeline.fit_material`; the tiled fit is the refine scheme by
+    least squares (robust "auto" is that when no flakes are fitted), so other values are refused.
+    """
+    from torchmetal.pipeline import PipelineResult
+    from torchmetal.scale.tiles import convert_capture, is_tiled
+
+    if scheme != "refine":
+        raise InputError(f"scheme: expected 'refine' with --tile (the tiled fit is the refine scheme), found {scheme!r}")
+    if robust not in ("auto", None, "none"):
+        raise InputError(f"robust: expected 'auto' or 'none' with --tile (least squares), found {robust!r}")
+    if flakes == "on":
+        raise InputError("flakes: expected 'auto' or 'off' with --tile (flake detection needs whole images), found 'on'")
+    t0 = time.perf_counter()
+    scratch = Path(scratch)
+    skipped = []
+    path = capture_path
+    if not is_tiled(capture_path):
+        path = convert_capture(capture_path, scratch / "capture")
+        skipped.append("tiles: the capture's images are not .npy arrays; converted to a tiled capture first")
+    fit = fit_tiled(path, tile=tile, specular=specular, tol=tol, max_iters=max_iters, seed=seed, progress=progress,
+                    scratch=scratch / "result")
+    skipped += list(fit.skipped)
+    skipped.append("flakes: not run by the tiled fit (flake detection needs whole images)")
+    report = {"stage_times": {f"phong.{k}": v for k, v in fit.stage_times.items()}, "total_time": time.perf_counter() - t0,
+              "skipped": skipped, "status": fit.status, "iterations": fit.iterations, "rmse": fit.rmse, "flakes": None,
+              "tiled": {k: v for k, v in fit.tiled.items() if k != "scratch"}}
+    material = fit.to_material(report_extra=report)
+    result = PipelineResult(material=material, fit=fit, flakes=None, report=material.report)
+    result.capture = TiledCapture(path)
+    return result
