@@ -30,8 +30,10 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from torchmetal.fit.lobes import geo_channels, lobe_terms, observation_lobe_terms
 from torchmetal.fit.projected_sums import chunk_stats, reduce_stats
 from torchmetal.geometry import grid_shading_terms, pixel_axes
+from torchmetal.lobes import grid_half_terms
 from torchmetal.phong import log1p_exact
 
 LOG_OFF = -1.0e4  # L where r·v ≤ 0: exp(α·L) = 0 for every α ≥ 1
@@ -124,6 +126,8 @@ class Observations:
     width: int
     dtype: torch.dtype
     first_stats: tuple[Tensor, Tensor] | None = None  # VP stats at the reference α (with_stats)
+    lobe: str = "phong"  # the specular lobe L (and geo) describe (torchmetal.fit.lobes)
+    geo: Tensor | None = None  # (N, 3, P) GGX geometry (1 − n·h, n·l, n·v), None for phong/blinn
 
     @property
     def num_shots(self) -> int:
@@ -153,6 +157,14 @@ class Observations:
         if shots is not None:
             y, g, u, L, inten = (t.index_select(0, shots) for t in (y, g, u, L, inten))
         return y.to(self.dtype), g, u, L, self.w(sl, shots), inten
+
+    def geo_chunk(self, j: int, shots: Tensor | None = None) -> Tensor | None:
+        """The lobe geometry (n, 3, c) of chunk j (restricted to ``shots``), None for phong/blinn."""
+        if self.geo is None:
+            return None
+        p0, p1 = self.chunks[j]
+        geo = self.geo[:, :, p0:p1]
+        return geo if shots is None else geo.index_select(0, shots)
 
     def active_shots(self, alpha_lo: float) -> Tensor:
         """(N, n_chunks) bool: the lobe can exceed e^-40 somewhere in the chunk for α ≥ alpha_lo."""
@@ -234,13 +246,14 @@ def observation_geometry(n_dot_l: Tensor, spec_q: Tensor, dist2: Tensor) -> tupl
 
 def grid_geometry(
     capture, rows: slice, cols: slice, lights: Tensor, cams: Tensor, dtype: torch.dtype, block_rows: int,
-    *, out: tuple[Tensor, Tensor, Tensor],
+    *, out: tuple[Tensor, Tensor, Tensor], lobe: str = "phong", geo_out: Tensor | None = None,
 ) -> None:
     """Fill ``out`` = (g, u, L), each (n, 1, R·C), for the pixel grid ``rows`` × ``cols``.
 
     lights, cams (n, 4) in ``dtype``. Works in blocks of ``block_rows`` grid rows (memory only:
     every term is per pixel, so the values do not depend on it). Flat normals (0, 0, 1) take the
-    cheaper path of :func:`~torchmetal.geometry.grid_shading_terms`.
+    cheaper path of :func:`~torchmetal.geometry.grid_shading_terms`. For ``lobe`` "blinn" L is
+    log n·h, for "ggx" L and ``geo_out`` (n, 3, R·C) are :mod:`torchmetal.fit.lobes`'s.
     """
     big_h, big_w = int(capture.images.shape[-2]), int(capture.images.shape[-1])
     xs, ys = pixel_axes(big_h, big_w, capture.size, rows=rows, cols=cols, dtype=dtype, device=lights.device)
@@ -250,7 +263,16 @@ def grid_geometry(
     for r0 in range(0, h, block_rows):
         r1 = min(h, r0 + block_rows)
         nrm = None if flat else normals[:, r0:r1].to(dtype)
-        terms = observation_geometry(*grid_shading_terms(lights, cams, xs, ys[r0:r1], nrm))
+        nl, q, d2 = grid_shading_terms(lights, cams, xs, ys[r0:r1], nrm)
+        if lobe == "phong":
+            terms = observation_geometry(nl, q, d2)
+        else:
+            hq, nv, vh = grid_half_terms(lights, cams, xs, ys[r0:r1], nrm)
+            g, u, log_cos = observation_geometry(nl, hq, d2)
+            L, geo = observation_lobe_terms(lobe, nl, q, hq, nv, vh, log_cos)
+            terms = (g, u, L)
+            if geo is not None:
+                geo_out[:, :, r0 * w : r1 * w] = geo.reshape(3, n, (r1 - r0) * w).transpose(0, 1)
         for dst, src in zip(out, terms):
             dst[:, 0, r0 * w : r1 * w] = src.reshape(n, (r1 - r0) * w)
 
@@ -267,6 +289,7 @@ def build_observations(
     labeler: Callable[[Tensor, Tensor], Tensor] | None = None,
     want_tmin: bool = False,
     with_stats: bool = False,
+    lobe: str = "phong",
     window: tuple[slice, slice] | None = None,
 ) -> Observations:
     """Precompute the observations of ``capture`` on a pixel grid of the given stride.
@@ -286,6 +309,7 @@ def build_observations(
         want_tmin: keep T_min (3, P).
         with_stats: also compute the variable-projection stats at ``ref``'s α in the same pass
             (``first_stats``: (stats (6, K, 3), e_b (3, P)) for :func:`~torchmetal.fit.refine.fit_specular`).
+        lobe: the specular lobe, one of :data:`torchmetal.lobes.LOBES` (L and geo follow it).
         window: (rows, cols) slices of full-resolution pixels to use instead of the stride grid
             (a tile of a tiled fit: the same values as those pixels of the whole grid).
 
@@ -338,7 +362,9 @@ def build_observations(
     if with_stats and ref is not None:
         stats_acc = torch.zeros(6, 3, ref.k, dtype=torch.float64, device=dev)
         eb_all = new(3, p)
-    grid_geometry(capture, rows, cols, lights, cams, dt, max(1, chunk // w), out=(g_all, u_all, l_all))
+    geo_all = new(n_shots, 3, p) if geo_channels(lobe) else None
+    grid_geometry(capture, rows, cols, lights, cams, dt, max(1, chunk // w), out=(g_all, u_all, l_all), lobe=lobe,
+                  geo_out=geo_all)
 
     for j, (p0, p1) in enumerate(chunks):
         sl = slice(p0, p1)
@@ -363,8 +389,7 @@ def build_observations(
         b = t = s_c = None
         if ref is not None:
             s_c, al_c = ref_dt.maps(lab, p1 - p0)
-            t = al_c.unsqueeze(0) * L
-            b = (inten * u) * torch.exp(t)
+            _, b, t = lobe_terms(g, u, L, inten, al_c.unsqueeze(0), None if geo_all is None else geo_all[:, :, sl], lobe)
         wts = base
         wa = a * wts
         s_aa = (wa * a).sum(0)
@@ -411,4 +436,5 @@ def build_observations(
         y=y, g=g_all, u=u_all, L=l_all, inten=inten, valid=valid_all, weight=weight_all, chunks=chunks, lmax=lmax,
         saa=saa, d0=d0, A=A, Y=Y, n=cnt, fallback=fb, labels=labels, tmin=tmin_all, height=h, width=w, dtype=dt,
         first_stats=None if stats_acc is None else (stats_acc.permute(0, 2, 1).contiguous(), eb_all),
+        lobe=lobe, geo=geo_all,
     )
