@@ -249,8 +249,7 @@ def capture_from_photos(
         d2 = (lv * lv).sum(1)
         irr = np.clip(lv[:, 2], 0, None) / (d2 * np.sqrt(d2))
         gains = r.paper[1] / r.paper
-        green = r.paper_values[:, 1]
-        per_unit.append(float(np.median(green / np.maximum(irr, 1e-12))) / rel[i])
+        per_unit.append(float(r.paper[1]) / max(float(np.median(irr)), 1e-12) / rel[i])
         r.image *= gains[:, None, None].astype(np.float32)
         entries[i]["white_balance"] = [round(float(g), 4) for g in gains]
         lights[i], cams[i] = light, camera_position(board, rvec, tvec)

@@ -24,6 +24,7 @@ __all__ = ["Observation", "inspect_photo", "decode_photo", "detect_corners", "ed
 DETECT_SIDE = 2048  # markers are searched on a copy at most this long (pixels)
 MIN_CORNERS = 12  # fewer usable corners: the board is cut off or hidden
 THUMB_SIDE = 360
+SUBPIX_FRACTION = 0.1  # cornerSubPix half-window over the (foreshortened) square: inside the white margin
 CROP_MARGIN_MM = BLANK_MARGIN_MM + 4.0  # kept around the window: sample + paper reference band
 
 
@@ -101,7 +102,7 @@ def detect_corners(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarr
         return ids, pts, quads
     # refine at full resolution, with a window a fifth of the local square size
     square_px = _square_px(ids, pts, board)
-    half = int(np.clip(round(0.2 * square_px), 3, 15))
+    half = int(np.clip(round(SUBPIX_FRACTION * square_px), 2, 15))
     p32 = pts.astype(np.float32).reshape(-1, 1, 2)
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 40, 1e-3)
     cv2.cornerSubPix(gray, p32, (half, half), (-1, -1), crit)
@@ -111,11 +112,14 @@ def detect_corners(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarr
 
 
 def _square_px(ids: np.ndarray, pts: np.ndarray, board: Board) -> float:
-    """Median image distance between horizontally adjacent corners (the square size in pixels)."""
+    """The board's squares in pixels, in the more foreshortened direction: the smaller of the median
+    image distances between horizontally and vertically adjacent corners."""
     n = board.squares[0] - 1
     pos = {int(i): p for i, p in zip(ids, pts)}
-    d = [np.linalg.norm(pos[i + 1] - p) for i, p in pos.items() if (i + 1) in pos and (i + 1) % n != 0]
-    return float(np.median(d)) if d else 20.0
+    horiz = [np.linalg.norm(pos[i + 1] - p) for i, p in pos.items() if (i + 1) in pos and (i + 1) % n != 0]
+    vert = [np.linalg.norm(pos[i + n] - p) for i, p in pos.items() if (i + n) in pos]
+    meds = [float(np.median(d)) for d in (horiz, vert) if d]
+    return min(meds) if meds else 20.0
 
 
 def edge_width(gray: np.ndarray, quads: list[np.ndarray], max_patches: int = 24) -> float | None:

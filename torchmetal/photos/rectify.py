@@ -78,6 +78,24 @@ def _ring_points(board: Board, step: float = 0.5) -> np.ndarray:
     return np.stack([cx + gx, cy - gy, np.zeros(gx.size)], 1)
 
 
+def _paper(board: Board, points: np.ndarray, values: np.ndarray, pose) -> np.ndarray:
+    """Linear RGB (3,) of the paper band: the median of its brightest half, where neither ink nor
+    the sample bleeds in (both are darker than paper; their colour would tint the reference).
+    Brightness is compared after dividing out the fall-off cos/d² from the camera (the flash
+    sits beside it); the result is scaled back to the band's median fall-off."""
+    import cv2
+
+    rot = cv2.Rodrigues(np.asarray(pose[0], np.float64).reshape(3, 1))[0]
+    centre = -rot.T @ np.asarray(pose[1], np.float64)
+    d = centre[None] - points
+    d2 = (d * d).sum(1)
+    falloff = np.abs(d[:, 2]) / (d2 * np.sqrt(d2))
+    v = values / falloff[:, None]
+    lum = v.mean(1)  # selecting on one channel would bias it by its own noise
+    bright = lum >= np.median(lum)
+    return np.median(v[bright], axis=0) * float(np.median(falloff))
+
+
 def _sample(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
     """Bilinear lookup (any number of points, reshaped to fit cv2.remap's size limits)."""
     import cv2
@@ -121,7 +139,7 @@ def rectify(obs: Observation, board: Board, intr: Intrinsics, pose, h: int, w: i
     seen = in_img[:n].reshape(h, ss, w, ss).all((1, 3))
     ring_ok = in_img[n:] & ~(sats[n:] > 0).any(1)
     ring_vals = vals[n:][ring_ok][:, ::-1]
-    paper = np.median(ring_vals, axis=0) if len(ring_vals) >= 20 else None
+    paper = _paper(board, ring[ring_ok], ring_vals, pose) if len(ring_vals) >= 20 else None
     return Rectified(
         image=np.ascontiguousarray(img[:, :, ::-1].transpose(2, 0, 1)), saturated=np.ascontiguousarray(sat[:, :, ::-1].transpose(2, 0, 1)),
         seen=seen, paper=paper, paper_points=ring[ring_ok], paper_values=ring_vals, px_per_cell=scale, supersample=ss,

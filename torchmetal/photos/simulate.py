@@ -62,6 +62,7 @@ class PhotoSet:
     lights: np.ndarray  # (N, 3) capture frame, m
     intensity: np.ndarray  # (N,) flash intensity in photo pixel units (flash power × gain)
     exif: list[PhotoExif] = field(default_factory=list)
+    tints: np.ndarray | None = None  # (N, 3) the auto white balance's gains on each photo
 
 
 def smooth_texture(h: int, w: int, seed: int = 0, lo: float = 0.08, hi: float = 0.6) -> torch.Tensor:
@@ -285,7 +286,7 @@ def phone_photos(out_dir: str | os.PathLike, board: Board, sample: Sample, *, n:
     n = len(poses)
     sheet = render_sheet(board) if sheet is None else sheet
     rng = np.random.default_rng(seed + 1000)
-    paths, cams, lights, inten, exifs = [], [], [], [], []
+    paths, cams, lights, inten, exifs, tints = [], [], [], [], [], []
     for k, pose in enumerate(poses):
         c = camera_position(board, *pose)
         light = flash_position(board, *pose, flash_offset_mm)
@@ -311,7 +312,9 @@ def phone_photos(out_dir: str | os.PathLike, board: Board, sample: Sample, *, n:
         lights.append(light)
         inten.append(gain)
         exifs.append(ex)
-    return PhotoSet(paths, board, sample, camera, list(poses), np.array(cams), np.array(lights), np.array(inten), exifs)
+        tints.append(wb)
+    return PhotoSet(paths, board, sample, camera, list(poses), np.array(cams), np.array(lights), np.array(inten), exifs,
+                    np.array(tints))
 
 
 def direct_render(photos: PhotoSet, indices=None) -> torch.Tensor:
