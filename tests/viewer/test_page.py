@@ -237,3 +237,42 @@ def test_config_is_shared(scene, served):
     for key in ("format", "version", "width", "height", "surface", "graphs", "shots"):
         assert static[key] == live[key], key
     assert (static["mode"], live["mode"]) == ("static", "served")
+
+
+def test_file_url_says_how_to_serve(browser, scene):
+    p = browser.new_page()
+    try:
+        p.goto((scene.site / "index.html").as_uri())
+        assert "python3 -m http.server" in p.locator("#status").inner_text()
+    finally:
+        p.close()
+
+
+def test_webgpu_switch_falls_back_to_wasm(browser, scene, tmp_path):
+    """A site with ORT's WebGPU build, opened with ?ep=webgpu on a GPU-less browser, still renders right."""
+    import shutil
+
+    from torchmetal.formats.web import WEBGPU_FILES, find_ort_web
+    from torchmetal.viewer.browser import open_viewer, serve_folder
+
+    site = tmp_path / "site"
+    shutil.copytree(scene.site, site, symlinks=True)
+    dist, _ = find_ort_web(webgpu=True)
+    for name in WEBGPU_FILES:
+        (site / "ort" / name).symlink_to(dist / name)
+    cfg = json.loads((site / "config.json").read_text())
+    cfg["ort"]["webgpu"] = f"ort/{WEBGPU_FILES[0]}"
+    (site / "config.json").write_text(json.dumps(cfg))
+    httpd, url = serve_folder(site)
+    try:
+        p = open_viewer(browser, url + "?ep=webgpu" + CHOSEN[0])
+        try:
+            assert p.locator("#ep-box").is_visible() and p.locator("#ep").input_value() == "webgpu"
+            label = p.locator("#mode").inner_text()
+            assert "(WebGPU" in label or "no WebGPU adapter, using wasm" in label, label
+            assert_matches(canvas(p), expected(scene, parse_hash(CHOSEN[0])), f"ep=webgpu ({label})")
+        finally:
+            p.close()
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
