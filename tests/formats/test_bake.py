@@ -30,7 +30,23 @@ def test_clearcoat_layout_and_auto_choice():
     assert float(cc.f0[:, f.weight[0] < 0.5].abs().max()) == 0.0  # the base holds only the flakes
     auto = engine_material(m)
     errs = auto.extras["flake_bake"]["render_error"]
-    assert set(errs) == {"base", "clearcoat"} and auto.extras["flake_bake"]["mode"] == min(errs, key=errs.get)
+    assert set(errs) == {"base", "clearcoat", "flake_clearcoat"}
+    assert auto.extras["flake_bake"]["mode"] == min(errs, key=errs.get)
+    no_coat_normals = engine_material(m, coat_normals=False)
+    assert set(no_coat_normals.extras["flake_bake"]["render_error"]) == {"base", "clearcoat"}
+
+
+def test_flakes_as_clear_coat_over_the_coat():
+    m = make_material("bumpy-clustered-flakes")
+    em = engine_material(m, flakes="flake_clearcoat")
+    f = flake_field(m.flakes, m.height, m.width, m.flat_normals())
+    flake = f.weight[0] >= 0.5
+    assert em.coat is not None and float(em.coat.weight[0, ~flake].abs().max()) == 0.0
+    assert float(em.coat.weight[0, flake].min()) > 0.0
+    torch.testing.assert_close(em.coat.normal[:, flake], f.normal[:, flake].float())
+    torch.testing.assert_close(em.normal, m.normals, atol=1e-6, rtol=0)  # the base keeps the surface normals
+    assert torch.equal(em.roughness, engine_material(_without_flakes(m)).roughness)
+
 
 
 def test_baked_flake_glints_where_torchmetal_glints():
@@ -48,16 +64,23 @@ def test_baked_flake_glints_where_torchmetal_glints():
     no_flakes = m.to("cpu")
     no_flakes.flakes = None
     coat = MaterialRenderer(no_flakes)(light, inten, cam)[0, :, i, j]
-    baked = engine_render(engine_material(m, flakes="base"), light, inten, cam)[0, :, i, j]
     plain = engine_render(engine_material(no_flakes), light, inten, cam)[0, :, i, j]
     assert float((ref - coat).min()) > 0.3  # a strong sparkle in torchmetal
-    assert float((baked - ref).abs().max()) < 0.5 * float((plain - ref).abs().max()), (ref, baked, plain)
+    for layout in ("base", "flake_clearcoat"):
+        baked = engine_render(engine_material(m, flakes=layout), light, inten, cam)[0, :, i, j]
+        assert float((baked - ref).abs().max()) < 0.5 * float((plain - ref).abs().max()), (layout, ref, baked, plain)
 
 
 def test_finer_texels():
     m = make_material("flat-global-flakes")
     em = engine_material(m, flakes="base", texels_per_pixel=2)
     assert em.base_color.shape == (3, 2 * m.height, 2 * m.width) and em.extras["flake_bake"]["texels_per_pixel"] == 2
+
+
+def _without_flakes(m):
+    out = m.to("cpu")
+    out.flakes = None
+    return out
 
 
 @pytest.mark.parametrize("kw, match", [({"flakes": "sparkly"}, "flakes: expected one of"),

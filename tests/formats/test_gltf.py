@@ -79,7 +79,7 @@ def test_read_back(kind, exported):
         extras = back.extras
         assert extras["lobe_fit"][0]["roughness"] > 0 and len(extras["lobe_fit"][0]["error"]) == 3
         if m.flakes is not None:
-            assert extras["flakes"] == m.flakes.to_dict() and extras["flake_bake"]["mode"] in ("base", "clearcoat")
+            assert extras["flakes"] == m.flakes.to_dict() and extras["flake_bake"]["mode"] in ("base", "clearcoat", "flake_clearcoat")
 
 
 def test_glb_is_one_binary_file(exported):

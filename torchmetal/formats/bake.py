@@ -9,9 +9,14 @@ scaled by the texel's footprint and glint colour. Two layer layouts:
 - ``"clearcoat"``: the base layer holds only the flakes (specular 0 elsewhere) under a smooth
   KHR_materials_clearcoat layer carrying the coat lobe; the glTF coat is grey with F0 = 0.04·weight,
   so a coat brighter than that is clipped.
+- ``"flake_clearcoat"``: the base layer keeps the coat lobe everywhere and the flakes become the clear
+  coat (weight = the glint's F0/0.04 on flake texels, 0 elsewhere; the coat normal map = the flake
+  normals; grey): torchmetal adds its sparkles on top of the coat, and so does this layout. Needs a
+  separate coat normal (glTF has one, UsdPreviewSurface does not).
 
-``"auto"`` renders both against torchmetal's renderer (:func:`~torchmetal.formats.engine.check_lights`)
-and keeps the one with the lower relative error; both errors go to ``extras["flake_bake"]``.
+``"auto"`` renders every candidate against torchmetal's renderer
+(:func:`~torchmetal.formats.engine.check_lights`) and keeps the one with the lower relative error; all
+errors go to ``extras["flake_bake"]``.
 ``texels_per_pixel`` k > 1 bakes a k× finer field with the same statistics (density/k², areas·k²);
 k = 1 reproduces torchmetal's own flakes texel for pixel.
 """
@@ -29,7 +34,7 @@ from torchmetal.formats.engine import COAT_F0, Coat, EngineMaterial, check_light
 from torchmetal.formats.lobe_fit import fit_glint
 from torchmetal.geometry import normalize
 
-MODES = ("auto", "base", "clearcoat")
+MODES = ("auto", "base", "clearcoat", "flake_clearcoat")
 
 
 def _up(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -37,8 +42,9 @@ def _up(x: torch.Tensor, k: int) -> torch.Tensor:
 
 
 def bake_flakes(em: EngineMaterial, material, *, mode: str = "auto", texels_per_pixel: int = 1,
-                views: torch.Tensor | None = None) -> EngineMaterial:
-    """``em`` with ``material.flakes`` baked in (see the module docstring)."""
+                views: torch.Tensor | None = None, coat_normals: bool = True) -> EngineMaterial:
+    """``em`` with ``material.flakes`` baked in (see the module docstring); ``coat_normals`` False
+    leaves "flake_clearcoat" out of "auto" (targets whose coat has no normal map of its own)."""
     if mode not in MODES:
         raise ExportError(f"flakes: expected one of {', '.join(MODES)}, found {mode!r}")
     k = int(texels_per_pixel)
@@ -68,6 +74,15 @@ def bake_flakes(em: EngineMaterial, material, *, mode: str = "auto", texels_per_
             f90 = torch.where(flake, f90_flake, up["f90"])
             rough = torch.where(flake, torch.full_like(up["roughness"], glint.roughness), up["roughness"])
             coat = None
+        elif which == "flake_clearcoat":
+            f0, f90, rough = up["f0"], up["f90"], up["roughness"]
+            weight = torch.where(flake, f0_flake.mean(0, keepdim=True) / COAT_F0, torch.zeros_like(up["roughness"]))
+            coat = Coat(weight=weight.clamp(0.0, 1.0), roughness=torch.full_like(rough, glint.roughness),
+                        normal=normal.clone())
+            clip["flake_clearcoat"] = float(((weight > 1.0) & flake).float().sum() / flake.float().sum().clamp_min(1.0))
+            return finish_base_color(EngineMaterial(base_color=texture.clone(), roughness=rough.clone(), f0=f0.clone(),
+                                                    f90=f90.clone(), normal=normals.clone(), size=em.size, coat=coat,
+                                                    extras=dict(em.extras)), texture)
         else:
             f0 = torch.where(flake, f0_flake, torch.zeros_like(up["f0"]))
             f90 = torch.where(flake, f90_flake, torch.zeros_like(up["f90"]))
@@ -78,7 +93,9 @@ def bake_flakes(em: EngineMaterial, material, *, mode: str = "auto", texels_per_
                              size=em.size, coat=coat, extras=dict(em.extras))
         return finish_base_color(out, texture)
 
-    candidates = ("base", "clearcoat") if mode == "auto" else (mode,)
+    clip: dict[str, float] = {}
+    auto = ("base", "clearcoat", "flake_clearcoat") if coat_normals else ("base", "clearcoat")
+    candidates = auto if mode == "auto" else (mode,)
     light, inten, cam = check_lights(em.size)
     errors = {}
     built = {}
@@ -91,6 +108,6 @@ def bake_flakes(em: EngineMaterial, material, *, mode: str = "auto", texels_per_
     out.extras["flake_bake"] = {
         "mode": chosen, "render_error": errors, "texels_per_pixel": k,
         "flake_texels": float(flake.float().mean()), "flakes": int(field.count),
-        "glint_fit": glint.to_dict(), "clipped_flake_texels": clipped,
+        "glint_fit": glint.to_dict(), "clipped_flake_texels": clip.get(chosen, clipped),
     }
     return out

@@ -138,15 +138,16 @@ def specular_fits(material, views: Tensor | None = None) -> tuple[Tensor, Tensor
 
 
 def engine_material(material, *, views: Tensor | None = None, flakes: str = "auto",
-                    texels_per_pixel: int = 1) -> EngineMaterial:
+                    texels_per_pixel: int = 1, coat_normals: bool = True) -> EngineMaterial:
     """The engine maps of ``material`` (see the module docstring).
 
     Args:
         material: a torchmetal Material.
         views: (V, 3) view directions for the lobe fit (default: polar 0–60°).
-        flakes: "auto" (the layout whose render matches torchmetal's better), "base" or
-            "clearcoat" (see :mod:`torchmetal.formats.bake`); ignored without flakes.
+        flakes: "auto" (the layout whose render matches torchmetal's best), "base", "clearcoat" or
+            "flake_clearcoat" (see :mod:`torchmetal.formats.bake`); ignored without flakes.
         texels_per_pixel: flake bake density (1: torchmetal's own flakes, texel for pixel).
+        coat_normals: whether the target has a separate coat normal map (glTF yes, USD preview no).
     """
     from torchmetal.formats.bake import bake_flakes
 
@@ -159,7 +160,8 @@ def engine_material(material, *, views: Tensor | None = None, flakes: str = "aut
                         extras={"lobe": _lobe_kind(material), "lobe_fit": fits,
                                 "light_convention": "engine irradiance = pi x torchmetal irradiance; base colour = texture d"})
     if material.flakes is not None:  # the bake finishes the base colour of its layout
-        return bake_flakes(em, material, mode=flakes, texels_per_pixel=texels_per_pixel, views=views)
+        return bake_flakes(em, material, mode=flakes, texels_per_pixel=texels_per_pixel, views=views,
+                           coat_normals=coat_normals)
     return finish_base_color(em, tex)
 
 

@@ -3,7 +3,8 @@
 - The universal context: ``UsdPreviewSurface`` in the specular workflow (``useSpecularWorkflow`` 1):
   ``diffuseColor`` = the base colour, ``specularColor`` = F0, ``roughness``, ``normal`` (tangent-space
   map, scale 2 / bias −1), ``clearcoat``/``clearcoatRoughness`` — the glTF engine maps of
-  :mod:`torchmetal.formats.engine` with the flakes baked (:mod:`torchmetal.formats.bake`).
+  :mod:`torchmetal.formats.engine` with the flakes baked (:mod:`torchmetal.formats.bake`; "base" or "clearcoat": the
+  preview's coat has no normal of its own).
 - The ``mtlx`` context: the MaterialX graph of :mod:`torchmetal.formats.mtlx` (``open_pbr_surface``
   + ``flake2d``) as UsdShade shaders whose ``info:id`` are the MaterialX node definitions
   (``ND_open_pbr_surface_surfaceshader``, ``ND_flake2d``, …), bound to ``outputs:mtlx:surface``.
@@ -205,7 +206,8 @@ def build_stage(material, tex_dir_name: str, *, views=None, flakes: str = "auto"
     from torchmetal.formats import mtlx
 
     Gf, Sdf, Usd, UsdGeom, UsdShade, Vt = _pxr()
-    em = engine_material(material, views=views, flakes=flakes, texels_per_pixel=texels_per_pixel)
+    # the preview surface has one normal for both layers: no flake_clearcoat layout
+    em = engine_material(material, views=views, flakes=flakes, texels_per_pixel=texels_per_pixel, coat_normals=False)
     _, plan, mx_tex = mtlx.mtlx_plan(material, views)
     textures = {**preview_textures(em), **mx_tex}
     files = {name: f"./{tex_dir_name}/{name}.png" for name in textures}
