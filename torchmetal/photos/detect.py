@@ -24,6 +24,7 @@ __all__ = ["Observation", "inspect_photo", "decode_photo", "detect_corners", "ed
 DETECT_SIDE = 2048  # markers are searched on a copy at most this long (pixels)
 MIN_CORNERS = 12  # fewer usable corners: the board is cut off or hidden
 THUMB_SIDE = 360
+BLURRED_PX = 4.0  # a photo without markers whose sharpest edges are this wide is called blurred
 SUBPIX_FRACTION = 0.1  # cornerSubPix half-window over the (foreshortened) square: inside the white margin
 CROP_MARGIN_MM = BLANK_MARGIN_MM + 4.0  # kept around the window: sample + paper reference band
 
@@ -187,12 +188,19 @@ def inspect_photo(path: str | os.PathLike, board: Board) -> Observation:
     ids, pts, quads = detect_corners(gray, board)
     obs.ids, obs.corners, obs.markers = ids, pts, len(quads)
     if not quads:
-        obs.reason = "no board found (no markers detected)"
-        return obs
-    if len(ids) < MIN_CORNERS:
-        obs.reason = f"board cut off or hidden: {len(ids)} usable corners found (need {MIN_CORNERS})"
+        h2, w2 = min(h, 1024), min(w, 1024)
+        y0, x0 = (h - h2) // 2, (w - w2) // 2
+        whole = [np.array([[x0, y0], [x0 + w2, y0], [x0 + w2, y0 + h2], [x0, y0 + h2]], np.float64)]
+        width = edge_width(gray, whole)
+        blurred = f": the photo is blurred (edges {width:.1f} px wide)" if width is not None and width > BLURRED_PX else ""
+        obs.reason = f"no board found (no markers detected){blurred}"
         return obs
     obs.blur_px = edge_width(gray, quads)
+    if len(ids) < MIN_CORNERS:
+        blurred = (f"; the photo is blurred (edges {obs.blur_px:.1f} px wide)"
+                   if obs.blur_px is not None and obs.blur_px > BLURRED_PX else "")
+        obs.reason = f"board cut off or hidden: {len(ids)} usable corners found (need {MIN_CORNERS}){blurred}"
+        return obs
     # the window's neighbourhood, located by a homography from the corners (no intrinsics yet)
     obj = board.corner_points()[ids][:, :2]
     hom, _ = cv2.findHomography(obj, pts, 0)
