@@ -276,3 +276,29 @@ def test_webgpu_switch_falls_back_to_wasm(browser, scene, tmp_path):
     finally:
         httpd.shutdown()
         httpd.server_close()
+
+
+def test_material_without_flakes_disables_toggle(browser, scene, tmp_path):
+    """A site with one (flake-free) graph: the checkbox is disabled and frames are that graph's."""
+    from torchmetal.viewer.browser import open_viewer, serve_folder
+
+    site = tmp_path / "site"
+    site.mkdir()
+    for f in scene.site.iterdir():
+        if f.name not in ("config.json", "renderer.onnx"):
+            (site / f.name).symlink_to(f)
+    cfg = json.loads((scene.site / "config.json").read_text())
+    cfg["graphs"] = {"plain": "renderer-noflakes.onnx"}
+    (site / "config.json").write_text(json.dumps(cfg))
+    httpd, url = serve_folder(site)
+    try:
+        p = open_viewer(browser, url + CHOSEN[0])
+        try:
+            assert p.locator("#flakes").is_disabled() and not p.locator("#flakes").is_checked()
+            assert p.evaluate("window.tmviewer.lastFlakes") is False
+            assert_matches(canvas(p), expected(scene, parse_hash(CHOSEN[0]), flakes=False), "no-flakes site")
+        finally:
+            p.close()
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
