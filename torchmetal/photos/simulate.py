@@ -149,6 +149,8 @@ def _undistort(px: np.ndarray, intr: Intrinsics) -> np.ndarray:
         r2 = r * r
         g = r * (1 + k1 * r2 + k2 * r2 * r2) - rd
         r -= g / (1 + 3 * k1 * r2 + 5 * k2 * r2 * r2)
+        if float(np.abs(g).max()) < 1e-15:
+            break
     scale = np.where(rd > 0, r / np.where(rd > 0, rd, 1), 1.0)
     return np.stack([xd * scale, yd * scale], 1)
 

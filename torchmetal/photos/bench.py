@@ -1,0 +1,72 @@
+"""Time the whole ``capture`` on full-size phone photos (default: 12 photos of 12 MP).
+
+    python -m torchmetal.photos.bench [--dir DIR] [--size 4000 3000] [--shots 12] [--resolution 512]
+
+Generates the photos once into DIR (kept for later runs: generation is slow, capture is what is
+timed), then runs :func:`~torchmetal.photos.capture.capture_from_photos` and writes the capture
+like the CLI does, printing the wall time, the per-photo share and the accuracy against the truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import time
+from pathlib import Path
+
+
+def generate(out: Path, size: tuple[int, int], shots: int, seed: int = 0):
+    import torch
+
+    from torchmetal.photos import simulate as S
+    from torchmetal.photos.board import make_board
+
+    board = make_board("a4", (50.0, 50.0), dpi=300)
+    sample = S.Sample(S.smooth_texture(512, 512, seed=3), torch.tensor([0.45, 0.5, 0.55]), torch.tensor([50.0, 60.0, 70.0]))
+    t0 = time.perf_counter()
+    photos = S.phone_photos(out, board, sample, n=shots, seed=seed, camera=S.phone_camera(size), supersample=1,
+                            flash_offset_mm=(12.0, -4.0, 0.0))
+    (out / "truth.pkl").write_bytes(pickle.dumps(photos))
+    print(f"generated {shots} photos of {size[0]}x{size[1]} in {time.perf_counter() - t0:.1f} s -> {out}")
+    return photos
+
+
+def main(argv: list[str] | None = None) -> int:
+    import numpy as np
+
+    p = argparse.ArgumentParser(prog="python -m torchmetal.photos.bench", description=__doc__.splitlines()[0])
+    p.add_argument("--dir", default="photo-bench", help="where the generated photos live (made if missing)")
+    p.add_argument("--size", nargs=2, type=int, default=[4000, 3000], metavar=("W", "H"))
+    p.add_argument("--shots", type=int, default=12)
+    p.add_argument("--resolution", type=int, default=512)
+    p.add_argument("--workers", type=int, default=None)
+    args = p.parse_args(argv)
+    out = Path(args.dir)
+    truth = out / "truth.pkl"
+    photos = pickle.loads(truth.read_bytes()) if truth.is_file() else generate(out, tuple(args.size), args.shots)
+
+    from torchmetal.photos.capture import capture_from_photos, save_photo_capture
+
+    t0 = time.perf_counter()
+    result = capture_from_photos(photos.paths, photos.board, flash_offset_mm=(12.0, -4.0, 0.0),
+                                 resolution=args.resolution, workers=args.workers)
+    t1 = time.perf_counter()
+    save_photo_capture(result, out / "capture")
+    t2 = time.perf_counter()
+    k, kt = result.intrinsics.matrix, photos.intrinsics.matrix
+    cams = result.capture.cameras[:, :3].double().numpy()
+    summary = {
+        "photos": len(photos.paths), "size": list(photos.intrinsics.image_size), "resolution": args.resolution,
+        "capture_s": round(t1 - t0, 2), "write_s": round(t2 - t1, 2), "total_s": round(t2 - t0, 2),
+        "f_error_pct": round(100 * float(k[0, 0] / kt[0, 0] - 1), 4),
+        "principal_point_error_px": [round(float(k[0, 2] - kt[0, 2]), 3), round(float(k[1, 2] - kt[1, 2]), 3)],
+        "camera_error_mm_max": round(1000 * float(np.linalg.norm(cams - photos.cameras, axis=1).max()), 3),
+        "used": result.report["used"],
+    }
+    print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
