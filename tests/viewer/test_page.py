@@ -110,8 +110,13 @@ class TestPage:
         """A fresh page opened at a URL state renders exactly that state's inputs."""
         from torchmetal.viewer.browser import open_viewer
 
-        p = open_viewer(browser, mode_url[1] + CHOSEN[k])
+        urls: list[str] = []
+        p = open_viewer(browser, mode_url[1] + CHOSEN[k], requests=urls)
         try:
+            # everything (page, ORT's .mjs/.wasm, graphs) comes from this site / server only
+            assert urls and all(u.startswith(mode_url[1]) or u.startswith("data:") for u in urls), urls
+            if mode_url[0] == "static":
+                assert any(u.endswith("ort/ort-wasm-simd-threaded.wasm") for u in urls), urls
             p.evaluate("window.tmviewer.idle()")
             state = page_state(p)
             want_state = parse_hash(CHOSEN[k])

@@ -39,11 +39,16 @@ def serve_folder(folder: str | os.PathLike, port: int = 0) -> tuple[ThreadingHTT
     return httpd, f"http://127.0.0.1:{httpd.server_address[1]}/"
 
 
-def open_viewer(browser, url: str, *, timeout_ms: float = 60_000, viewport=None):
-    """A new page at ``url`` whose first frame has been drawn; raises RuntimeError with the page's error."""
+def open_viewer(browser, url: str, *, timeout_ms: float = 60_000, viewport=None, requests: list | None = None):
+    """A new page at ``url`` whose first frame has been drawn; raises RuntimeError with the page's error.
+
+    ``requests``, when given, collects the URL of every request the page makes.
+    """
     page = browser.new_page(viewport=viewport or {"width": 1280, "height": 900}, accept_downloads=True)
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
+    if requests is not None:
+        page.on("request", lambda r: requests.append(r.url))
     page.goto(url)
     page.wait_for_function("window.tmviewer && (window.tmviewer.frames > 0 || window.tmviewer.error)", timeout=timeout_ms)
     err = page.evaluate("window.tmviewer.error")
