@@ -172,11 +172,16 @@ def write(material, path: str | os.PathLike, *, binary: bool | None = None, view
         binary: GLB or not; default from the suffix (``.glb`` → GLB).
         views, flakes, texels_per_pixel: see :func:`~torchmetal.formats.engine.engine_material`.
     """
+    em = engine_material(material, views=views, flakes=flakes, texels_per_pixel=texels_per_pixel)
+    return write_engine(em, path, binary=binary)
+
+
+def write_engine(em: EngineMaterial, path: str | os.PathLike, *, binary: bool | None = None) -> Path:
+    """Write engine maps (:func:`~torchmetal.formats.engine.engine_material`) as glTF/GLB, atomically."""
     from torchmetal.io.images import atomic_write_bytes
 
     path = Path(path)
     binary = path.suffix.lower() == ".glb" if binary is None else binary
-    em = engine_material(material, views=views, flakes=flakes, texels_per_pixel=texels_per_pixel)
     doc, blob = gltf_document(em, _json_safe(em.extras))
     if binary:
         data = _glb(doc, blob)

@@ -16,8 +16,9 @@ an albedo). The sample directions are uniform in solid angle over a cone around 
 direction, wide enough for the lobe to fall to 1e-3 of its peak, so the error is an energy error.
 
 ``target`` is any function ``(l (N, 3), v (N, 3)) -> (N, C)`` of unit directions in the local frame
-(normal (0, 0, 1)); :func:`phong_target`, :func:`blinn_target`, :func:`ggx_target` and
-:func:`glint_target` build the ones torchmetal's materials need. The fit is a coarse scan of
+(normal (0, 0, 1)); :func:`lobe_target` (the material's lobe — Phong, Blinn or GGX — through
+:func:`torchmetal.lobes.lobe_value`) and :func:`glint_target` (one flake's glint, through
+:func:`torchmetal.flakes.field.sparkle_shading`) build the ones torchmetal's materials need. The fit is a coarse scan of
 log r, a bounded 1-D refinement, and a closed-form least-squares amplitude at every r.
 The reported error is the relative L2 error ‖fit − target‖/‖target‖ per channel.
 """
@@ -33,7 +34,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import ExportError
-from torchmetal.phong import specular_lobe
+from torchmetal.geometry import ShadingGeometry
 
 Target = Callable[[Tensor, Tensor], Tensor]
 
@@ -130,81 +131,64 @@ def ggx_specular(l: Tensor, v: Tensor, n: Tensor, roughness, f0: Tensor, f90) ->
 
 
 # ------------------------------------------------------------------------------- source lobes
-def _lit(l: Tensor) -> Tensor:
-    return (l[..., 2] > 0).unsqueeze(-1)
-
-
-def phong_target(s: Tensor, alpha: Tensor) -> Target:
-    """s_c·max(r·v, 0)^α_c for n·l > 0 (DESIGN 2.2), through :func:`torchmetal.phong.specular_lobe`."""
-    s = torch.as_tensor(s, dtype=torch.float64).reshape(-1)
-    alpha = torch.as_tensor(alpha, dtype=torch.float64).reshape(-1)
-
-    def f(l: Tensor, v: Tensor) -> Tensor:
-        r = torch.stack([-l[..., 0], -l[..., 1], l[..., 2]], -1)  # mirror about n = z
-        q = 0.5 * ((r - v) ** 2).sum(-1)  # 1 − r·v, precise near the peak
-        lobe = specular_lobe(q.reshape(-1, 1, 1, 1), alpha.to(l)).reshape(-1, alpha.numel())
-        return torch.where(_lit(l), s.to(l) * lobe, torch.zeros_like(lobe))
-
-    return f
-
-
-def blinn_target(s: Tensor, alpha: Tensor) -> Target:
-    """s_c·max(n·h, 0)^α_c for n·l > 0 (the Blinn–Phong lobe)."""
-    s = torch.as_tensor(s, dtype=torch.float64).reshape(-1)
-    alpha = torch.as_tensor(alpha, dtype=torch.float64).reshape(-1)
-
-    def f(l: Tensor, v: Tensor) -> Tensor:
-        h = l + v
-        h = h / torch.sqrt((h * h).sum(-1, keepdim=True).clamp_min(1e-24))
-        nh = h[..., 2:3].clamp(0.0, 1.0)
-        lobe = torch.exp(alpha.to(l) * torch.log(nh.clamp_min(1e-300)))
-        return torch.where(_lit(l), s.to(l) * lobe, torch.zeros_like(lobe))
-
-    return f
-
-
-def ggx_target(s: Tensor, roughness: Tensor) -> Target:
-    """s_c·π·D·V·(n·l) with per-channel roughness (a GGX coat without Fresnel)."""
-    s = torch.as_tensor(s, dtype=torch.float64).reshape(-1)
-    rough = torch.as_tensor(roughness, dtype=torch.float64).reshape(-1)
-
-    def f(l: Tensor, v: Tensor) -> Tensor:
-        n = torch.zeros_like(l)
-        n[..., 2] = 1.0
-        lobes = torch.stack([ggx_terms(l, v, n, float(r))[0] for r in rough], -1)
-        return s.to(l) * lobes
-
-    return f
-
-
-def glint_target(color: Tensor, sigma: float) -> Target:
-    """c_c·exp(−|m − h|²/(2σ²)) for n·l > 0 with the flake normal m = (0, 0, 1): one glint
-    of :func:`torchmetal.flakes.field.sparkle_shading` in its flake's frame."""
-    color = torch.as_tensor(color, dtype=torch.float64).reshape(-1)
-
-    def f(l: Tensor, v: Tensor) -> Tensor:
-        h = l + v
-        h = h / torch.sqrt((h * h).sum(-1, keepdim=True).clamp_min(1e-24))
-        m = torch.zeros_like(h)
-        m[..., 2] = 1.0
-        g = torch.exp(-((m - h) ** 2).sum(-1, keepdim=True) / (2.0 * sigma * sigma))
-        return torch.where(_lit(l), color.to(l) * g, torch.zeros_like(g * color.to(l)))
-
-    return f
+def sample_geometry(l: Tensor, v: Tensor) -> ShadingGeometry:
+    """Shading geometry of N (light, view) pairs on a surface with normal +z, unit irradiance:
+    every term shaped (N, 1|3, 1, 1) like B shots of a 1×1 image."""
+    n = torch.zeros_like(l)
+    n[:, 2] = 1.0
+    ll, vv, nn = (x.reshape(-1, 3, 1, 1) for x in (l, v, n))
+    n_dot_l = ll[:, 2:3]
+    r = 2.0 * n_dot_l * nn - ll
+    spec_q = 0.5 * ((r - vv) ** 2).sum(1, keepdim=True)
+    return ShadingGeometry(n=nn, l=ll, v=vv, n_dot_l=n_dot_l, spec_q=spec_q, irradiance=torch.ones_like(ll))
 
 
 def lobe_target(kind: str, s: Tensor, alpha: Tensor) -> Target:
-    """The target of a material lobe kind ("phong", "blinn" or "ggx"; for "ggx" ``alpha`` is the
-    roughness)."""
-    makers = {"phong": phong_target, "blinn": blinn_target, "ggx": ggx_target}
-    if kind not in makers:
-        raise ExportError(f"lobe: expected one of {', '.join(makers)}, found {kind!r}")
-    return makers[kind](s, alpha)
+    """s_c·lobe_c(l, v) for n·l > 0, the material's specular term of DESIGN 2.2 (``kind`` "phong")
+    or of its lobe extensions ("blinn", "ggx"), evaluated by :func:`torchmetal.lobes.lobe_value`."""
+    from torchmetal.lobes import LOBES, lobe_value
+
+    if kind not in LOBES:
+        raise ExportError(f"lobe: expected one of {', '.join(LOBES)}, found {kind!r}")
+    s = torch.as_tensor(s, dtype=torch.float64).reshape(-1)
+    alpha = torch.as_tensor(alpha, dtype=torch.float64).reshape(-1)
+
+    def f(l: Tensor, v: Tensor) -> Tensor:
+        geom = sample_geometry(l, v)
+        lobe = lobe_value(kind, geom, alpha.to(l)) * s.to(l).view(1, -1, 1, 1)
+        return torch.where(geom.n_dot_l > 0, lobe, torch.zeros_like(lobe)).reshape(l.shape[0], -1)
+
+    return f
 
 
-def textbook_roughness(alpha: float) -> float:
-    """Phong α → Blinn n ≈ 4α → α_GGX = √(2/(n + 2)) → engine roughness √α_GGX."""
-    return math.sqrt(math.sqrt(2.0 / (4.0 * float(alpha) + 2.0)))
+def phong_target(s: Tensor, alpha: Tensor) -> Target:
+    """s_c·max(r·v, 0)^α_c for n·l > 0 (DESIGN 2.2)."""
+    return lobe_target("phong", s, alpha)
+
+
+def glint_target(color, sigma: float) -> Target:
+    """One glint of :func:`torchmetal.flakes.field.sparkle_shading` in its flake's frame (flake normal
+    +z, full footprint, glint colour ``color``): c_c·exp(−|m − h|²/(2σ²)) for n·l > 0."""
+    from torchmetal.flakes.field import FlakeField, sparkle_shading
+
+    color = torch.as_tensor(color, dtype=torch.float64).reshape(3, 1, 1)
+
+    def f(l: Tensor, v: Tensor) -> Tensor:
+        geom = sample_geometry(l, v)
+        normal = torch.zeros(3, 1, 1, dtype=l.dtype)
+        normal[2] = 1.0
+        field = FlakeField(torch.ones(1, 1, 1, dtype=l.dtype), normal, color.to(l), float(sigma), 1)
+        return sparkle_shading(field, geom).reshape(l.shape[0], 3)
+
+    return f
+
+
+def textbook_roughness(alpha: float, kind: str = "phong") -> float:
+    """The closed-form mapping to the engine roughness √α_GGX, α_GGX = √(2/(n + 2)) with the Blinn
+    exponent n = 4α for Phong (the peaks' angles differ by 2×), n = α for Blinn, and for torchmetal's
+    GGX lobe exactly its k = m² = 2/(α + 2)."""
+    n = 4.0 * float(alpha) if kind == "phong" else float(alpha)
+    return math.sqrt(math.sqrt(2.0 / (n + 2.0)))
 
 
 # ---------------------------------------------------------------------------------- directions
@@ -282,14 +266,14 @@ def _errors(pred: np.ndarray, target: np.ndarray) -> tuple[float, ...]:
 
 
 def fit_ggx(target: Target, *, cone: float, views: Tensor | None = None, per_view: int = 512,
-            alpha_hint: float | None = None, f90_max: float = 1.0) -> LobeFit:
+            textbook: float | None = None, f90_max: float = 1.0) -> LobeFit:
     """Fit the GGX lobe (roughness, F0 per channel, F90) to ``target`` (see the module docstring).
 
     Args:
         target: ``(l (N, 3), v (N, 3)) -> (N, C)`` float64, local frame (normal +z).
         cone: half-angle (rad) of the lights around each mirror direction.
         views: (V, 3) view directions (default :data:`DEFAULT_VIEW_ANGLES`).
-        alpha_hint: a Phong exponent: also evaluate the textbook mapping for the report.
+        textbook: a closed-form roughness to evaluate (with its best amplitude) for the report.
         f90_max: upper bound of F90 (and so of every F0).
 
     Returns:
@@ -317,7 +301,7 @@ def fit_ggx(target: Target, *, cone: float, views: Tensor | None = None, per_vie
         return float(((pred - y) ** 2).sum()), f0, f90, pred
 
     lo, hi = math.log(MIN_ROUGHNESS), math.log(MAX_ROUGHNESS)
-    grid = np.linspace(lo, hi, 41)
+    grid = np.linspace(lo, hi, 25)
     costs = [solve(g)[0] for g in grid]
     i = int(np.argmin(costs))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
@@ -325,8 +309,8 @@ def fit_ggx(target: Target, *, cone: float, views: Tensor | None = None, per_vie
     log_r = float(best.x) if best.fun <= costs[i] else float(grid[i])
     _, f0, f90, pred = solve(log_r)
     tb_r = tb_err = None
-    if alpha_hint is not None:
-        tb_r = textbook_roughness(alpha_hint)
+    if textbook is not None:
+        tb_r = float(textbook)
         tb_err = _errors(solve(math.log(tb_r))[3], y)
     return LobeFit(math.exp(log_r), tuple(float(x) for x in f0), float(f90), _errors(pred, y), tb_r, tb_err,
                    int(l.shape[0]))
@@ -336,22 +320,22 @@ def fit_lobe(s: Tensor, alpha: Tensor, kind: str = "phong", *, views: Tensor | N
              per_view: int = 512) -> LobeFit:
     """Fit the GGX lobe to a material lobe with per-channel s, α (3,) — one shared roughness.
 
-    The cone covers the widest channel's lobe down to 1e-3 of its peak (×1.5 for the tails).
+    The cone covers the widest channel's lobe down to 1e-3 of its peak (×1.5 for the tails; GGX's
+    heavier tails ×3), expressed as the Phong exponent of the same width (Blinn α/4, GGX (α + 2)/2).
+    The textbook mapping is evaluated at the s-weighted geometric mean exponent.
     """
     s = torch.as_tensor(s, dtype=torch.float64).reshape(-1)
     alpha = torch.as_tensor(alpha, dtype=torch.float64).reshape(-1)
     if not (bool(torch.isfinite(s).all()) and bool(torch.isfinite(alpha).all())):
         raise ExportError(f"lobe: expected finite s and alpha, found s={s.tolist()}, alpha={alpha.tolist()}")
-    if kind == "ggx":
-        cone = 1.2
-        hint = None
-    else:
-        weight = s.clamp_min(0) + 1e-12
-        a_min = float(alpha[weight > 1e-9 * float(weight.max())].min()) if float(s.max()) > 0 else float(alpha.min())
-        cone = 1.5 * phong_cone(a_min if kind == "phong" else a_min / 4.0)
-        # the textbook mapping, for Phong only, at the s-weighted geometric mean exponent
-        hint = float(torch.exp((weight * torch.log(alpha.clamp_min(1e-6))).sum() / weight.sum())) if kind == "phong" else None
-    return fit_ggx(lobe_target(kind, s, alpha), cone=cone, views=views, per_view=per_view, alpha_hint=hint)
+    weight = s.clamp_min(0) + 1e-12
+    strong = weight > 1e-9 * float(weight.max())
+    a_min = float(alpha[strong].min())
+    width = {"phong": a_min, "blinn": a_min / 4.0, "ggx": (a_min + 2.0) / 2.0}.get(kind, a_min)
+    cone = (3.0 if kind == "ggx" else 1.5) * phong_cone(width)
+    mean_alpha = float(torch.exp((weight * torch.log(alpha.clamp_min(1e-6))).sum() / weight.sum()))
+    return fit_ggx(lobe_target(kind, s, alpha), cone=cone, views=views, per_view=per_view,
+                   textbook=textbook_roughness(mean_alpha, kind))
 
 
 def fit_glint(color_mean, glint_sigma: float, *, views: Tensor | None = None, per_view: int = 512) -> LobeFit:

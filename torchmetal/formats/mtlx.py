@@ -24,6 +24,7 @@ import os
 import shutil
 import tempfile
 from dataclasses import replace
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -45,8 +46,9 @@ def _mx():
     return mx
 
 
+@lru_cache(maxsize=1)
 def stdlib():
-    """The MaterialX standard data libraries (loaded once per call; ~0.1 s)."""
+    """The MaterialX standard data libraries, loaded once (used as a read-only data library)."""
     mx = _mx()
     lib = mx.createDocument()
     mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), lib)
