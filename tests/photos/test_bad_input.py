@@ -32,6 +32,14 @@ def _resave(src, dst, *, exif: PhotoExif | None, transform=None):
     return dst
 
 
+def _bend(a):
+    """The right half of the photo moved 6 px down: no single pose fits all the corners."""
+    a = a.copy()
+    w = a.shape[1]
+    a[:, w // 2:] = np.roll(a[:, w // 2:], 6, axis=0)
+    return a
+
+
 @pytest.fixture(scope="module")
 def bad_set(tmp_path_factory, photo_set, board, sheet, sample):
     out = tmp_path_factory.mktemp("bad")
@@ -51,6 +59,7 @@ def bad_set(tmp_path_factory, photo_set, board, sheet, sample):
                              transform=lambda a: cv2.resize(a, (640, 480), interpolation=cv2.INTER_AREA)),
         "othercam.jpg": _resave(p[7], out / "othercam.jpg", exif=PhotoExif(1 / 60, 1.8, 100, "Other", "Cam", 5.1)),
         "noexif.jpg": _resave(p[8], out / "noexif.jpg", exif=None),
+        "bent.jpg": _resave(p[10], out / "bent.jpg", exif=photo_set.exif[10], transform=_bend),
         "notaphoto.jpg": out / "notaphoto.jpg",
     }
     made["notaphoto.jpg"].write_bytes(b"this is text")
@@ -62,7 +71,7 @@ EXPECT = {
     "noboard.jpg": "no board found (no markers detected)", "blurred.jpg": "blurred: edges",
     "veryblurred.jpg": "no board found (no markers detected): the photo is blurred", "small.jpg": "mixed resolutions",
     "othercam.jpg": "another camera", "noexif.jpg": "missing EXIF", "notaphoto.jpg": "expected a JPEG",
-    "grazing.jpg": "below 20 deg", "cutoff.jpg": "board cut off",
+    "grazing.jpg": "below 20 deg", "cutoff.jpg": "board cut off", "bent.jpg": "reprojection error",
 }
 
 

@@ -98,7 +98,12 @@ def calibrate(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple[int,
     img = [p.astype(np.float32).reshape(-1, 1, 2) for _, p in views]
     k0 = np.eye(3)
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    rms, k, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(image_size), k0, None, flags=_flags(), criteria=crit)
+    try:
+        rms, k, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(image_size), k0, None, flags=_flags(), criteria=crit)
+    except cv2.error as e:
+        msg = str(e).strip().splitlines()[-1][:120]
+        raise CaptureError(f"camera calibration failed: expected views of the board from varied angles, found OpenCV "
+                           f"refusing them ({msg}); take photos from more directions or pass --intrinsics") from None
     dist = np.asarray(dist, np.float64).ravel()
     dist = np.concatenate([dist, np.zeros(max(0, 5 - dist.size))])[:5]
     intr = Intrinsics(tuple(image_size), np.asarray(k, np.float64), dist, float(rms))
@@ -119,11 +124,15 @@ def solve_pose(obj: np.ndarray, img: np.ndarray, intr: Intrinsics) -> tuple[np.n
 
     o = obj.astype(np.float64).reshape(-1, 1, 3)
     p = img.astype(np.float64).reshape(-1, 1, 2)
-    ok, rvec, tvec = cv2.solvePnP(o, p, intr.matrix, intr.distortion, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
-        raise CaptureError("solvePnP found no pose")
-    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-    rvec, tvec = cv2.solvePnPRefineLM(o, p, intr.matrix, intr.distortion, rvec, tvec, crit)
+    try:
+        ok, rvec, tvec = cv2.solvePnP(o, p, intr.matrix, intr.distortion, flags=cv2.SOLVEPNP_IPPE)
+        if ok:
+            crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+            rvec, tvec = cv2.solvePnPRefineLM(o, p, intr.matrix, intr.distortion, rvec, tvec, crit)
+    except cv2.error:
+        ok = False
+    if not ok or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()):
+        raise CaptureError("no pose fits the corners found (are they all on one line?)")
     rvec, tvec = rvec.ravel(), tvec.ravel()
     err = project(obj, rvec, tvec, intr) - img
     return rvec, tvec, float(np.sqrt((err**2).sum(1).mean()))

@@ -107,11 +107,19 @@ def _self_calibrate(obs: list[Observation], ok: list[int], board: Board) -> Intr
         raise _too_few(obs, len(ok), "to calibrate the camera")
     size = obs[ok[0]].size
     intr, _ = calibrate(_views(obs, ok, board), size)
-    rms = {i: solve_pose(board.corner_points()[obs[i].ids], obs[i].corners, intr)[2] for i in ok}
-    limit = max(REPROJ_FLOOR_PX, 3.0 * float(np.median(list(rms.values()))))
+    rms = {}
+    for i in ok:
+        try:
+            rms[i] = solve_pose(board.corner_points()[obs[i].ids], obs[i].corners, intr)[2]
+        except CaptureError as e:
+            rms[i] = math.inf
+            obs[i].extra["pose_error"] = str(e)
+    finite = [v for v in rms.values() if math.isfinite(v)]
+    limit = max(REPROJ_FLOOR_PX, 3.0 * float(np.median(finite))) if finite else REPROJ_FLOOR_PX
     bad = [i for i in ok if rms[i] > limit]
     for i in bad:
-        obs[i].reason = f"reprojection error {rms[i]:.2f} px (limit {limit:.2f}): the sheet is not flat, or the photo moved"
+        obs[i].reason = obs[i].extra.get("pose_error") or (
+            f"reprojection error {rms[i]:.2f} px (limit {limit:.2f}): the sheet is not flat, or the photo moved")
     if bad:
         ok = [i for i in ok if i not in bad]
         if len(ok) < MIN_PHOTOS:
@@ -195,7 +203,11 @@ def capture_from_photos(
     for i in ok:
         o, e = obs[i], entries[i]
         obj = board.corner_points()[o.ids]
-        rvec, tvec, rms = solve_pose(obj, o.corners, intr)
+        try:
+            rvec, tvec, rms = solve_pose(obj, o.corners, intr)
+        except CaptureError as err:
+            o.reason = str(err)
+            continue
         if poses is not None and i in poses:
             rvec, tvec = (np.asarray(v, np.float64).ravel() for v in poses[i])
             rms = float(np.sqrt(((project(obj, rvec, tvec, intr) - o.corners) ** 2).sum(1).mean()))
