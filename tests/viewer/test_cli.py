@@ -71,6 +71,7 @@ def test_serves_until_interrupted(scene, tmp_path):
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
         assert proc.returncode == 0 and "stopped" in err
+        assert "exporting renderer-noflakes.onnx (64x64, flakes off)" in err and "exporting renderer.onnx" not in err
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -13,7 +13,10 @@ def cmd_view(args: argparse.Namespace) -> int:
 
     from torchmetal.viewer.server import make_server
 
-    server = make_server(args.material, capture=args.capture, port=args.port, threads=args.threads)
+    def log(text: str) -> None:
+        print(f"torchmetal view: {text}", file=sys.stderr, flush=True)
+
+    server = make_server(args.material, capture=args.capture, port=args.port, threads=args.threads, log=log)
     cfg = server.viewer.config
     flakes = "flakes on/off" if "flakes" in cfg["graphs"] else "no flakes"
     print(f"viewing {args.material} ({cfg['height']}x{cfg['width']}, {flakes}, {len(cfg['shots'])} shots) at {server.url} "

@@ -41,10 +41,11 @@ class Viewer:
         capture: optional capture directory whose shots are offered as photos (A/B).
         reuse: further ONNX files that may hold the graphs (checked like ``renderer.onnx``).
         threads: onnxruntime intra-op threads (None: its default).
+        log: optional ``log(text)`` told before each (slow) ONNX export.
     """
 
     def __init__(self, material_dir: str | os.PathLike, *, capture: str | os.PathLike | None = None,
-                 reuse: tuple[str | os.PathLike, ...] = (), threads: int | None = None) -> None:
+                 reuse: tuple[str | os.PathLike, ...] = (), threads: int | None = None, log=None) -> None:
         import onnxruntime as ort
 
         from torchmetal.material import load_material
@@ -60,7 +61,7 @@ class Viewer:
             shots = site.shots_of(self.capture, self.material)
         self.graph_dir = Path(tempfile.mkdtemp(prefix="torchmetal-view-"))
         try:
-            graphs = site.export_graphs(self.material, self.graph_dir, reuse=(root / site.GRAPH_FLAKES, *reuse))
+            graphs = site.export_graphs(self.material, self.graph_dir, reuse=(root / site.GRAPH_FLAKES, *reuse), log=log)
             so = ort.SessionOptions()
             so.log_severity_level = 3
             if threads:
@@ -206,13 +207,13 @@ class ViewerServer(ThreadingHTTPServer):
 
 
 def make_server(material_dir: str | os.PathLike, *, capture: str | os.PathLike | None = None, port: int = 8765,
-                reuse: tuple[str | os.PathLike, ...] = (), threads: int | None = None) -> ViewerServer:
+                reuse: tuple[str | os.PathLike, ...] = (), threads: int | None = None, log=None) -> ViewerServer:
     """A ready :class:`ViewerServer` (not yet serving: call ``serve_forever``)."""
     if not isinstance(port, int) or not 0 <= port <= 65535:
         raise InputError(f"port: expected an integer in 0..65535, found {port!r}")
     server = ViewerServer(None, port)  # bind first: a busy port fails before any export
     try:
-        server.viewer = Viewer(material_dir, capture=capture, reuse=reuse, threads=threads)
+        server.viewer = Viewer(material_dir, capture=capture, reuse=reuse, threads=threads, log=log)
     except BaseException:
         server.close()
         raise

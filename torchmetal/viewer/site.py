@@ -61,14 +61,14 @@ def _matches(path: Path, material, flakes: bool) -> bool:
 
 
 def export_graphs(material, out_dir: str | os.PathLike, *, reuse: Sequence[str | os.PathLike] = (),
-                  opset: int = 20) -> dict[str, str]:
+                  opset: int = 20, log=None) -> dict[str, str]:
     """The viewer's ONNX graphs of ``material`` in ``out_dir``; returns config ``graphs``.
 
     ``plain`` is the renderer without flakes; ``flakes`` (only when the material has flakes)
     the full renderer. A file in ``reuse`` (e.g. ``MATERIAL/renderer.onnx``) is copied instead
     of exporting when it has the material's size and flake setting and passes
     :func:`~torchmetal.onnx_export.verify_onnx` against this material's torch renderer (so a
-    stale file from an earlier fit is never shown).
+    stale file from an earlier fit is never shown). ``log(text)``, if given, is told before each export.
 
     Returns:
         {"plain": file name, "flakes": file name} (names inside ``out_dir``).
@@ -99,6 +99,8 @@ def export_graphs(material, out_dir: str | os.PathLike, *, reuse: Sequence[str |
                     shutil.copyfile(cand, out / name)
                 break
         else:
+            if log is not None:
+                log(f"exporting {name} ({material.height}x{material.width}, flakes {'on' if flakes else 'off'}) to ONNX…")
             export_onnx(renderer, out / name, opset=opset)
         graphs[key] = name
     return graphs
