@@ -67,3 +67,14 @@ def test_lobe_field_is_used():
     m.lobe = "blinn"
     em = engine_material(m)
     assert em.extras["lobe"] == "blinn" and em.extras["lobe_fit"][0]["lobe"] == "blinn"
+
+
+def test_ggx_lobe_material():
+    """A material fitted with torchmetal's GGX lobe exports at its own roughness k^¼, k = 2/(α + 2)."""
+    m = make_material("flat-global-noflakes")
+    m.lobe, m.s, m.alpha = "ggx", torch.full((3,), 0.2), torch.full((3,), 80.0)
+    em = engine_material(m)
+    fit = em.extras["lobe_fit"][0]
+    assert fit["lobe"] == "ggx" and fit["roughness"] == pytest.approx((2 / 82) ** 0.25, rel=0.01)
+    assert max(fit["error"]) < 0.01
+    assert render_error(em, m, *check_lights(m.size)) < 0.03

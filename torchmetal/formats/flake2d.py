@@ -10,14 +10,21 @@ highest-priority flake wins where flakes overlap. Its normal is a GGX sample, ta
 
 Mapping (:func:`flake2d_inputs`), texel units, 1 texcoord unit = the texture width W:
 
-- ``coverage``: the covered fraction of flake2d is ``f(p)``, measured on the port; torchmetal's is
-  density·E[area] (flakes never overlap). ``coverage`` is the input whose p gives that fraction.
-- ``size``: at that p, flake2d draws n(p) visible flakes per cell²; size = √(n(p)/density)/W makes
-  the flake count per texel equal the model's density (so the mean flake area matches too).
+- ``coverage``: flake2d's covered fraction follows the Boolean model 1 − exp(−p·A), A the mean
+  plane-section area of one isolated flake per column of cells (measured once on the port,
+  :func:`isolated_flake_stats`); torchmetal's is density·E[area] (its flakes never overlap).
+  ``coverage`` is the input whose probability p gives that fraction.
+- ``size``: flake2d then shows p·Q flakes per cell², Q the mean number of flakes per column whose
+  section is not empty; size = √(p·Q/density)/W makes the flake count per texel the model's density
+  (and so the mean flake area the model's E[area]).
 - ``roughness``: torchmetal's flake slopes are isotropic Gaussians, tan θ = σ·|N(0, I₂)|; GGX's
   are p(s) = 1/(π a²(1 + s²/a²)²). Glints come from flakes whose slope equals the half vector's, so
   a (= roughness²) is fitted to the slope density (relative error) over the slopes where 99 % of
   torchmetal's flakes lie; the closed-form start is the median match a = σ·√(2 ln 2).
+
+Not mapped: flake shape (flake2d's sections of rotated cubes vs torchmetal's ellipses), the area
+spread, per-flake colour (flake2d gives a normal only; the glint colour is the mean colour) and the
+glint width (set by the base specular roughness, fitted to one glint).
 
 :func:`glint_statistics` compares the two models (covered fraction, flakes per texel, mean
 area, fraction of flakes glinting for a half vector at several tilts).
