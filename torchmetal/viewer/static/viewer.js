@@ -90,12 +90,13 @@ async function requestRender() {
       api.lastRenderMs = performance.now() - t0;
       if (out.length !== 3 * W * H) throw new Error(`render: expected ${3 * W * H} values, found ${out.length}`);
       linear = out;
+      api.lastInputs = inputs;
+      api.lastFlakes = flakes;
       redraw();
       times.push(performance.now() - t0);
       if (times.length > 20) times.shift();
       api.frames++;
-      api.lastInputs = inputs;
-      api.lastFlakes = flakes;
+      api.error = null;
       showFps();
       setStatus("");
     } while (pending);
