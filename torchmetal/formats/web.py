@@ -107,7 +107,8 @@ def write(material, path: str | os.PathLike, *, capture: str | os.PathLike | Non
             photos beside the render; its surface must be the material's.
         webgpu: also copy ORT's WebGPU build (the page's ``?ep=webgpu`` switch; +26 MiB).
         ort_dir: onnxruntime-web folder (default: see :func:`find_ort_web`).
-        threads: wasm threads the page asks for (1: no cross-origin isolation needed).
+        threads: wasm threads the page asks for. 1 (default) needs no cross-origin isolation;
+            more need a server sending COOP/COEP headers, else onnxruntime-web runs one thread.
         opset: ONNX opset of the exported graphs.
         title: page title (default: "torchmetal").
     """
