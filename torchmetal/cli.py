@@ -49,6 +49,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         result = fit_tiled_material(
             args.capture, tile=args.tile, scheme=args.scheme, specular=args.specular, flakes=args.flakes, tol=args.tol,
             max_iters=args.max_iters, robust=args.robust, seed=args.seed, progress=not args.quiet, scratch=scratch.name,
+            engine=args.tile_engine if args.tile_workers > 1 or args.tile_engine == "ray" else None,
+            workers=args.tile_workers,
         )
         capture = result.capture
     else:
@@ -191,6 +193,10 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
     f.add_argument("--tile", type=int, default=None, metavar="N",
                    help="fit tile by tile (N x N pixels; memory bounded by the tile, not the capture; docs/scale.md)")
+    f.add_argument("--tile-workers", type=int, default=1, metavar="W",
+                   help="with --tile: tile tasks running at once (1: in this process)")
+    f.add_argument("--tile-engine", choices=["local", "ray"], default="local",
+                   help="with --tile-workers > 1: a process pool or Ray (results do not depend on it)")
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     f.set_defaults(func=cmd_fit)
 

@@ -70,6 +70,10 @@ def test_cli_fit_tile_equals_fit(tmp_path, capsys):
     assert np.allclose(jb["phong"]["alpha"], ja["phong"]["alpha"], rtol=REL, atol=0)
     assert jb["fit"]["tiled"] == {"tile": 20, "tiles": 9, "passes": jb["fit"]["tiled"]["passes"]}
     assert any("flake detection needs whole images" in s for s in jb["fit"]["skipped"])
+    assert main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "pool"), "--tile", "20", "--tile-workers", "2",
+                 "-q"]) == 0  # tile tasks on a process pool: the same material
+    assert np.array_equal(np.load(tmp_path / "pool" / "texture.npy"), b)
+    assert json.loads((tmp_path / "pool" / "material.json").read_text())["phong"] == jb["phong"]
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # scratch files removed
     assert main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "x"), "--tile", "20", "--scheme", "paper"]) == 2
     assert main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "x"), "--tile", "0"]) == 2
@@ -80,3 +84,13 @@ def test_cli_fit_tile_equals_fit(tmp_path, capsys):
 def test_bad_arguments(tiled256):
     with pytest.raises(InputError, match="specular"):
         fit_tiled(tiled256, specular="shiny")
+
+
+def test_tiles_on_a_process_pool_are_bit_identical(tiled256, tmp_path):
+    """The same tile tasks on 2 pool workers (results reduced in tile order) = in this process."""
+    kw = dict(tile=128, sub_pixels=4096, select_pixels=1024, max_iters=20)
+    here = fit_tiled(tiled256, scratch=tmp_path / "here", **kw)
+    pool = fit_tiled(tiled256, scratch=tmp_path / "pool", engine="local", workers=2, threads=1, **kw)
+    assert pool.tiled["engine"] == "local" and pool.tiled["passes"] == here.tiled["passes"]
+    assert torch.equal(pool.s, here.s) and torch.equal(pool.alpha, here.alpha)
+    assert torch.equal(pool.texture, here.texture)

@@ -37,9 +37,10 @@ from torchmetal.fit.clusters import choose_specular, evidence, fit_clustered, he
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.paper import paper_scheme
 from torchmetal.fit.problem import Reference, build_observations, compute_dtype, grid_stride
-from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms, fit_specular, grid_beta, spec_sums, texture_map
+from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms, fit_specular, grid_beta
 from torchmetal.fit.result import FitResult
-from torchmetal.scale.tiled_texture import SeenStats, fill_tiles, unobserved_tile
+from torchmetal.scale.tile_tasks import _OPEN, TilePasses
+from torchmetal.scale.tiled_texture import SeenStats, fill_tiles
 from torchmetal.scale.tiles import TiledCapture
 
 SPECULARS = ("auto", "global", "clustered", "none")
@@ -53,31 +54,12 @@ def tile_grid(height: int, width: int, tile: int) -> list[tuple[slice, slice]]:
             for r in range(0, height, tile) for c in range(0, width, tile)]
 
 
-class _Tiles:
-    """The full-resolution passes: observations of one tile at a time, sums in tile order."""
-
-    def __init__(self, capture: TiledCapture, tile: int, dt: torch.dtype, chunk: int, bar) -> None:
-        self.capture, self.dt, self.chunk, self.bar = capture, dt, chunk, bar
-        self.tiles = tile_grid(capture.height, capture.width, tile)
-        self.passes = 0
-
-    def observations(self, ref, labeler, with_stats: bool = False):
-        """Yield (rows, cols, observations) for every tile, in order."""
-        self.passes += 1
-        for rows, cols in self.tiles:
-            obs = build_observations(self.capture, dtype=self.dt, chunk=self.chunk, ref=ref, labeler=labeler,
-                                     with_stats=with_stats, window=(rows, cols))
-            yield rows, cols, obs
-            if self.bar is not None:
-                self.bar.update(1)
-
-
-def _solve_specular(tiles: _Tiles, ref, labeler, beta0: Tensor, first: Tensor, A: Tensor, *, tol: float,
+def _solve_specular(passes: TilePasses, dt: torch.dtype, beta0: Tensor, first: Tensor, A: Tensor, *, tol: float,
                     max_iters: int, s_fixed: Tensor | None, beta_fixed: Tensor | None, on_iter) -> tuple:
     """LM on β (K, 3) with per-element sums reduced over tiles — :func:`~torchmetal.fit.refine.fit_specular`'s
     iteration, its evaluation a pass over the tiles. Returns (s, α, cost, LM result)."""
     k = int(beta0.shape[0])
-    floor = (0.01 * torch.finfo(tiles.dt).eps * A).reshape(-1)
+    floor = (0.01 * torch.finfo(dt).eps * A).reshape(-1)
 
     def evaluate(stats: Tensor) -> LMEval:
         s, cost, g, h = element_terms(stats, A, s_fixed=s_fixed)
@@ -86,8 +68,8 @@ def _solve_specular(tiles: _Tiles, ref, labeler, beta0: Tensor, first: Tensor, A
     def oracle(x: Tensor) -> LMEval:
         alpha = torch.exp(x.view(k, 3))
         total = torch.zeros(6, k, 3, dtype=torch.float64)
-        for _, _, obs in tiles.observations(ref, labeler):
-            total += spec_sums(obs, alpha)[0]
+        for stats in passes.map("stats", alpha=alpha):  # tile order: the same sums for any number of workers
+            total += stats
         return evaluate(total)
 
     lo = torch.full((k * 3, 1), BETA_MIN, dtype=torch.float64)
@@ -119,6 +101,10 @@ def fit_tiled(
     seed: int = 0,
     progress: bool = False,
     scratch: str | Path | None = None,
+    engine: str | None = None,
+    workers: int = 1,
+    address: str | None = None,
+    threads: int | None = None,
 ) -> FitResult:
     """:func:`~torchmetal.fit.fit_phong` (scheme "refine", least squares) of a tiled capture, tile by tile.
 
@@ -130,6 +116,10 @@ def fit_tiled(
             as :func:`~torchmetal.fit.fit_phong`.
         scratch: folder for the memory-mapped texture (and normals / labels) of the result
             (default: a new temporary folder); keep it until the result is saved.
+        engine, workers, address: run the tile tasks here (``engine=None``, the default), on a
+            process pool (``"local"``) or on Ray (``"ray"``), ``workers`` at a time
+            (:mod:`torchmetal.scale.tile_tasks`); the result does not depend on it.
+        threads: torch threads per tile task on an engine (default: CPU cores / workers).
 
     Returns:
         :class:`~torchmetal.fit.FitResult` whose texture (3, H, W) is a view of a memory-mapped
@@ -137,6 +127,8 @@ def fit_tiled(
     """
     cap = capture if isinstance(capture, TiledCapture) else TiledCapture(capture)
     tile_grid(cap.height, cap.width, tile)  # checks tile
+    if not (isinstance(workers, int) and workers >= 1):
+        raise InputError(f"workers: expected an int >= 1, found {workers!r}")
     if specular not in SPECULARS:
         raise InputError(f"specular: expected one of {list(SPECULARS)}, found {specular!r}")
     if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
@@ -151,13 +143,23 @@ def fit_tiled(
         from tqdm.auto import tqdm
 
         bar = tqdm(desc="fit --tile", unit="tile", leave=False)
+    eng = None
+    if engine is not None:
+        import os
+
+        from torchmetal.scale.engines import make_engine
+
+        eng = make_engine(engine, workers, address)
+        threads = threads or max(1, (os.cpu_count() or 1) // workers)
     try:
         return _fit(cap, run, bar, tile=tile, specular=specular, tol=tol, max_iters=max_iters, clusters=tuple(clusters),
                     chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
-                    scratch=scratch)
+                    scratch=scratch, engine=eng, workers=workers, threads=threads)
     finally:
         if bar is not None:
             bar.close()
+        if eng is not None:
+            eng.close()
 
 
 def _subsample_decisions(cap, run: _Run, *, specular, tol, max_iters, clusters, chunk, stride, sel_stride, seed, dt):
@@ -231,16 +233,20 @@ def _memmap(path: Path, shape: tuple[int, ...], dtype) -> np.memmap:
 
 
 def _fit(cap: TiledCapture, run: _Run, bar, *, tile, specular, tol, max_iters, clusters, chunk, sub_pixels, select_pixels,
-         seed, scratch: Path) -> FitResult:
+         seed, scratch: Path, engine, workers: int, threads: int | None) -> FitResult:
     dt = compute_dtype(cap.images)
     h, w = cap.height, cap.width
     stride, sel_stride = grid_stride(h, w, sub_pixels), grid_stride(h, w, select_pixels)
     spec, labeler, s_fixed, sel_info = _subsample_decisions(
         cap, run, specular=specular, tol=tol, max_iters=max_iters, clusters=clusters, chunk=chunk, stride=stride,
         sel_stride=sel_stride, seed=seed, dt=dt)
-    tiles = _Tiles(cap, tile, dt, chunk, bar)
     k = 1 if spec is None else spec.k
     ref = None if spec is None else Reference(spec.s, spec.alpha)
+    tiles = tile_grid(h, w, tile)
+    _OPEN[str(cap.root)] = cap  # in-process tasks reuse this capture
+    base = {"capture": str(cap.root), "dtype": str(dt).removeprefix("torch."), "chunk": chunk, "ref": ref,
+            "labeler": labeler, "threads": threads}
+    passes = TilePasses(tiles, base, engine, workers, bar)
 
     # pass 1: per-pixel constants → element sums, the first LM evaluation, what the texture step needs
     A = torch.zeros(k, 3, dtype=torch.float64)
@@ -250,18 +256,17 @@ def _fit(cap: TiledCapture, run: _Run, bar, *, tile, specular, tol, max_iters, c
     flat = True
     area = torch.zeros(k, dtype=torch.float64)
     with run.stage("geometry"):
-        for rows, cols, obs in tiles.observations(ref, labeler, with_stats=spec is not None):
-            A += obs.element_sum(obs.A, k)
-            n_total += float(obs.n.double().sum())
+        for part in passes.map("sums"):  # in tile order
+            A += part["A"]
+            n_total += part["n"]
             if spec is not None:
-                first += obs.first_stats[0]
-            seen_stats.add(obs.saa)
-            nrm = cap.normals[:, rows, cols]
-            flat = flat and bool((nrm[0] == 0).all() and (nrm[1] == 0).all() and (nrm[2] == 1).all())
+                first += part["first"]
+            seen_stats.merge(part["seen"])
+            flat = flat and part["flat"]
             if labeler is not None:
-                area += torch.bincount(obs.labels, minlength=k).double()
+                area += part["area"]
     if seen_stats.needs_median():  # the exact median of Σw·a² (one more pass); else any value below it works
-        med = seen_stats.median(lambda: (o.saa for _, _, o in tiles.observations(None, None)))
+        med = seen_stats.median(lambda bucket: passes.map("low_bits", bucket=bucket))
     else:
         med = seen_stats.hi.clone()
     n_obs = max(1.0, n_total)
@@ -282,32 +287,26 @@ def _fit(cap: TiledCapture, run: _Run, bar, *, tile, specular, tol, max_iters, c
             run.log("refine", it, math.sqrt(float(ev.cost.sum()) / n_obs), 1.0, h * w)
 
         with run.stage("refine"):
-            s, alpha, cost, res = _solve_specular(tiles, ref, labeler, torch.log(spec.alpha), first, A, tol=tol,
+            s, alpha, cost, res = _solve_specular(passes, dt, torch.log(spec.alpha), first, A, tol=tol,
                                                   max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix, on_iter=log)
         status = res.status
 
     # last pass: the texture of each tile in closed form, into a memory-mapped file
     raw_file = _memmap(scratch / "texture_raw.npy", (h, w, 3), np.float32)
     bad_file = _memmap(scratch / "unobserved.npy", (h, w, 3), np.bool_)
-    n_bad = 0
     lab_file = _memmap(scratch / "specular_labels.npy", (h, w), np.int64) if labeler is not None else None
+    for m in (raw_file, bad_file, lab_file):
+        if m is not None:
+            m.flush()
     with run.stage("texture"):
-        for rows, cols, obs in tiles.observations(ref, labeler):
-            if spec is None:
-                tex = torch.where(obs.saa > 0, obs.d0, obs.fallback)
-            else:
-                tex = texture_map(obs, s, spec_sums(obs, alpha)[1])
-            bad = unobserved_tile(obs.saa, cap.mask[..., rows, cols].reshape(-1), med)
-            n_bad += int(bad.any(0).sum())
-            raw_file[rows, cols] = tex.reshape(3, obs.height, obs.width).permute(1, 2, 0).numpy()
-            bad_file[rows, cols] = bad.reshape(3, obs.height, obs.width).permute(1, 2, 0).numpy()
-            if lab_file is not None:
-                lab_file[rows, cols] = obs.labels.reshape(obs.height, obs.width).numpy()
+        n_bad = sum(passes.map("texture", s=s, alpha=alpha, median=med, raw_file=str(scratch / "texture_raw.npy"),
+                               bad_file=str(scratch / "unobserved.npy"),
+                               labels_file=None if lab_file is None else str(scratch / "specular_labels.npy")))
         if n_bad:
             run.skipped.append(f"texture: {n_bad} mask pixel(s) never observed usefully (grazing, shadowed or saturated "
                                "in every shot) are inpainted from their neighbours")
         tex_file = _memmap(scratch / "texture.npy", (h, w, 3), np.float32)
-        fill_tiles(raw_file, bad_file, tiles.tiles, tex_file)
+        fill_tiles(raw_file, bad_file, tiles, tex_file)
     tex_file.flush()
     del raw_file, bad_file
     for f in ("texture_raw.npy", "unobserved.npy"):
@@ -321,7 +320,7 @@ def _fit(cap: TiledCapture, run: _Run, bar, *, tile, specular, tol, max_iters, c
     normals = torch.tensor([0.0, 0.0, 1.0], dtype=dt).view(3, 1, 1).expand(3, h, w)
     if not flat:
         nrm_file = _memmap(scratch / "normals.npy", (h, w, 3), np.float32)
-        for rows, cols in tiles.tiles:
+        for rows, cols in tiles:
             nrm_file[rows, cols] = cap.normals[:, rows, cols].permute(1, 2, 0).numpy()
         nrm_file.flush()
         normals = torch.from_numpy(nrm_file).permute(2, 0, 1)
@@ -337,7 +336,8 @@ def _fit(cap: TiledCapture, run: _Run, bar, *, tile, specular, tol, max_iters, c
         frac = area / area.sum().clamp_min(1.0)
         result = FitResult(s=(frac @ s).to(dt), alpha=(frac @ alpha).to(dt), spec_labels=torch.from_numpy(lab_file),
                            cluster_s=s.to(dt), cluster_alpha=alpha.to(dt), specular="clustered", **common)
-    result.tiled = {"tile": tile, "tiles": len(tiles.tiles), "passes": tiles.passes, "scratch": str(scratch)}
+    result.tiled = {"tile": tile, "tiles": len(tiles), "passes": passes.passes, "scratch": str(scratch),
+                    "engine": "here" if engine is None else engine.name, "workers": workers}
     if not bool(torch.isfinite(result.s).all() and torch.isfinite(result.alpha).all()) or not math.isfinite(rmse):
         raise FitError("fit --tile: expected finite fit values, found NaN/Inf (non-finite residuals)")
     return result
@@ -345,11 +345,13 @@ def _fit(cap: TiledCapture, run: _Run, bar, *, tile, specular, tol, max_iters, c
 
 def fit_tiled_material(capture_path, *, tile: int, scheme: str = "refine", specular: str = "auto",
                        flakes: str = "auto", tol: float = 1e-6, max_iters: int = 100, robust: str | None = "auto",
-                       seed: int = 0, progress: bool = False, scratch: str | Path):
+                       seed: int = 0, progress: bool = False, scratch: str | Path, engine: str | None = None,
+                       workers: int = 1):
     """``fit --tile``: a tiled capture (or any capture, converted into ``scratch`` first, one
     image at a time) → :class:`~torchmetal.pipeline.PipelineResult` with the flake stage skipped.
 
-    Options as :func:`~torchmetal.pipeline.fit_material`; the tiled fit is the refine scheme by
+    ``engine``, ``workers``: where the tile tasks run (:func:`fit_tiled`). Other options as
+    :func:`~torchmetal.pipeline.fit_material`; the tiled fit is the refine scheme by
     least squares (robust "auto" is that when no flakes are fitted), so other values are refused.
     """
     from torchmetal.pipeline import PipelineResult
@@ -369,12 +371,12 @@ def fit_tiled_material(capture_path, *, tile: int, scheme: str = "refine", specu
         path = convert_capture(capture_path, scratch / "capture")
         skipped.append("tiles: the capture's images are not .npy arrays; converted to a tiled capture first")
     fit = fit_tiled(path, tile=tile, specular=specular, tol=tol, max_iters=max_iters, seed=seed, progress=progress,
-                    scratch=scratch / "result")
+                    scratch=scratch / "result", engine=engine, workers=workers)
     skipped += list(fit.skipped)
     skipped.append("flakes: not run by the tiled fit (flake detection needs whole images)")
     report = {"stage_times": {f"phong.{k}": v for k, v in fit.stage_times.items()}, "total_time": time.perf_counter() - t0,
               "skipped": skipped, "status": fit.status, "iterations": fit.iterations, "rmse": fit.rmse, "flakes": None,
-              "tiled": {k: v for k, v in fit.tiled.items() if k != "scratch"}}
+              "tiled": {k: v for k, v in fit.tiled.items() if k not in ("scratch", "engine", "workers")}}
     material = fit.to_material(report_extra=report)
     result = PipelineResult(material=material, fit=fit, flakes=None, report=material.report)
     result.capture = TiledCapture(path)

@@ -51,27 +51,44 @@ class SeenStats:
                 self.lo[c] = torch.minimum(self.lo[c], v.min().float())
                 self.hi[c] = torch.maximum(self.hi[c], v.max().float())
 
+    def merge(self, other: "SeenStats") -> None:
+        self.hist += other.hist
+        self.lo = torch.minimum(self.lo, other.lo)
+        self.hi = torch.maximum(self.hi, other.hi)
+
     def needs_median(self) -> bool:
         """False when no observed value can fall below 1e-3 × the median (it is ≤ the largest)."""
         return bool((self.lo < WEAK_REL * self.hi).any())
 
-    def median(self, saa_tiles: Callable[[], Iterable[Tensor]]) -> Tensor:
-        """(3,) float32: torch's median (the lower one for an even count) of the observed values;
-        ``saa_tiles()`` yields every tile's (3, P) values again, for the low 16 bits."""
+    def buckets(self) -> tuple[Tensor, Tensor, Tensor]:
+        """(rank of the median, its bucket of high bits, the count below that bucket), each (3,)."""
         count = self.hist.sum(1)
         rank = (count - 1).clamp_min(0) // 2
         cum = self.hist.cumsum(1)
         bucket = torch.stack([torch.searchsorted(cum[c], rank[c], right=True) for c in range(3)])
         before = torch.stack([cum[c, bucket[c] - 1] if bucket[c] > 0 else torch.zeros((), dtype=torch.int64)
                               for c in range(3)])
+        return rank, bucket, before
+
+    @staticmethod
+    def low_bits(saa: Tensor, bucket: Tensor) -> Tensor:
+        """(3, 65536) histogram of the low 16 bits of the observed values in ``bucket`` (3,)."""
         low = torch.zeros(3, _BUCKETS, dtype=torch.int64)
-        for saa in saa_tiles():
-            for c in range(3):
-                v = saa[c][saa[c] > 0]
-                b = _bits(v)
-                b = b[(b >> 16) == bucket[c]]
-                if b.numel():
-                    low[c] += torch.bincount(b & 0xFFFF, minlength=_BUCKETS)
+        for c in range(3):
+            b = _bits(saa[c][saa[c] > 0])
+            b = b[(b >> 16) == bucket[c]]
+            if b.numel():
+                low[c] += torch.bincount(b & 0xFFFF, minlength=_BUCKETS)
+        return low
+
+    def median(self, low_hists: Callable[[Tensor], Iterable[Tensor]]) -> Tensor:
+        """(3,) float32: torch's median (the lower one for an even count) of the observed values;
+        ``low_hists(bucket)`` yields every tile's :meth:`low_bits` for the chosen buckets."""
+        count = self.hist.sum(1)
+        rank, bucket, before = self.buckets()
+        low = torch.zeros(3, _BUCKETS, dtype=torch.int64)
+        for part in low_hists(bucket):
+            low += part
         med = torch.zeros(3, dtype=torch.float32)
         for c in range(3):
             if count[c] == 0:
