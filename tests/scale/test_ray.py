@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 
 import pytest
+import torch
 
 from torchmetal.cli import main
 from torchmetal.scale.fit_many import fit_many
@@ -38,3 +39,19 @@ def test_ray_fit_many_retry_resume(cluster, tmp_path):
         assert material_fingerprint(out / cap.name) == material_fingerprint(tmp_path / "single" / cap.name)
     again = fit_many(caps, out, fit_args=FIT_ARGS, engine="ray", workers=2, progress=False, task=never_task)
     assert [r.status for r in again] == ["resumed"] * 3
+
+
+def test_ray_tiled_fit_equals_in_process(cluster, tmp_path):
+    """The tiled fit's tile tasks on Ray workers: the same fit as in this process, bit for bit."""
+    from torchmetal.scale.tiled import fit_tiled
+    from torchmetal.scale.tiles import convert_capture
+    from torchmetal.synth import synth_capture, write_synth
+
+    write_synth(synth_capture(size=64, shots=6, seed=4, noise=0.003), tmp_path / "cap")
+    cap = convert_capture(tmp_path / "cap", tmp_path / "tiled")
+    kw = dict(tile=32, sub_pixels=1024, select_pixels=256, max_iters=20)
+    here = fit_tiled(cap, scratch=tmp_path / "here", **kw)
+    on_ray = fit_tiled(cap, scratch=tmp_path / "ray", engine="ray", workers=2, threads=1, **kw)
+    assert on_ray.tiled["engine"] == "ray"
+    assert torch.equal(on_ray.s, here.s) and torch.equal(on_ray.alpha, here.alpha)
+    assert torch.equal(on_ray.texture, here.texture)
