@@ -64,3 +64,13 @@ def test_mtlx_context_is_the_materialx_graph(exported, tmp_path):
     assert surf.GetInput("coat_ior").Get() == pytest.approx(back["inputs"]["coat_ior"], rel=1e-5)
     src = surf.GetInput("geometry_normal").GetConnectedSources()[0][0].source
     assert src.GetPath().name == "NG_torchmetal"
+
+
+def test_cli_export(tmp_path):
+    from torchmetal.cli import main
+    from torchmetal.material import save_material
+
+    mat = save_material(make_material("flat-clustered-flakes"), tmp_path / "mat")
+    assert main(["export", str(mat), "--format", "usd", "-o", str(tmp_path / "out" / "m.usda")]) == 0
+    assert usd.validate(tmp_path / "out" / "m.usda")["errors"] == []
+    assert (tmp_path / "out" / "m.textures" / "preview_base_color.png").is_file()

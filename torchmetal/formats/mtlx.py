@@ -305,6 +305,9 @@ def read(path: str | os.PathLike) -> dict:
                 res["inputs"][inp.getName()] = {"file": str(path.parent / node.getInputValue("file")), "scale": scale}
             else:
                 res["inputs"][inp.getName()] = {"node": node.getCategory()}
+                src = node.getInput("in").getConnectedNode() if node.getCategory() == "normalmap" else None
+                if src is not None and src.getCategory() == "image":
+                    res["inputs"][inp.getName()]["file"] = str(path.parent / src.getInputValue("file"))
         else:
             v = inp.getValue()
             res["inputs"][inp.getName()] = list(v.asTuple()) if hasattr(v, "asTuple") else float(v)
@@ -314,3 +317,50 @@ def read(path: str | os.PathLike) -> dict:
     mat = doc.getNodes("surfacematerial") or [n for n in doc.getNodes() if n.getCategory() == "surfacematerial"]
     res["torchmetal"] = json.loads(mat[0].getDocString()).get("torchmetal") if mat and mat[0].getDocString() else None
     return res
+
+
+def to_engine(back: dict, size: tuple[float, float]) -> EngineMaterial:
+    """The coat of a read-back document (:func:`read`) as glTF-equivalent engine maps: F0 =
+    F0(ior)·colour·weight, F90 = weight, the base colour and normals from the textures; flakes
+    (procedural ``flake2d``) and OpenPBR's exact dielectric Fresnel are not represented."""
+    from torchmetal.formats.textures import decode_png, to_linear
+
+    ins = back["inputs"]
+    coat = back["flake2d"] is not None
+    pre = "coat_" if coat else "specular_"
+
+    def load(name: str, srgb: bool) -> torch.Tensor:
+        v = ins[name]
+        planes = decode_png(Path(v["file"]).read_bytes())[:, :, :3]
+        planes = to_linear(planes) if srgb else planes
+        return torch.from_numpy(np.ascontiguousarray(planes.transpose(2, 0, 1))).float() * float(v["scale"])
+
+    base = load("base_color", True)
+    _, h, w = base.shape
+
+    def value(name: str, channels: int, srgb: bool = False) -> torch.Tensor:
+        v = ins[name]
+        if isinstance(v, dict):
+            x = load(name, srgb)
+            return x[:channels] if channels == 1 else x
+        t = torch.tensor(v if isinstance(v, list) else [v], dtype=torch.float32).view(-1, 1, 1)
+        return t.expand(channels, h, w).clone()
+
+    rough = value(f"{pre}roughness", 1)
+    ior = float(ins[f"{pre}ior"])
+    f0_ior = ((ior - 1.0) / (ior + 1.0)) ** 2
+    if coat:
+        weight = value("coat_weight", 1)
+        f0, f90 = (f0_ior * weight).expand(3, h, w).clone(), (f0_ior * weight).clone()
+    else:
+        weight = value("specular_weight", 1)
+        f0 = (f0_ior * value("specular_color", 3, srgb=True)).clamp(max=1.0) * weight
+        f90 = weight
+    normal = torch.zeros(3, h, w)
+    normal[2] = 1.0
+    maps = [v["file"] for v in ins.values() if isinstance(v, dict) and v.get("node") == "normalmap" and "file" in v]
+    if maps:
+        n = decode_png(Path(maps[0]).read_bytes())[:, :, :3].transpose(2, 0, 1) * 2.0 - 1.0
+        n = torch.from_numpy(np.ascontiguousarray(n)).float()
+        normal = n / n.norm(dim=0, keepdim=True).clamp_min(1e-12)
+    return EngineMaterial(base_color=base, roughness=rough, f0=f0, f90=f90, normal=normal, size=size)
