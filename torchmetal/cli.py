@@ -42,6 +42,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.tile is not None:  # tile by tile from memory-mapped files (torchmetal.scale.tiled); scratch files beside the output
         import tempfile
 
+        if args.normals != "given":
+            from torchmetal.errors import InputError
+
+            raise InputError(f"--normals {args.normals}: expected 'given' with --tile (tiled fits use the capture's normals)")
+
         from torchmetal.scale.tiled import fit_tiled_material
 
         Path(args.output).resolve().parent.mkdir(parents=True, exist_ok=True)
@@ -58,7 +63,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         result = fit_material(
             capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
             tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
-            progress=not args.quiet,
+            progress=not args.quiet, normals=args.normals,
         )
     extra = {}
     if args.export:
@@ -190,6 +195,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
     f.add_argument("--max-iters", type=int, default=100)
     f.add_argument("--seed", type=int, default=0, help="seed of the flake field")
+    f.add_argument("--normals", choices=["given", "flat", "estimate"], default="given",
+                   help="given: the capture's normals.npy (flat without one); flat: (0, 0, 1); "
+                        "estimate: from the photos (photometric stereo with the Phong terms)")
     f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
     f.add_argument("--tile", type=int, default=None, metavar="N",
                    help="fit tile by tile (N x N pixels; memory bounded by the tile, not the capture; docs/scale.md)")

@@ -117,6 +117,7 @@ def fit_material(
     seed: int = 0,
     progress: bool = False,
     lobe: str = "phong",
+    normals: str = "given",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -132,6 +133,9 @@ def fit_material(
         progress: show progress bars.
         lobe: the specular lobe, "phong" (DESIGN 2.2), "blinn", "ggx" or "auto" (chosen on
             held-out shots by the first fit; the refits keep that choice).
+        normals: "given" (the capture's normals.npy; flat without one), "flat" (0, 0, 1), or
+            "estimate" (photometric stereo with the Phong terms,
+            :func:`~torchmetal.fit.normals.estimate_normals`; the material keeps them).
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,
@@ -143,6 +147,9 @@ def fit_material(
         raise InputError(f"flakes: expected one of {FLAKE_MODES}, found {flakes!r}")
     auto = robust == "auto"
     t0 = time.perf_counter()
+    from torchmetal.fit.normals import with_normals
+
+    capture, normals_report = with_normals(capture, normals, fit_kwargs=dict(tol=tol, max_iters=max_iters))
     kw = dict(scheme=scheme, specular=specular, tol=tol, max_iters=max_iters, progress=progress)
     fit = fit_phong(capture, robust=None if auto else robust, lobe=lobe, **kw)
     kw["lobe"] = fit.lobe  # refits keep the lobe the first fit chose
@@ -177,6 +184,7 @@ def fit_material(
         "status": fit.status,
         "iterations": fit.iterations,
         "rmse": fit.rmse,
+        "normals": normals_report,
         "flakes": None if flake_result is None else flake_result.report,
         "lobe": fit.lobe,
         "lobe_selection": lobe_selection,
