@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchmetal.errors import ExportError
-from torchmetal.formats.lobe_fit import (fit_glint, fit_lobe, ggx_terms, lobe_directions, lobe_target, phong_cone,
+from torchmetal.formats.lobe_fit import (capture_views, fit_glint, fit_lobe, ggx_terms, lobe_directions, lobe_target, phong_cone,
                                          phong_target, textbook_roughness)
 
 
@@ -129,3 +129,14 @@ def test_phong_target_matches_definition():
 def test_bad_input_one_line(call, match):
     with pytest.raises(ExportError, match=match):
         call()
+
+
+def test_capture_views():
+    cams = torch.tensor([[0.0, 0.0, 0.3, 1.0], [0.0, 0.0, 2.0, 1.0], [1.0, 0.0, 1.0, 0.0], [1.0, 0.0, -0.2, 0.0]])
+    v = capture_views(cams)
+    assert v.shape == (2, 3) and torch.allclose(v.norm(dim=-1), torch.ones(2, dtype=v.dtype))
+    near = fit_lobe(torch.full((3,), 0.2), torch.full((3,), 50.0), views=capture_views(cams[:1]))
+    wide = fit_lobe(torch.full((3,), 0.2), torch.full((3,), 50.0))
+    assert near.max_error < wide.max_error  # one view (normal incidence) is easier to match than 0-60°
+    with pytest.raises(ExportError, match="above the surface"):
+        capture_views(cams[3:])

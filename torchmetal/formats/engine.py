@@ -143,7 +143,8 @@ def engine_material(material, *, views: Tensor | None = None, flakes: str = "aut
 
     Args:
         material: a torchmetal Material.
-        views: (V, 3) view directions for the lobe fit (default: polar 0–60°).
+        views: (V, 3) view directions for the lobe fit (default: polar 0–60°), e.g. the capture's own:
+            :func:`torchmetal.formats.lobe_fit.capture_views` (capture.cameras).
         flakes: "auto" (the layout whose render matches torchmetal's best), "base", "clearcoat" or
             "flake_clearcoat" (see :mod:`torchmetal.formats.bake`); ignored without flakes.
         texels_per_pixel: flake bake density (1: torchmetal's own flakes, texel for pixel).

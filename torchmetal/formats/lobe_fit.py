@@ -197,6 +197,20 @@ def phong_cone(alpha: float, floor: float = 1e-3) -> float:
     return math.acos(floor ** (1.0 / max(float(alpha), 1e-6)))
 
 
+def capture_views(cameras: Tensor, min_z: float = 0.05) -> Tensor:
+    """View directions (V, 3) a capture saw at the sample centre, from its homogeneous cameras
+    (N, 4) (DESIGN 2.1: w = 1 a position, w = 0 a direction): pass them as ``views=`` to the
+    writers so the lobe is fitted over the capture's own view angles. Views closer to the
+    horizon than ``min_z`` are dropped; an empty result raises :class:`ExportError`."""
+    c = torch.as_tensor(cameras, dtype=torch.float64).reshape(-1, 4)
+    d = c[:, :3]  # the centre is the origin: a position and a direction give the same vector
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    d = d[d[:, 2] > min_z]
+    if d.shape[0] == 0:
+        raise ExportError(f"cameras: expected at least one camera above the surface (z > {min_z}), found none")
+    return torch.unique(torch.round(d * 1e6) / 1e6, dim=0)
+
+
 def lobe_directions(cone: float, views: Tensor | None = None, per_view: int = 512,
                     dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
     """(light, view) pairs around the mirror direction of each view, uniform in solid angle.
