@@ -51,7 +51,7 @@ def test_killed_worker_is_retried_then_resume_redoes_nothing(captures, single, t
     for cap in captures:
         assert material_fingerprint(out / cap.name) == single[cap.name]
     stamp = {c.name: (out / c.name / "material.json").stat().st_mtime_ns for c in captures}
-    again = fit_many(captures, out, fit_args=FIT_ARGS, workers=2, progress=False, task=never_task)
+    again = fit_many(captures, out, fit_args=FIT_ARGS, workers=1, threads=2, progress=False, task=never_task)
     assert [r.status for r in again] == ["resumed"] * 3
     assert {c.name: (out / c.name / "material.json").stat().st_mtime_ns for c in captures} == stamp
     assert "3 done before (resumed)" in (out / "summary.md").read_text()

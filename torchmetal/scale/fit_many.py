@@ -71,7 +71,9 @@ def capture_jobs(captures: list[str | os.PathLike], outdir: str | os.PathLike, f
         name = root.resolve().name
         out = outdir / name
         argv = ["fit", str(cap), "-o", str(out), *fit_args, "-q"]
-        jobs.append(Job(name, {"entry": entry, "argv": argv, "threads": threads, "output": str(out)}, str(out / "material.json")))
+        payload = {"entry": entry, "argv": argv, "threads": threads, "output": str(out)}
+        key = {"entry": entry, "argv": argv}  # threads do not change a fit: not part of what resume compares
+        jobs.append(Job(name, payload, str(out / "material.json"), key))
     names = [j.name for j in jobs]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:

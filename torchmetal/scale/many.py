@@ -6,7 +6,8 @@ process pool or Ray (:mod:`torchmetal.scale.engines`), at most ``workers`` at a 
 - a task that fails is retried up to ``retries`` times, every error kept (in the record and the
   summary); a :class:`TaskError` with ``retry=False`` (the input is bad: deterministic) is not;
 - each finished job leaves ``OUTDIR/.fit-many/<name>.json`` (written atomically); a later run with
-  the same payload finds it, with the job's output present, and does not redo the job;
+  the same key (the payload, less what does not change the output) finds it, with the job's output
+  present, and does not redo the job;
 - ``OUTDIR/summary.csv`` and ``summary.md`` (one row per job: status, attempts, time and what the
   task reported) are rewritten atomically after every job, so an interrupted run still has one.
 
@@ -48,11 +49,17 @@ class TaskError(RuntimeError):
 @dataclass
 class Job:
     """One unit of work: ``name`` (unique; the output folder), the task's ``payload`` (JSON-able
-    dict) and the ``output`` path whose presence marks it done."""
+    dict), the ``output`` path whose presence marks it done, and ``key``: what must match for a
+    recorded job to count as this one (default: the payload)."""
 
     name: str
     payload: dict
     output: str
+    key: dict | None = None
+
+    @property
+    def identity(self) -> dict:
+        return self.payload if self.key is None else self.key
 
 
 @dataclass
@@ -68,6 +75,7 @@ class JobRecord:
     result: dict = field(default_factory=dict)
     output: str = ""
     payload: dict = field(default_factory=dict)
+    key: dict = field(default_factory=dict)
 
 
 def _record_path(outdir: Path, name: str) -> Path:
@@ -80,7 +88,7 @@ def _done_before(outdir: Path, job: Job) -> JobRecord | None:
         rec = json.loads(f.read_text())
     except (OSError, ValueError):
         return None
-    if rec.get("status") not in ("ok", "resumed") or rec.get("payload") != job.payload or not Path(job.output).exists():
+    if rec.get("status") not in ("ok", "resumed") or rec.get("key") != job.identity or not Path(job.output).exists():
         return None
     return JobRecord(**{**rec, "status": "resumed", "attempts": 0})
 
@@ -116,7 +124,7 @@ def run_many(
         engine, workers, address: see :func:`~torchmetal.scale.engines.make_engine`.
         retries: extra attempts per job after a failure.
         progress: a tqdm bar over jobs.
-        resume: skip jobs whose record says done with the same payload and whose output exists.
+        resume: skip jobs whose record says done with the same key and whose output exists.
     """
     if not (isinstance(retries, int) and retries >= 0):
         raise InputError(f"retries: expected an int >= 0, found {retries!r}")
@@ -162,10 +170,11 @@ def run_many(
                             todo.append(i)
                             continue
                         records[i] = JobRecord(jobs[i].name, "failed", attempts[i], 0.0, errors[i], {}, jobs[i].output,
-                                               jobs[i].payload)
+                                               jobs[i].payload, jobs[i].identity)
                     else:
                         records[i] = JobRecord(jobs[i].name, "ok", attempts[i], time.perf_counter() - started[i],
-                                               errors[i], dict(result or {}), jobs[i].output, jobs[i].payload)
+                                               errors[i], dict(result or {}), jobs[i].output, jobs[i].payload,
+                                               jobs[i].identity)
                     _write_record(outdir, records[i])
                     write_summary(outdir, [r for r in records if r is not None])
                     if bar is not None:
