@@ -241,3 +241,19 @@ def test_onnx_parity(tmp_path, lobe, bumpy, clustered):
     meta = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
     assert meta["lobe"] == lobe
     assert verify_onnx(path, MaterialRenderer(m)) <= 1e-4
+
+
+def test_cli_fit_lobe(tmp_path, capsys):
+    """``torchmetal fit --lobe ggx`` writes a GGX material that renders; a bad --lobe is a usage error."""
+    from torchmetal.cli import main
+
+    cap, mat = tmp_path / "cap", tmp_path / "mat"
+    assert main(["synth", "-o", str(cap), "--size", "24", "--shots", "5"]) == 0
+    assert main(["fit", str(cap), "-o", str(mat), "-q", "--lobe", "ggx"]) == 0
+    assert "lobe ggx" in capsys.readouterr().out
+    m = load_material(mat)
+    assert m.lobe == "ggx" and m.report["lobe"] == "ggx"
+    assert main(["render", str(mat), "--light", "0 0.05 0.3 1", "--camera", "0 0 0.3 1", "-o", str(tmp_path / "r.npy")]) == 0
+    with pytest.raises(SystemExit) as e:
+        main(["fit", str(cap), "-o", str(mat), "--lobe", "cook"])
+    assert e.value.code != 0

@@ -47,6 +47,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
             raise InputError(f"--normals {args.normals}: expected 'given' with --tile (tiled fits use the capture's normals)")
 
+        if args.lobe != "phong":
+            from torchmetal.errors import InputError
+
+            raise InputError(f"--lobe {args.lobe}: expected 'phong' with --tile (tiled fits use the paper's lobe)")
         from torchmetal.scale.tiled import fit_tiled_material
 
         Path(args.output).resolve().parent.mkdir(parents=True, exist_ok=True)
@@ -63,7 +67,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         result = fit_material(
             capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
             tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
-            progress=not args.quiet, normals=args.normals,
+            progress=not args.quiet, normals=args.normals, lobe=args.lobe,
         )
     extra = {}
     if args.export:
@@ -82,7 +86,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     print(
         f"fitted {capture.num_shots} shots {capture.height}x{capture.width} in {rep['total_time']:.2f} s: "
         f"rmse {rep['rmse']:.4g}, s {[round(v, 4) for v in result.material.s.tolist()]}, "
-        f"alpha {[round(v, 1) for v in result.material.alpha.tolist()]}, "
+        f"alpha {[round(v, 1) for v in result.material.alpha.tolist()]}, lobe {result.material.lobe}, "
         f"flakes {'none' if flakes is None else _density_text(flakes)}; "
         f"skipped: {'; '.join(rep['skipped']) or 'nothing'} -> {args.output}"
     )
@@ -195,6 +199,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
     f.add_argument("--max-iters", type=int, default=100)
     f.add_argument("--seed", type=int, default=0, help="seed of the flake field")
+    f.add_argument("--lobe", choices=["phong", "blinn", "ggx", "auto"], default="phong",
+                   help="specular lobe: phong (DESIGN 2.2, default), blinn, ggx (microfacet, Fresnel, shadowing) "
+                        "or auto (the best on held-out shots)")
     f.add_argument("--normals", choices=["given", "flat", "estimate"], default="given",
                    help="given: the capture's normals.npy (flat without one); flat: (0, 0, 1); "
                         "estimate: from the photos (photometric stereo with the Phong terms)")
