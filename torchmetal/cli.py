@@ -136,6 +136,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     options = {"opset": args.opset} if args.format == "onnx" else {}
     if args.format == "web":
         options = {"capture": args.capture, "webgpu": args.webgpu}
+    elif args.format in ("gltf", "glb", "mtlx", "usd") and args.capture:
+        options = {"capture": args.capture}  # fit the engine lobe over the capture's views
     path = export_material(material, args.format, out, **options)
     size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
     print(f"exported {material.height}x{material.width} material as {args.format} ({size / 2**20:.1f} MiB) -> {path}")
@@ -232,7 +234,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--format", choices=list(FORMATS), default="onnx", help="what to write (default: %(default)s)")
     e.add_argument("-o", "--output", help="output path (default: inside MATERIAL, e.g. MATERIAL/renderer.onnx)")
     e.add_argument("--opset", type=int, default=20, help="ONNX opset (onnx only)")
-    e.add_argument("--capture", help="capture directory whose photos the viewer shows beside the render (web only)")
+    e.add_argument("--capture", help="capture directory: web, its photos beside the render; gltf/glb/mtlx/usd, "
+                   "the views the specular lobe is fitted over (default 0-60 degrees)")
     e.add_argument("--webgpu", action="store_true", help="also copy onnxruntime-web's WebGPU build (web only)")
     e.set_defaults(func=cmd_export)
 

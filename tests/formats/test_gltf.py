@@ -124,3 +124,16 @@ def test_cli_export(tmp_path, capsys):
     assert (tmp_path / "m.glb").is_file() and (mat / "material.gltf").is_file()
     assert "as glb" in capsys.readouterr().out
     assert export_material(make_material("flat-global-noflakes"), "glb", tmp_path / "api.glb").is_file()
+
+
+def test_cli_export_over_the_capture_views(tmp_path):
+    """``export --capture`` fits the lobe over the capture's own views (here all overhead)."""
+    from torchmetal.synth import synth_capture, write_synth
+
+    cap = tmp_path / "cap"
+    write_synth(synth_capture(size=16, shots=4, seed=1), cap)
+    mat = save_material(make_material("flat-global-noflakes"), tmp_path / "mat")
+    assert main(["export", str(mat), "--format", "glb", "--capture", str(cap), "-o", str(tmp_path / "c.glb")]) == 0
+    assert main(["export", str(mat), "--format", "glb", "-o", str(tmp_path / "d.glb")]) == 0
+    seen, default = (gltf.read(tmp_path / n).extras["lobe_fit"][0] for n in ("c.glb", "d.glb"))
+    assert seen["samples"] < default["samples"] and max(seen["error"]) < max(default["error"])

@@ -164,15 +164,18 @@ def _json_safe(x):
     return x
 
 
-def write(material, path: str | os.PathLike, *, binary: bool | None = None, views=None, flakes: str = "auto",
-          texels_per_pixel: int = 1) -> Path:
+def write(material, path: str | os.PathLike, *, binary: bool | None = None, views=None, capture=None,
+          flakes: str = "auto", texels_per_pixel: int = 1) -> Path:
     """Write ``material`` as glTF 2.0 (``.gltf``, data-URI buffer) or GLB (``.glb``), atomically.
 
     Args:
         binary: GLB or not; default from the suffix (``.glb`` → GLB).
         views, flakes, texels_per_pixel: see :func:`~torchmetal.formats.engine.engine_material`.
+        capture: a capture (or its directory) whose views the lobe is fitted over (when no ``views``).
     """
-    em = engine_material(material, views=views, flakes=flakes, texels_per_pixel=texels_per_pixel)
+    from torchmetal.formats.lobe_fit import resolve_views
+
+    em = engine_material(material, views=resolve_views(views, capture), flakes=flakes, texels_per_pixel=texels_per_pixel)
     return write_engine(em, path, binary=binary)
 
 

@@ -26,6 +26,7 @@ The reported error is the relative L2 error ‖fit − target‖/‖target‖ pe
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -209,6 +210,18 @@ def capture_views(cameras: Tensor, min_z: float = 0.05) -> Tensor:
     if d.shape[0] == 0:
         raise ExportError(f"cameras: expected at least one camera above the surface (z > {min_z}), found none")
     return torch.unique(torch.round(d * 1e6) / 1e6, dim=0)
+
+
+def resolve_views(views=None, capture=None) -> Tensor | None:
+    """``views`` as given, else the views of ``capture`` (a Capture or a capture directory), else None
+    (the default views)."""
+    if views is not None or capture is None:
+        return views
+    if isinstance(capture, (str, os.PathLike)):
+        from torchmetal.io.capture import load_capture
+
+        capture = load_capture(capture)
+    return capture_views(capture.cameras)
 
 
 def lobe_directions(cone: float, views: Tensor | None = None, per_view: int = 512,

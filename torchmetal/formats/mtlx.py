@@ -243,14 +243,16 @@ def generate(doc, target: str, lib=None) -> str:
     return shader.getSourceCode(stage)
 
 
-def write(material, path: str | os.PathLike, *, views=None) -> Path:
+def write(material, path: str | os.PathLike, *, views=None, capture=None) -> Path:
     """Write ``material`` as ``path`` (.mtlx) plus ``<stem>.textures/``; validated before it is
-    written (an invalid document raises :class:`ExportError` and writes nothing)."""
+    written (an invalid document raises :class:`ExportError` and writes nothing). ``views`` /
+    ``capture``: the views of the lobe fit (see :func:`torchmetal.formats.lobe_fit.resolve_views`)."""
+    from torchmetal.formats.lobe_fit import resolve_views
     from torchmetal.io.images import atomic_write_bytes
 
     mx = _mx()
     path = Path(path)
-    em, plan, textures = mtlx_plan(material, views)
+    em, plan, textures = mtlx_plan(material, resolve_views(views, capture))
     tex_dir = path.with_name(f"{path.stem}.textures")
     files = {name: f"{tex_dir.name}/{name}.png" for name in textures}
     doc = build_document(plan, files)

@@ -1,7 +1,8 @@
 """USD writer (``export --format usd``): a quad bound to one material with two render contexts.
 
 - The universal context: ``UsdPreviewSurface`` in the specular workflow (``useSpecularWorkflow`` 1):
-  ``diffuseColor`` = the base colour, ``specularColor`` = F0, ``roughness``, ``normal`` (tangent-space
+  ``diffuseColor`` = the base colour, ``specularColor`` = F0 (the preview's grazing reflectance is
+  1, not the fitted F90), ``roughness``, ``normal`` (tangent-space
   map, scale 2 / bias −1), ``clearcoat``/``clearcoatRoughness`` — the glTF engine maps of
   :mod:`torchmetal.formats.engine` with the flakes baked (:mod:`torchmetal.formats.bake`; "base" or "clearcoat": the
   preview's coat has no normal of its own).
@@ -233,13 +234,17 @@ def build_stage(material, tex_dir_name: str, *, views=None, flakes: str = "auto"
     return stage, textures
 
 
-def write(material, path: str | os.PathLike, *, views=None, flakes: str = "auto", texels_per_pixel: int = 1) -> Path:
-    """Write ``material`` as ``path`` (.usda) plus ``<stem>.textures/`` (see the module docstring)."""
+def write(material, path: str | os.PathLike, *, views=None, capture=None, flakes: str = "auto",
+          texels_per_pixel: int = 1) -> Path:
+    """Write ``material`` as ``path`` (.usda) plus ``<stem>.textures/`` (see the module docstring);
+    ``views`` / ``capture``: the views of the lobe fit (:func:`torchmetal.formats.lobe_fit.resolve_views`)."""
+    from torchmetal.formats.lobe_fit import resolve_views
     from torchmetal.io.images import atomic_write_bytes
 
     path = Path(path)
     tex_dir = path.with_name(f"{path.stem}.textures")
-    stage, textures = build_stage(material, tex_dir.name, views=views, flakes=flakes, texels_per_pixel=texels_per_pixel)
+    stage, textures = build_stage(material, tex_dir.name, views=resolve_views(views, capture), flakes=flakes,
+                                  texels_per_pixel=texels_per_pixel)
     text = stage.GetRootLayer().ExportToString()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{tex_dir.name}.", dir=path.parent))
