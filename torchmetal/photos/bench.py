@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pickle
 import time
 from pathlib import Path
@@ -45,20 +46,27 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.dir)
     truth = out / "truth.pkl"
     photos = pickle.loads(truth.read_bytes()) if truth.is_file() else generate(out, tuple(args.size), args.shots)
+    photos.paths = [out / p.name for p in photos.paths]  # the folder may have moved
 
     from torchmetal.photos.capture import capture_from_photos, save_photo_capture
 
+    import resource
+
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
     result = capture_from_photos(photos.paths, photos.board, flash_offset_mm=(12.0, -4.0, 0.0),
                                  resolution=args.resolution, workers=args.workers)
     t1 = time.perf_counter()
     save_photo_capture(result, out / "capture")
     t2 = time.perf_counter()
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     k, kt = result.intrinsics.matrix, photos.intrinsics.matrix
     cams = result.capture.cameras[:, :3].double().numpy()
     summary = {
         "photos": len(photos.paths), "size": list(photos.intrinsics.image_size), "resolution": args.resolution,
         "capture_s": round(t1 - t0, 2), "write_s": round(t2 - t1, 2), "total_s": round(t2 - t0, 2),
+        "cpu_s": round(cpu, 2), "stage_s": result.report["stage_seconds"], "load_avg": os.getloadavg()[0],
         "f_error_pct": round(100 * float(k[0, 0] / kt[0, 0] - 1), 4),
         "principal_point_error_px": [round(float(k[0, 2] - kt[0, 2]), 3), round(float(k[1, 2] - kt[1, 2]), 3)],
         "camera_error_mm_max": round(1000 * float(np.linalg.norm(cams - photos.cameras, axis=1).max()), 3),

@@ -185,6 +185,7 @@ def capture_from_photos(
     workers = workers or max(1, min(4, os.cpu_count() or 1))
     with ThreadPoolExecutor(workers) as pool:
         obs = list(pool.map(lambda p: inspect_photo(p, board), paths))
+    stages = {"inspect": time.perf_counter() - t0}
     for o in obs:
         if o.reason is None and o.exif.exposure is None:
             o.reason = f"missing EXIF {', '.join(o.exif.missing)}: the exposure cannot be normalised"
@@ -193,6 +194,7 @@ def capture_from_photos(
     ok = [i for i in ok if obs[i].reason is None]
     intr = intrinsics if intrinsics is not None else _self_calibrate(obs, ok, board)
     ok = [i for i in ok if obs[i].reason is None]
+    stages["calibrate"] = time.perf_counter() - t0 - sum(stages.values())
 
     h, w = board.capture_grid(resolution)
     ww, wh = board.window_size_mm
@@ -247,6 +249,7 @@ def capture_from_photos(
     used = [i for i in ok if obs[i].reason is None]
     if len(used) < MIN_PHOTOS:
         raise _too_few(obs, len(used), "for a capture")
+    stages["poses_rectify"] = time.perf_counter() - t0 - sum(stages.values())
 
     # exposure (EXIF), white balance (paper → neutral, green kept), the intensity unit (paper albedo 1)
     e0 = obs[used[0]].exif.exposure
@@ -295,6 +298,7 @@ def capture_from_photos(
         "board": board.to_json(), "resolution": [h, w], "surface_m": [ww / 1000.0, wh / 1000.0],
         "flash_offset_mm": [float(v) for v in offset], "intensity_unit": unit,
         "used": n, "rejected": len(obs) - n, "seconds": round(time.perf_counter() - t0, 3),
+        "stage_seconds": {k: round(v, 3) for k, v in stages.items()},
         "mask_pct": round(100.0 * float(capture.mask.float().mean()), 3),
     }
     return PhotoCapture(capture, board, report, intr, obs, rect, found_poses)

@@ -21,7 +21,7 @@ from torchmetal.photos.exif import PhotoExif, read_exif
 
 __all__ = ["Observation", "inspect_photo", "decode_photo", "detect_corners", "edge_width", "MIN_CORNERS"]
 
-DETECT_SIDE = 2048  # markers are searched on a copy at most this long (pixels)
+DETECT_SIDE = 1600  # markers are searched on a copy at most this long (pixels): >= 3 px per marker bit at 30 cm
 MIN_CORNERS = 12  # fewer usable corners: the board is cut off or hidden
 THUMB_SIDE = 360
 BLURRED_PX = 4.0  # a photo without markers whose sharpest edges are this wide is called blurred
@@ -77,8 +77,9 @@ def _detector(board: Board):
     return cv2.aruco.CharucoDetector(board.charuco(), cp, dp)
 
 
-def detect_corners(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-    """ChArUco corners of ``board`` in a full-resolution (H, W) uint8 image.
+def detect_corners(gray: np.ndarray, board: Board, small: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """ChArUco corners of ``board`` in a full-resolution (H, W) uint8 image (markers searched on
+    ``small``, a reduced copy, when given; else on one made here).
 
     Returns:
         ids (K,) of the usable corners (all four squares printed), corners (K, 2) float64 pixels
@@ -87,8 +88,8 @@ def detect_corners(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarr
     import cv2
 
     h, w = gray.shape
-    f = max(1.0, max(h, w) / DETECT_SIDE)
-    small = gray if f == 1.0 else cv2.resize(gray, (round(w / f), round(h / f)), interpolation=cv2.INTER_AREA)
+    if small is None:
+        small = _reduce(gray)
     fx, fy = w / small.shape[1], h / small.shape[0]
     ch_c, ch_ids, m_c, m_ids = _detector(board).detectBoard(small)
     up = lambda p: np.stack([(p[:, 0] + 0.5) * fx - 0.5, (p[:, 1] + 0.5) * fy - 0.5], 1)  # noqa: E731
@@ -112,6 +113,15 @@ def detect_corners(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarr
     return ids[moved], refined[moved], quads
 
 
+def _reduce(img: np.ndarray) -> np.ndarray:
+    """``img`` area-reduced so that its longer side is at most DETECT_SIDE (itself when smaller)."""
+    import cv2
+
+    h, w = img.shape[:2]
+    f = max(h, w) / DETECT_SIDE
+    return img if f <= 1.0 else cv2.resize(img, (round(w / f), round(h / f)), interpolation=cv2.INTER_AREA)
+
+
 def _square_px(ids: np.ndarray, pts: np.ndarray, board: Board) -> float:
     """The board's squares in pixels, in the more foreshortened direction: the smaller of the median
     image distances between horizontally and vertically adjacent corners."""
@@ -123,7 +133,7 @@ def _square_px(ids: np.ndarray, pts: np.ndarray, board: Board) -> float:
     return min(meds) if meds else 20.0
 
 
-def edge_width(gray: np.ndarray, quads: list[np.ndarray], max_patches: int = 24) -> float | None:
+def edge_width(gray: np.ndarray, quads: list[np.ndarray], max_patches: int = 12) -> float | None:
     """Width (px) of the marker edges in the blurriest of 4 directions: contrast / steepest slope.
 
     A sharp, anti-aliased edge measures about 1–2 px; defocus or shake of σ px widens it to about
@@ -181,11 +191,12 @@ def inspect_photo(path: str | os.PathLike, board: Board) -> Observation:
         return obs
     h, w = img.shape[:2]
     obs.size = (w, h)
+    small = _reduce(img)  # one pass over the full colour image: detection copy and thumbnail
     f = THUMB_SIDE / max(h, w)
     obs.thumb_scale = f
-    obs.thumb = cv2.resize(img, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA)
+    obs.thumb = cv2.resize(small, (max(1, round(w * f)), max(1, round(h * f))), interpolation=cv2.INTER_AREA)
     gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    ids, pts, quads = detect_corners(gray, board)
+    ids, pts, quads = detect_corners(gray, board, cv2.cvtColor(small, cv2.COLOR_BGR2GRAY))
     obs.ids, obs.corners, obs.markers = ids, pts, len(quads)
     if not quads:
         h2, w2 = min(h, 1024), min(w, 1024)

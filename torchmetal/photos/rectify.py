@@ -21,9 +21,10 @@ from torchmetal.photos.board import BLANK_MARGIN_MM, Board
 from torchmetal.photos.calibrate import Intrinsics, project
 from torchmetal.photos.detect import Observation, decode_photo
 
-__all__ = ["Rectified", "window_points", "photo_scale", "rectify", "MAX_SUPERSAMPLE"]
+__all__ = ["Rectified", "window_points", "photo_map", "photo_scale", "rectify", "MAX_SUPERSAMPLE"]
 
 MAX_SUPERSAMPLE = 8
+MAP_STEP = 4  # sub-pixels between exactly projected points of the rectification map
 RING_MM = (1.0, BLANK_MARGIN_MM - 1.0)  # the paper band (outside the window) used as white reference
 
 
@@ -54,6 +55,37 @@ def window_points(board: Board, h: int, w: int, ss: int = 1) -> np.ndarray:
     y = (0.5 - v) * wh  # capture y (mm)
     gx, gy = np.meshgrid(cx + x, cy - y)
     return np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1)
+
+
+def _plane_points(board: Board, rows: np.ndarray, cols: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Board coordinates (len(rows)·len(cols), 3) mm of fractional sub-pixel indices on the
+    (h, w) grid (index i ↔ centre (i + 0.5) / h of the window's height, row 0 at the top)."""
+    ww, wh = board.window_size_mm
+    cx, cy = board.window_centre_board
+    gx, gy = np.meshgrid(cx + ((cols + 0.5) / w - 0.5) * ww, cy - (0.5 - (rows + 0.5) / h) * wh)
+    return np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1)
+
+
+def photo_map(board: Board, pose, intr: Intrinsics, h: int, w: int, ss: int, step: int = MAP_STEP) -> np.ndarray:
+    """Photo pixel (n, 2) of every sub-pixel centre of the capture grid, row-major over (h·ss, w·ss).
+
+    Projected exactly on every ``step``-th sub-pixel (and the last) and interpolated bilinearly in
+    between: the plane → photo mapping is smooth (perspective + lens), so at a step of a few photo
+    pixels the interpolation is off by ~1e-3 px, and it costs ~step² less than projecting all.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    ny, nx = h * ss, w * ss
+    my, mx = max(2, -(-(ny - 1) // step) + 1), max(2, -(-(nx - 1) // step) + 1)
+    rows = np.linspace(0, ny - 1, my)
+    cols = np.linspace(0, nx - 1, mx)
+    coarse = project(_plane_points(board, rows, cols, ny, nx), *pose, intr).reshape(my, mx, 2)
+    if (my, mx) == (ny, nx):
+        return coarse.reshape(-1, 2)
+    t = torch.from_numpy(np.ascontiguousarray(coarse.transpose(2, 0, 1)))[None]
+    fine = F.interpolate(t, size=(ny, nx), mode="bilinear", align_corners=True)[0]
+    return fine.permute(1, 2, 0).reshape(-1, 2).numpy()
 
 
 def photo_scale(board: Board, pose, intr: Intrinsics, h: int, w: int) -> float:
@@ -116,7 +148,7 @@ def rectify(obs: Observation, board: Board, intr: Intrinsics, pose, h: int, w: i
 
     scale = photo_scale(board, pose, intr, h, w)
     ss = int(np.clip(np.ceil(scale), 1, MAX_SUPERSAMPLE)) if ss is None else int(ss)
-    pts = project(window_points(board, h, w, ss), *pose, intr)
+    pts = photo_map(board, pose, intr, h, w, ss)
     ring = _ring_points(board)
     rpx = project(ring, *pose, intr)
     W, H = obs.size
