@@ -153,36 +153,51 @@ class TestModes:
         assert flat.flat and rep["mode"] == "flat"
 
 
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """A bumpy capture fitted with normals="estimate", and its material saved and loaded back."""
+    from torchmetal.material import load_material, save_material
+    from torchmetal.pipeline import fit_material
+
+    tmp = tmp_path_factory.mktemp("mat")
+    case, cap = _case(tmp, "mat", size=32, shots=10, layout="directional", camera="ortho", normals="bumpy", s=1.0,
+                      alpha=100)
+    res = fit_material(cap, normals="estimate", flakes="off")
+    out = save_material(res.material, tmp / "material")
+    return case, cap, res, out, load_material(out)
+
+
 class TestMaterial:
-    def test_pipeline_save_load_render_onnx(self, tmp_path):
-        from torchmetal.material import load_material, save_material
-        from torchmetal.onnx_export import export_onnx, verify_onnx
+    def test_pipeline_save_load_render(self, fitted):
         from torchmetal.pipeline import fit_material
         from torchmetal.renderer import MaterialRenderer
 
-        case, cap = _case(tmp_path, "mat", size=32, shots=10, layout="directional", camera="ortho", normals="bumpy",
-                          s=1.0, alpha=100)
-        res = fit_material(cap, normals="estimate", flakes="off")
+        case, cap, res, out, back = fitted
         m = res.material
         assert m.normals is not None and res.report["normals"]["mode"] == "estimate"
-        assert torch.equal(m.normals, res.fit.normals.float())
-        out = save_material(m, tmp_path / "material")
-        assert (out / "normals.npy").is_file()
-        back = load_material(out)
-        assert torch.equal(back.normals, m.normals)
+        assert torch.equal(m.normals, res.fit.normals.float())  # the material keeps the normals it was fitted with
+        assert (out / "normals.npy").is_file() and torch.equal(back.normals, m.normals)
         r = MaterialRenderer(back).eval()
         assert not r.flat
-        path = export_onnx(r, tmp_path / "renderer.onnx")
-        assert verify_onnx(path, r) <= 1e-4
-        # the estimated normals reproduce held-out shots better than flat ones do
+        # the estimated normals reproduce held-out shots far better than flat ones do
         f32 = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32))  # noqa: E731
         ref = torch.as_tensor(case.clean).clamp(0, 1)
         flat = fit_material(cap, normals="flat", flakes="off").material
+        assert flat.normals is None
         with torch.no_grad():
             args = (f32(case.held_lights), f32(case.held_intensities), f32(case.held_cameras))
             e_est = float((r(*args).clamp(0, 1) - ref).pow(2).mean())
             e_flat = float((MaterialRenderer(flat)(*args).clamp(0, 1) - ref).pow(2).mean())
-        assert e_est < 0.5 * e_flat, (e_est, e_flat)
+        assert e_est < 0.1 * e_flat, (e_est, e_flat)
+
+    @pytest.mark.slow
+    def test_onnx_parity(self, fitted, tmp_path):
+        from torchmetal.onnx_export import export_onnx, verify_onnx
+        from torchmetal.renderer import MaterialRenderer
+
+        r = MaterialRenderer(fitted[4]).eval()
+        path = export_onnx(r, tmp_path / "renderer.onnx", check=False)
+        assert verify_onnx(path, r) <= 1e-4
 
     def test_cli(self, tmp_path):
         from torchmetal.cli import main
