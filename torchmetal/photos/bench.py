@@ -33,6 +33,25 @@ def generate(out: Path, size: tuple[int, int], shots: int, seed: int = 0):
     return photos
 
 
+def _rectified_psnr(result, photos) -> float:
+    """The worst shot's PSNR of the rectified image against the direct render, 1 mm inside the window."""
+    import numpy as np
+    import torch
+
+    from torchmetal.metrics import psnr
+    from torchmetal.photos.simulate import direct_render
+
+    cap = result.capture
+    if photos.sample.texture.shape[-2:] != (cap.height, cap.width):
+        return float("nan")
+    ww, wh = photos.board.window_size_mm
+    j, i = np.arange(cap.width), np.arange(cap.height)
+    okx = (j * ww / cap.width >= 1) & ((j + 1) * ww / cap.width <= ww - 1)
+    oky = (i * wh / cap.height >= 1) & ((i + 1) * wh / cap.height <= wh - 1)
+    mask = torch.from_numpy(oky[:, None] & okx[None, :])[None].expand(3, -1, -1)
+    return min(psnr(cap.images[k], direct_render(photos, [k])[0], mask=mask) for k in range(cap.num_shots))
+
+
 def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
@@ -71,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         "principal_point_error_px": [round(float(k[0, 2] - kt[0, 2]), 3), round(float(k[1, 2] - kt[1, 2]), 3)],
         "camera_error_mm_max": round(1000 * float(np.linalg.norm(cams - photos.cameras, axis=1).max()), 3),
         "used": result.report["used"],
+        "rectified_psnr_db_min": round(_rectified_psnr(result, photos), 2),
     }
     print(json.dumps(summary))
     return 0
