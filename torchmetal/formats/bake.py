@@ -30,7 +30,8 @@ import torch
 
 from torchmetal.errors import ExportError
 from torchmetal.flakes.field import flake_field
-from torchmetal.formats.engine import COAT_F0, Coat, EngineMaterial, check_lights, finish_base_color, render_error
+from torchmetal.formats.engine import (COAT_F0, Coat, EngineMaterial, check_lights, finish_base_color, reference_render,
+                                       render_error)
 from torchmetal.formats.lobe_fit import fit_glint
 from torchmetal.geometry import normalize
 
@@ -97,11 +98,12 @@ def bake_flakes(em: EngineMaterial, material, *, mode: str = "auto", texels_per_
     auto = ("base", "clearcoat", "flake_clearcoat") if coat_normals else ("base", "clearcoat")
     candidates = auto if mode == "auto" else (mode,)
     light, inten, cam = check_lights(em.size)
+    ref = reference_render(material, light, inten, cam) if len(candidates) > 1 else None
     errors = {}
     built = {}
     for which in candidates:
         built[which] = layout(which)
-        errors[which] = render_error(built[which], material, light, inten, cam)
+        errors[which] = render_error(built[which], material, light, inten, cam, reference=ref)
     chosen = min(errors, key=errors.get)
     out = built[chosen]
     out.extras["flakes"] = material.flakes.to_dict()

@@ -202,12 +202,20 @@ def engine_render(em: EngineMaterial, light: Tensor, intensity: Tensor, camera: 
     return geom.irradiance * base
 
 
-def render_error(em: EngineMaterial, material, light: Tensor, intensity: Tensor, camera: Tensor) -> float:
-    """Relative L2 error ‖engine − torchmetal‖/‖torchmetal‖ of the two renders over the shots."""
+def reference_render(material, light: Tensor, intensity: Tensor, camera: Tensor) -> Tensor:
+    """torchmetal's render (B, 3, H, W) of ``material`` (the reference of :func:`render_error`)."""
     from torchmetal.renderer import MaterialRenderer
 
     with torch.inference_mode():
-        ref = MaterialRenderer(material.to("cpu")).eval()(light, intensity, camera)
+        return MaterialRenderer(material.to("cpu")).eval()(light, intensity, camera)
+
+
+def render_error(em: EngineMaterial, material, light: Tensor, intensity: Tensor, camera: Tensor,
+                 reference: Tensor | None = None) -> float:
+    """Relative L2 error ‖engine − torchmetal‖/‖torchmetal‖ of the two renders over the shots
+    (``reference``: torchmetal's render when already computed)."""
+    ref = reference_render(material, light, intensity, camera) if reference is None else reference
+    with torch.inference_mode():
         got = engine_render(em, light, intensity, camera)
     if got.shape != ref.shape:  # baked at a finer texel density: compare at the material's pixels
         got = torch.nn.functional.avg_pool2d(got, got.shape[-1] // ref.shape[-1])
