@@ -78,3 +78,20 @@ def test_ggx_lobe_material():
     assert fit["lobe"] == "ggx" and fit["roughness"] == pytest.approx((2 / 82) ** 0.25, rel=0.01)
     assert max(fit["error"]) < 0.01
     assert render_error(em, m, *check_lights(m.size)) < 0.03
+
+
+def test_non_finite_specular_is_one_line(tmp_path):
+    from torchmetal.cli import main
+    from torchmetal.errors import ExportError
+    from torchmetal.material import save_material
+
+    m = make_material("flat-global-noflakes")
+    m.alpha = torch.tensor([10.0, float("inf"), 10.0])
+    with pytest.raises(ExportError, match="expected finite s and alpha"):
+        engine_material(m)
+    m.alpha = torch.tensor([10.0, 20.0, 10.0])
+    mat = save_material(m, tmp_path / "mat")
+    m.s = torch.tensor([0.1, float("nan"), 0.1])
+    with pytest.raises(ExportError, match="finite"):
+        engine_material(m)
+    assert main(["export", str(mat), "--format", "glb"]) == 0  # the saved (finite) one exports

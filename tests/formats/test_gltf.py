@@ -90,12 +90,15 @@ def test_glb_is_one_binary_file(exported):
         "bumpy-clustered-flakes.glb", "bumpy-clustered-flakes.gltf"]
 
 
-def test_clearcoat_layout_validates(tmp_path):
-    m = make_material("flat-global-flakes")
-    path = gltf.write(m, tmp_path / "cc.glb", flakes="clearcoat")
+@pytest.mark.parametrize("layout, texels", [("clearcoat", 1), ("flake_clearcoat", 1), ("base", 2)])
+def test_every_flake_layout_validates(tmp_path, layout, texels):
+    m = make_material("bumpy-global-flakes")
+    path = gltf.write(m, tmp_path / "f.glb", flakes=layout, texels_per_pixel=texels)
     (r,) = validate([path])
-    assert r["errors"] == 0 and r["warnings"] == 0 and "KHR_materials_clearcoat" in r["extensions"]
-    assert gltf.read(path).coat is not None
+    assert r["errors"] == 0 and r["warnings"] == 0, r
+    back = gltf.read(path)
+    assert ("KHR_materials_clearcoat" in r["extensions"]) == (layout != "base") == (back.coat is not None)
+    assert back.base_color.shape[1:] == (texels * m.height, texels * m.width)
 
 
 def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch):
