@@ -17,9 +17,16 @@ l, v, E come from :mod:`torchmetal.geometry` (point and directional lights, any 
    Cauchy weights (IRLS), so highlights the model does not explain, glints and shadows the
    Lambertian init mistook for shading are down-weighted, never fitted. max(n·l, 0) models
    attached shadows.
-3. **Alternation** (:func:`estimate_normals`): round 0 refines the Lambertian model (s = 0); each
-   further round fits the global Phong terms (:func:`~torchmetal.fit.fit_phong`, specular
-   "global") on the capture with the current normals and refines the normals under that s, α.
+3. **Alternation** (:func:`estimate_normals`): round 0 refines, per pixel, the best of three
+   starts — the Lambertian init under s = 0, it and the flat normal under the Phong terms fitted
+   with flat normals; each further round fits the global Phong terms
+   (:func:`~torchmetal.fit.fit_phong`, specular "global") with the current normals and refines the
+   normals under them, then tries the 4 neighbours' normals (local minima near highlights).
+4. **Joint refinement** of the normals with the global s, α
+   (:func:`~torchmetal.fit.normals_joint.joint_refine`): the alternation alone has a biased fixed
+   point (normal errors broaden the lobe the Phong fit sees).
+5. **Flat where the photos cannot tell** (:mod:`~torchmetal.fit.normals_flat`): a per-pixel
+   likelihood-ratio test against (0, 0, 1).
 
 The normals are fitted to the channel sum of each shot, z_k = Σ_c y_kc (shots with a clipped
 channel are left out): with Ē_k the channel mean of E_k and κ_kc = E_kc/Ē_k (the light's colour),
@@ -173,6 +180,7 @@ class _State:
     d: Tensor  # (1, P) texture D
     cost: Tensor  # (P,) weighted squared residual Σ w·r²
     jac: tuple[Tensor, Tensor]  # ∂model/∂θ projected off the texture, (N, 1, P) each
+    gjac: tuple[Tensor, Tensor] | None = None  # ∂model/∂(log s, log α), when asked for
 
     def merge(self, other: "_State", take: Tensor) -> "_State":
         """Per pixel: ``other`` where ``take`` (P,), else self."""
@@ -207,10 +215,12 @@ class _Spec:
         return torch.where(inside, spec, zero), torch.where(inside, dspec, zero)
 
 
-def _model(ch: _Chunk, theta: Tensor, spec: _Spec | None, w: Tensor, jac: bool = True) -> _State:
+def _model(ch: _Chunk, theta: Tensor, spec: _Spec | None, w: Tensor, jac: bool = True,
+           glob: bool = False) -> _State:
     """Residuals, the closed-form texture (weighted least squares with the weights w (N, 1, P)),
     the weighted cost and (``jac``) the Jacobian of the model in θ at θ (2, P); ``spec`` None:
-    Lambertian."""
+    Lambertian. With ``glob`` (and spec), also the Jacobian in the log-scales of s and α
+    (``State.gjac``, projected off the texture like the θ one)."""
     n, k = _normals_of(theta)
     nl = (n.unsqueeze(0) * ch.l).sum(1, keepdim=True)  # (N, 1, P)
     lit = nl > 0
@@ -251,7 +261,13 @@ def _model(ch: _Chunk, theta: Tensor, spec: _Spec | None, w: Tensor, jac: bool =
         dm = ch.e * dm
         dm = dm - ea * ((wea * dm).sum(0) * proj).unsqueeze(0)  # Kaufman: orthogonal to the texture basis
         jacs.append(dm)
-    return _State(r, d, cost, (jacs[0], jacs[1]))
+    st = _State(r, d, cost, (jacs[0], jacs[1]))
+    if glob and spec is not None:
+        gj = []
+        for dm in (ch.e * sh, ch.e * dsh * lg):  # ∂/∂ log s, ∂/∂ log α
+            gj.append(dm - ea * ((wea * dm).sum(0) * proj).unsqueeze(0))
+        st.gjac = (gj[0], gj[1])
+    return st
 
 
 def _cauchy_weights(ch: _Chunk, r: Tensor, scale: Tensor) -> Tensor:
@@ -450,13 +466,18 @@ def _check_capture(capture) -> None:
                          f"directions of rank < 3 (singular values {[round(float(x), 4) for x in sv]})")
 
 
-def estimate_normals(capture, *, rounds: int = 3, iters: int = 12, fit_kwargs: dict | None = None) -> NormalsEstimate:
+def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool = True, flat_test: bool = True,
+                     fit_kwargs: dict | None = None) -> NormalsEstimate:
     """Per-pixel normals from the photos and the known lights (see the module docstring).
 
     Args:
         capture: a :class:`~torchmetal.io.capture.Capture`; its own normals are ignored.
         rounds: Phong rounds after the Lambertian refinement (0: Lambertian only).
         iters: LM iterations per pixel and round.
+        joint: finish with the joint refinement of the normals and s, α
+            (:func:`~torchmetal.fit.normals_joint.joint_refine`).
+        flat_test: keep (0, 0, 1) where the estimate does not explain the shots significantly
+            better (:func:`~torchmetal.fit.normals_flat.flat_where_unresolved`).
         fit_kwargs: extra arguments of :func:`~torchmetal.fit.fit_phong` for the rounds' fits
             (e.g. ``tol``, ``max_iters``); specular is "global".
 
@@ -510,6 +531,18 @@ def estimate_normals(capture, *, rounds: int = 3, iters: int = 12, fit_kwargs: d
         normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
         history.append({"round": k, "s": s.tolist(), "alpha": alpha.tolist(), "phong_rmse": float(fit.rmse), **rep,
                         "time": time.perf_counter() - t1})
+    if joint and bool((s > 0).any()):
+        from torchmetal.fit.normals_joint import joint_refine
+
+        t1 = time.perf_counter()
+        normals, s, alpha, rep = joint_refine(capture, normals, s, alpha, active=solvable)
+        history.append({"round": "joint", "s": s.tolist(), "alpha": alpha.tolist(), **rep,
+                        "time": time.perf_counter() - t1})
+    n_flat = 0
+    if flat_test:
+        from torchmetal.fit.normals_flat import flat_where_unresolved
+
+        normals, n_flat = flat_where_unresolved(capture, normals, s, alpha, active=solvable)
     if not bool(torch.isfinite(normals).all()):
         raise FitError("estimate_normals: expected finite normals, found NaN/Inf")
     normals = normals / normals.norm(dim=0, keepdim=True)
@@ -517,7 +550,7 @@ def estimate_normals(capture, *, rounds: int = 3, iters: int = 12, fit_kwargs: d
     tilt = torch.rad2deg(torch.acos(normals[2][inside].clamp(-1, 1)))
     report = {
         "mode": "estimate", "rounds": history, "time": time.perf_counter() - t0,
-        "pixels": int(inside.sum()), "unsolved_pixels": int((inside & ~solvable).sum()),
+        "pixels": int(inside.sum()), "unsolved_pixels": int((inside & ~solvable).sum()), "kept_flat": n_flat,
         "tilt_deg": {"mean": float(tilt.mean()) if tilt.numel() else 0.0,
                      "max": float(tilt.max()) if tilt.numel() else 0.0},
     }

@@ -1,0 +1,56 @@
+"""Flat where the photos cannot tell: the last step of :func:`~torchmetal.fit.normals.estimate_normals`.
+
+A per-pixel normal has two free parameters, so on a flat sample the estimate is the flat normal
+plus noise (about 0.3° on the zoo's 8-bit photo_srgb8), and the noise costs held-out PSNR (sharp
+lobes move with it). Each pixel keeps its estimate only when it explains the shots significantly
+better than (0, 0, 1) does, by a likelihood-ratio test: with the texture re-solved for both and
+the Cauchy weights of the estimate fixed,
+
+    Σ w·r²(flat) − Σ w·r²(estimate) > FLAT_CHI2·σ²
+
+(σ the robust residual scale of the chunk; FLAT_CHI2 the 0.999 quantile of χ² with 2 degrees
+of freedom). Tilts the shots resolve pass easily (a sphere, the zoo's bumps); noise does not.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchmetal.fit.normals import (
+    CAUCHY_C, _cauchy_weights, _chunk, _model, _robust_scale, _row_blocks, _Spec, _subset, _theta_of, _work_dtype,
+)
+
+FLAT_CHI2 = 13.82  # χ²(2) at 0.999
+
+
+def flat_where_unresolved(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
+                          active: Tensor | None = None) -> tuple[Tensor, int]:
+    """Normals (3, H, W) with (0, 0, 1) where the test above keeps flat; returns them and the count."""
+    dt = _work_dtype(capture)
+    w = capture.width
+    s, alpha = s.to(dt).reshape(3), alpha.to(dt).reshape(3)
+    spec = _Spec(s, alpha) if bool((s > 0).any()) else None
+    act = capture.mask[0] if active is None else active
+    floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
+    out = normals.clone()
+    count = 0
+    for r0, r1 in _row_blocks(capture):
+        keep = act[r0:r1].reshape(-1).nonzero().squeeze(1)
+        if not keep.numel():
+            continue
+        sub = _subset(_chunk(capture, r0, r1, dt), keep)
+        th = _theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
+        st = _model(sub, th, spec, sub.ok.to(dt), jac=False)
+        sigma = _robust_scale(st.r, sub.ok, floor)
+        wt = _cauchy_weights(sub, st.r, CAUCHY_C * sigma)
+        c_est = _model(sub, th, spec, wt, jac=False).cost
+        c_flat = _model(sub, torch.zeros_like(th), spec, wt, jac=False).cost
+        flat = (c_flat - c_est) < FLAT_CHI2 * sigma * sigma
+        idx = keep[flat]
+        if idx.numel():
+            blk = out[:, r0:r1].reshape(3, -1)
+            blk[:, idx] = torch.tensor([0.0, 0.0, 1.0], dtype=out.dtype, device=out.device).view(3, 1)
+            out[:, r0:r1] = blk.reshape(3, r1 - r0, w)
+        count += int(idx.numel())
+    return out, count

@@ -1,0 +1,120 @@
+"""Joint refinement of the per-pixel normals and the global specular terms (the last stage of
+:func:`~torchmetal.fit.normals.estimate_normals`).
+
+Alternating "normals under fixed s, α" with "s, α under fixed normals" has a biased fixed point:
+the Phong fit takes the normals as exact, so their errors broaden the lobe it sees (lower α and
+s), and normals refined under a broader lobe keep their errors. Here both move together:
+unknowns θ_p (the surface gradient of every pixel, 2 each) and two global log-scales
+g = (u, w) with s = s₀·e^u and α = α₀·e^w (all channels together); the texture is eliminated per
+pixel as in :mod:`~torchmetal.fit.normals` (variable projection). Each Gauss–Newton step solves
+the per-pixel 2×2 blocks and the 2×2 global block through the Schur complement
+
+    (H_gg − Σ_p H_gpH_pp⁻¹H_pg)·δg = b_g − Σ_p H_gpH_pp⁻¹b_p,   δθ_p = H_pp⁻¹(b_p − H_pg·δg)
+
+(Levenberg damping on both, one accept/reject on the total cost), with the Cauchy weights of the
+start fixed. Chunks are held in memory between passes (the observations of the active pixels).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchmetal.fit.normals import (
+    CAUCHY_C, _cauchy_weights, _chunk, _model, _normals_of, _robust_scale, _row_blocks, _Spec, _subset, _theta_of,
+    _work_dtype,
+)
+
+
+def _inv2(a11: Tensor, a12: Tensor, a22: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    det = a11 * a22 - a12 * a12
+    ok = det > 0
+    det = torch.where(ok, det, torch.ones_like(det))
+    z = torch.zeros_like(a11)
+    return torch.where(ok, a22 / det, z), torch.where(ok, -a12 / det, z), torch.where(ok, a11 / det, z)
+
+
+def joint_refine(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: int = 8,
+                 active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, dict]:
+    """Refine normals (3, H, W) and the global s, α (3,) together (see the module docstring).
+
+    Returns:
+        normals (3, H, W), s (3,), α (3,) and a report (iterations, accepted steps, the scales).
+    """
+    dt = _work_dtype(capture)
+    h, w = capture.height, capture.width
+    s0, a0 = s.to(dt).reshape(3), alpha.to(dt).reshape(3)
+    if not bool((s0 > 0).any()):
+        return normals, s, alpha, {"skipped": "no specular (s = 0)"}
+    act = capture.mask[0] if active is None else active
+    floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
+    spec0 = _Spec(s0, a0)
+    parts = []  # (r0, r1, keep, chunk of the active pixels, θ, weights)
+    for r0, r1 in _row_blocks(capture):
+        a = act[r0:r1].reshape(-1)
+        keep = a.nonzero().squeeze(1)
+        if not keep.numel():
+            continue
+        sub = _subset(_chunk(capture, r0, r1, dt), keep)
+        th = _theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
+        st = _model(sub, th, spec0, sub.ok.to(dt), jac=False)
+        scale = CAUCHY_C * _robust_scale(st.r, sub.ok, floor)
+        parts.append([r0, r1, keep, sub, th, _cauchy_weights(sub, st.r, scale)])
+    g = torch.zeros(2, dtype=torch.float64, device=s0.device)
+    spec_of = lambda g: _Spec(s0 * math.exp(float(g[0])), a0 * math.exp(float(g[1])))  # noqa: E731
+    lam, accepted, it = 1e-3, 0, 0
+    cost = sum(float(_model(p[3], p[4], spec0, p[5], jac=False).cost.double().sum()) for p in parts)
+    for it in range(1, iters + 1):
+        spec = spec_of(g)
+        S = torch.zeros(2, 2, dtype=torch.float64, device=g.device)
+        b = torch.zeros(2, dtype=torch.float64, device=g.device)
+        blocks = []
+        for _, _, _, sub, th, wt in parts:
+            st = _model(sub, th, spec, wt, glob=True)
+            j, gj = st.jac, st.gjac
+            wj = [wt * x for x in j]
+            a11, a12, a22 = (wj[0] * j[0]).sum(0)[0], (wj[0] * j[1]).sum(0)[0], (wj[1] * j[1]).sum(0)[0]
+            bp = torch.stack([(wj[0] * st.r).sum(0)[0], (wj[1] * st.r).sum(0)[0]])  # (2, P)
+            B = torch.stack([torch.stack([(wj[i] * gj[k]).sum(0)[0] for k in (0, 1)]) for i in (0, 1)])  # (2, 2, P)
+            tiny = 1e-9 * (a11 + a22) + 1e-30
+            i11, i12, i22 = _inv2(a11 * (1 + lam) + tiny, a12, a22 * (1 + lam) + tiny)
+            # H_pp⁻¹·B (2, 2, P) and H_pp⁻¹·b_p (2, P)
+            ib = torch.stack([i11 * B[0] + i12 * B[1], i12 * B[0] + i22 * B[1]])
+            ibp = torch.stack([i11 * bp[0] + i12 * bp[1], i12 * bp[0] + i22 * bp[1]])
+            wg = [wt * x for x in gj]
+            for k in (0, 1):
+                b[k] += float((wg[k] * st.r).double().sum()) - float((B[:, k] * ibp).double().sum())
+                for m in (0, 1):
+                    S[k, m] += float((wg[k] * gj[m]).double().sum()) - float((B[:, k] * ib[:, m]).double().sum())
+            blocks.append((ib, ibp))
+        S = S + lam * torch.diag(S.diagonal()) + 1e-12 * S.diagonal().sum() * torch.eye(2, dtype=S.dtype, device=S.device)
+        dg = torch.linalg.solve(S, b) if bool(torch.isfinite(S).all()) and float(torch.det(S)) > 0 else torch.zeros_like(b)
+        trial_g = g + dg.clamp(-0.5, 0.5)
+        trial_spec = spec_of(trial_g)
+        trial_th, new_cost = [], 0.0
+        for (_, _, _, sub, th, wt), (ib, ibp) in zip(parts, blocks):
+            dgt = (trial_g - g).to(ib.dtype)
+            dth = ibp - (ib[:, 0] * dgt[0] + ib[:, 1] * dgt[1])
+            t = (th + torch.where(torch.isfinite(dth), dth, torch.zeros_like(dth))).clamp(-57.0, 57.0)
+            trial_th.append(t)
+            new_cost += float(_model(sub, t, trial_spec, wt, jac=False).cost.double().sum())
+        if math.isfinite(new_cost) and new_cost < cost:
+            for p, t in zip(parts, trial_th):
+                p[4] = t
+            g, cost, lam, accepted = trial_g, new_cost, max(lam / 3.0, 1e-7), accepted + 1
+            if float(dg.abs().max()) < 1e-5:
+                break
+        else:
+            lam *= 5.0
+            if lam > 1e6:
+                break
+    out = normals.to(dt).clone()
+    for r0, r1, keep, _, th, _ in parts:
+        n, _ = _normals_of(th)
+        blk = out[:, r0:r1].reshape(3, -1)
+        blk[:, keep] = n
+        out[:, r0:r1] = blk.reshape(3, r1 - r0, w)
+    spec = spec_of(g)
+    return out, spec.s, spec.alpha, {"iterations": it, "accepted": accepted, "log_scales": g.tolist()}
