@@ -84,8 +84,10 @@ def bad_set(tmp_path_factory, photo_set, board, sheet, sample):
     good = photo_set.paths[:5]
     ex = photo_set.exif[0]
     rendered = S.phone_photos(out, board, sample, poses=[_pose(board, 15, 90, 0.18, [0, 0.02, 0]),  # grazing
-                                                         _pose(board, 55, 30, 0.3, [0.14, 0, 0])],  # window half out
-                              flash_offset_mm=FLASH, sheet=sheet, supersample=1, names=["grazing.jpg", "cutoff.jpg"])
+                                                         _pose(board, 55, 30, 0.3, [0.14, 0, 0]),  # window half out
+                                                         _pose(board, 55, 30, 0.3, [0.12, 0, 0])],  # ~4 % out
+                              flash_offset_mm=FLASH, sheet=sheet, supersample=1,
+                              names=["grazing.jpg", "cutoff.jpg", "partial.jpg"])
     p = photo_set.paths
     made = {
         "noboard.jpg": _resave(p[5], out / "noboard.jpg", exif=ex, transform=lambda a: np.full_like(a, 128)),
@@ -101,5 +103,5 @@ def bad_set(tmp_path_factory, photo_set, board, sheet, sample):
         "notaphoto.jpg": out / "notaphoto.jpg",
     }
     made["notaphoto.jpg"].write_bytes(b"this is text")
-    made["grazing.jpg"], made["cutoff.jpg"] = rendered.paths
+    made["grazing.jpg"], made["cutoff.jpg"], made["partial.jpg"] = rendered.paths
     return good, made

@@ -19,7 +19,8 @@ EXPECT = {
 
 def test_each_bad_photo_gets_its_reason(bad_set, board):
     good, made = bad_set
-    paths = [good[0], *made.values(), *good[1:]]
+    bad = {k: v for k, v in made.items() if k != "partial.jpg"}
+    paths = [good[0], *bad.values(), *good[1:], made["partial.jpg"]]  # partial: sees ~96 % of the window
     result = capture_from_photos(paths, board, flash_offset_mm=FLASH, resolution=64)
     rows = {r["file"]: r for r in result.report["photos"]}
     for name, text in EXPECT.items():
@@ -27,8 +28,12 @@ def test_each_bad_photo_gets_its_reason(bad_set, board):
         assert text in rows[name]["reason"], (name, rows[name]["reason"])
         assert "\n" not in rows[name]["reason"]
     used = [r for r in result.report["photos"] if r["used"]]
-    assert [r["file"] for r in used] == [p.name for p in good] and [r["shot"] for r in used] == list(range(len(good)))
-    assert result.capture.num_shots == len(good)
+    names = [p.name for p in good] + ["partial.jpg"]
+    assert [r["file"] for r in used] == names and [r["shot"] for r in used] == list(range(len(names)))
+    assert result.capture.num_shots == len(names)
+    seen = result.capture.mask.float().mean()
+    assert 0.85 < seen < 0.995  # the mask keeps the pixels every photo saw
+    assert result.report["mask_pct"] == pytest.approx(100 * float(seen), abs=1e-3)
 
 
 def test_too_few_usable_photos_is_one_clear_error(bad_set, board):

@@ -136,9 +136,15 @@ def _self_calibrate(obs: list[Observation], ok: list[int], board: Board) -> Intr
 
 
 def _visible(board: Board, pose, intr: Intrinsics, size: tuple[int, int]) -> float:
-    p = project(window_points(board, 24, 24), *pose, intr)
+    """Fraction of the window (24 x 24 samples) in front of the camera and inside the photo."""
+    import cv2
+
+    pts = window_points(board, 24, 24)
+    r = cv2.Rodrigues(np.asarray(pose[0], np.float64).reshape(3, 1))[0]
+    front = (pts @ r[2] + float(np.ravel(pose[1])[2])) > 0
+    p = project(pts, *pose, intr)
     w, h = size
-    return float(((p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)).mean())
+    return float((front & (p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)).mean())
 
 
 def mirror_point(light: np.ndarray, camera: np.ndarray) -> np.ndarray | None:
