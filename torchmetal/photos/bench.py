@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
     p = argparse.ArgumentParser(prog="python -m torchmetal.photos.bench", description=__doc__.splitlines()[0])
-    p.add_argument("--dir", default="photo-bench", help="where the generated photos live (made if missing)")
+    p.add_argument("--dir", default="bench-results/photo-bench", help="where the generated photos live (made if missing)")
     p.add_argument("--size", nargs=2, type=int, default=[4000, 3000], metavar=("W", "H"))
     p.add_argument("--shots", type=int, default=12)
     p.add_argument("--resolution", type=int, default=512)
