@@ -55,7 +55,7 @@ class LobeFit:
         error: (C,) relative L2 lobe error per channel, ‖ggx − target‖ / ‖target‖ (0 when the
             target is 0).
         textbook_roughness: the closed-form mapping of the target's exponent when it has one
-            (Phong α → Blinn 4α → α_GGX = √(2/(n+2)) → r = √α_GGX), else None.
+            (:func:`textbook_roughness`: Phong α → Blinn 4α → α_GGX = √(2/(n+2)) → r = √α_GGX), else None.
         textbook_error: (C,) the lobe error of that mapping with its best amplitude, or None.
         samples: number of (light, view) pairs the fit used.
     """
