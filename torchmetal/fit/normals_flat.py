@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchmetal.fit.normals import (
+from torchmetal.fit.normals_refine import (
     CAUCHY_C, _cauchy_weights, _chunk, _model, _robust_scale, _row_blocks, _Spec, _subset, _theta_of, _work_dtype,
 )
 
