@@ -147,6 +147,14 @@ def _visible(board: Board, pose, intr: Intrinsics, size: tuple[int, int]) -> flo
     return float((front & (p[:, 0] >= 0) & (p[:, 0] <= w - 1) & (p[:, 1] >= 0) & (p[:, 1] <= h - 1)).mean())
 
 
+def _bar(items, total: int, desc: str, on: bool):
+    if not on:
+        return items
+    from tqdm.auto import tqdm
+
+    return tqdm(items, total=total, desc=desc, unit="photo", leave=False)
+
+
 def mirror_point(light: np.ndarray, camera: np.ndarray) -> np.ndarray | None:
     """Where the flash's mirror highlight falls on the plane z = 0 (capture frame, same units)."""
     if light[2] <= 0 or camera[2] <= 0:
@@ -158,7 +166,7 @@ def mirror_point(light: np.ndarray, camera: np.ndarray) -> np.ndarray | None:
 
 def capture_from_photos(
     photos, board: Board, *, flash_offset_mm=(0.0, 0.0, 0.0), intrinsics: Intrinsics | None = None,
-    resolution: int = 512, poses: dict | None = None, workers: int | None = None,
+    resolution: int = 512, poses: dict | None = None, workers: int | None = None, progress: bool = False,
 ) -> PhotoCapture:
     """Build a capture from phone photos of the board (DESIGN 2.6).
 
@@ -171,6 +179,7 @@ def capture_from_photos(
         poses: {photo index: (rvec, tvec)} board → camera (mm) to use instead of the estimated
             ones (for checks against known geometry).
         workers: threads for decoding and detection (default: up to 4).
+        progress: show tqdm bars (detection, rectification).
 
     Raises:
         CaptureError: fewer than MIN_PHOTOS usable photos, or a failed calibration.
@@ -190,7 +199,7 @@ def capture_from_photos(
         raise CaptureError(f"flash offset: expected 3 finite numbers (mm), found {list(np.ravel(offset))}")
     workers = workers or max(1, min(4, os.cpu_count() or 1))
     with ThreadPoolExecutor(workers) as pool:
-        obs = list(pool.map(lambda p: inspect_photo(p, board), paths))
+        obs = list(_bar(pool.map(lambda p: inspect_photo(p, board), paths), len(paths), "detect", progress))
     stages = {"inspect": time.perf_counter() - t0}
     for o in obs:
         if o.reason is None and o.exif.exposure is None:
@@ -204,11 +213,10 @@ def capture_from_photos(
 
     h, w = board.capture_grid(resolution)
     ww, wh = board.window_size_mm
-    cell_mm = ww / w
     entries: dict[int, dict] = {i: {} for i in range(len(obs))}
     found_poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     rect: dict[int, Rectified] = {}
-    for i in ok:
+    for i in _bar(ok, len(ok), "rectify", progress):
         o, e = obs[i], entries[i]
         obj = board.corner_points()[o.ids]
         try:

@@ -44,7 +44,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
     board = load_board(args.board)
     intr = Intrinsics.load(args.intrinsics) if args.intrinsics else None
     result = capture_from_photos(args.photos, board, flash_offset_mm=args.flash_offset, intrinsics=intr,
-                                 resolution=args.resolution, workers=args.workers)
+                                 resolution=args.resolution, workers=args.workers, progress=not args.quiet)
     out = save_photo_capture(result, args.output)
     rep = result.report
     for row in rep["photos"]:
@@ -81,4 +81,5 @@ def register(sub) -> None:
     c.add_argument("--intrinsics", help="intrinsics.json of an earlier capture (skip the calibration)")
     c.add_argument("--resolution", type=int, default=512, help="pixels along the window's longer side (default: %(default)s)")
     c.add_argument("--workers", type=int, default=None, help="threads for decoding and detection (default: up to 4)")
+    c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     c.set_defaults(func=cmd_capture)
