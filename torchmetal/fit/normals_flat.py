@@ -2,14 +2,16 @@
 
 A per-pixel normal has two free parameters, so on a flat sample the estimate is the flat normal
 plus noise (about 0.3° on the zoo's 8-bit photo_srgb8), and the noise costs held-out PSNR (sharp
-lobes move with it). Each pixel keeps its estimate only when it explains the shots significantly
-better than (0, 0, 1) does, by a likelihood-ratio test: with the texture re-solved for both and
-the Cauchy weights of the estimate fixed,
+lobes move with it). Each pixel keeps its estimate only when it explains its own shots
+significantly better than (0, 0, 1) does — an F-test of the two extra parameters against the
+pixel's own residual (noise that grows with the signal, misfit and quantisation included): with
+the texture re-solved for both and the Cauchy weights of the estimate fixed,
+Δ = Σ w·r²(flat) − Σ w·r²(estimate), c = Σ w·r²(estimate) and ν = (usable shots) − 3,
 
-    Σ w·r²(flat) − Σ w·r²(estimate) > FLAT_CHI2·σ²
+    F = (Δ/2)/(c/ν),   p = P(F(2, ν) > F) = (1 + Δ/c)^(−ν/2)   (closed form for 2 numerator dof)
 
-(σ the robust residual scale of the chunk; FLAT_CHI2 the 0.999 quantile of χ² with 2 degrees
-of freedom). Tilts the shots resolve pass easily (a sphere, the zoo's bumps); noise does not.
+and the estimate is kept when p < FLAT_P. Tilts the shots resolve pass easily (a sphere, the
+zoo's bumps); noise does not.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from torchmetal.fit.normals_refine import (
     CAUCHY_C, _cauchy_weights, _chunk, _model, _robust_scale, _row_blocks, _Spec, _subset, _theta_of, _work_dtype,
 )
 
-FLAT_CHI2 = 13.82  # χ²(2) at 0.999
+FLAT_P = 1e-3  # the test's false-alarm rate on a flat pixel
 
 
 def flat_where_unresolved(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
@@ -46,7 +48,9 @@ def flat_where_unresolved(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
         wt = _cauchy_weights(sub, st.r, CAUCHY_C * sigma)
         c_est = _model(sub, th, spec, wt, jac=False).cost
         c_flat = _model(sub, torch.zeros_like(th), spec, wt, jac=False).cost
-        flat = (c_flat - c_est) < FLAT_CHI2 * sigma * sigma
+        nu = (wt > 0.5).sum(0)[0].to(dt) - 3.0  # shots that count, less D and θ
+        gain = (c_flat - c_est).clamp_min(0.0) / c_est.clamp_min(1e-30 * float(sigma) ** 2 + 1e-30)
+        flat = ~(0.5 * nu * torch.log1p(gain) > -torch.log(torch.tensor(FLAT_P, dtype=dt))) | (nu < 1)
         idx = keep[flat]
         if idx.numel():
             blk = out[:, r0:r1].reshape(3, -1)
