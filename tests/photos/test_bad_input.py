@@ -40,3 +40,10 @@ def test_too_few_usable_photos_is_one_clear_error(bad_set, board):
     _, made = bad_set
     with pytest.raises(CaptureError, match=r"expected at least 3 usable photos .* found 0 of 3 \(noboard.jpg: no board"):
         capture_from_photos([made["noboard.jpg"], made["notaphoto.jpg"], made["noexif.jpg"]], board, resolution=16)
+
+
+def test_intrinsics_for_another_resolution(photo_set, board):
+    from torchmetal.photos.simulate import phone_camera
+
+    with pytest.raises(CaptureError, match=r"found 0 of 3 \(IMG_0001.jpg: resolution 800x600, the intrinsics are for 640x480"):
+        capture_from_photos(photo_set.paths[:3], board, intrinsics=phone_camera((640, 480)), resolution=16)

@@ -10,6 +10,7 @@ capture (docs/capture.md).
 from __future__ import annotations
 
 import os
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +28,10 @@ def _text_lines(row: dict) -> list[str]:
         second = (f"reproj {row['reprojection_px']:.2f} px, {row['corners']} corners, sat {row.get('saturated_pct', 0):.1f} %")
         third = f"elev {row.get('elevation_deg', 0):.0f} deg, highlight {row.get('highlight', 'none')}"
     else:
-        reason = row["reason"] or ""
-        second, third = reason[:58], reason[58:116]
+        lines = textwrap.wrap(row["reason"] or "", 58) + ["", ""]
+        second, third = lines[0], " ".join(lines[1:]).strip()
+        if len(third) > 58:
+            third = third[:55] + "..."
     return [first, second, third]
 
 
