@@ -195,11 +195,31 @@ class TestPage:
         save(page, artefacts, f"{mode_url[0]}-side-by-side")
         page.locator("#compare").select_option("render")
 
+    def test_url_follows_fast_changes_and_reproduces_the_view(self, browser, page, mode_url):
+        """300 quick changes (a fast drag; browsers throttle history updates) end with the URL at the
+        last state, and opening that URL shows the same frame."""
+        page.evaluate("""async () => { for (let k = 0; k < 300; k++) {
+            window.tmviewer.setState({laz: -60 + k * 0.3, lel: 20 + k * 0.1, ab: 'render', shot: -1});
+            await new Promise((r) => setTimeout(r, 1)); }
+            await window.tmviewer.idle(); }""")
+        s = page_state(page)
+        assert s["laz"] == pytest.approx(-60 + 299 * 0.3) and s["lel"] == pytest.approx(20 + 29.9)
+        from torchmetal.viewer.browser import open_viewer
+
+        again = open_viewer(browser, page.url)
+        try:
+            again.evaluate("window.tmviewer.idle()")
+            assert page_state(again) == s
+            assert np.array_equal(canvas(again), canvas(page))
+        finally:
+            again.close()
+
     def test_exposure_slider_reencodes(self, page, scene):
         page.evaluate("window.tmviewer.setState({laz: 10, lel: 45, ex: 1, shot: -1, ab: 'render', fl: 1})")
         frames = page.evaluate("window.tmviewer.frames")
         # one stop up: ex = 2, re-encoded without a new render
         page.evaluate("() => { const e = document.getElementById('exposure'); e.value = '1'; e.dispatchEvent(new Event('input')); }")
+        page.evaluate("window.tmviewer.idle()")
         s = page_state(page)
         assert s["ex"] == pytest.approx(2.0)
         assert page.evaluate("window.tmviewer.frames") == frames

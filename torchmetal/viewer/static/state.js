@@ -51,7 +51,7 @@ export function readHash(hash) {
   return clampState(s);
 }
 
-const short = (v) => String(Number(v.toPrecision(7)));
+const short = (v) => String(v); // shortest text that reads back as the same double: a link reproduces the view exactly
 
 export function writeHash(s) {
   const p = new URLSearchParams();

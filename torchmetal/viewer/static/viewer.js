@@ -69,10 +69,20 @@ const times = [];
 
 function setStatus(text) { $("status").textContent = text || ""; }
 
+// The URL follows the state at most every 200 ms (browsers throttle history updates during fast
+// drags) and at once whenever the page goes idle.
+let hashTimer = null;
+function flushHash() {
+  clearTimeout(hashTimer);
+  hashTimer = null;
+  const h = writeHash(state);
+  if (location.hash !== h) history.replaceState(null, "", location.pathname + location.search + h);
+}
+
 function setState(patch, { render = true } = {}) {
   state = clampState({ ...state, ...patch });
   api.state = state;
-  history.replaceState(null, "", location.pathname + location.search + writeHash(state));
+  if (hashTimer === null) hashTimer = setTimeout(flushHash, 200);
   syncControls();
   if (render) requestRender(); else redraw();
 }
@@ -114,6 +124,7 @@ async function requestRender() {
 api.idle = async () => {
   await photoTask;
   if (busy) await new Promise((r) => waiters.push(r));
+  flushHash();
 };
 api.setState = async (patch) => { setState(patch); await api.idle(); };
 /** Render n frames back to back (light azimuth sweeping); returns {fps, ms_median, ms_mean, frames}. */
@@ -347,7 +358,7 @@ async function start() {
   api.state = state;
   bindControls();
   syncControls();
-  history.replaceState(null, "", location.pathname + location.search + writeHash(state));
+  flushHash();
   if (state.shot >= 0) await loadPhoto(state.shot);
   await requestRender();
   if (api.error) throw new Error(api.error);
