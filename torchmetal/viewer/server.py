@@ -116,6 +116,7 @@ def _check_inputs(feeds: dict) -> None:
 class _Handler(BaseHTTPRequestHandler):
     server: ViewerServer
     protocol_version = "HTTP/1.1"
+    disable_nagle_algorithm = True  # frames follow headers at once (no Nagle / delayed-ACK stalls)
 
     def log_message(self, format: str, *args) -> None:  # quiet: the CLI prints one line at start
         pass
