@@ -166,7 +166,8 @@ def bench_fit_many(root: Path, n: int, size: int) -> dict:
                         progress=False)
         dt = time.perf_counter() - t0
         out[f"workers_{workers}"] = {"captures": n, "size": size, "seconds": dt, "captures_per_min": 60 * n / dt,
-                                     "ok": sum(r.status == "ok" for r in recs)}
+                                     "ok": sum(r.status == "ok" for r in recs),
+                                     "load_average_1min": os.getloadavg()[0]}  # other work on the machine
     return out
 
 
@@ -190,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         args.many, args.many_size, args.size, args.big, args.tile = 2, 48, 256, 512, 64
     root = Path(args.workdir or tempfile.mkdtemp(prefix="torchmetal-scale-bench-"))
     root.mkdir(parents=True, exist_ok=True)
-    results: dict = {"cpu_count": os.cpu_count(), "tile": args.tile}
+    results: dict = {"cpu_count": os.cpu_count(), "tile": args.tile, "load_average_at_start": os.getloadavg()[0]}
 
     def report():
         print(json.dumps(results, indent=1), flush=True)
