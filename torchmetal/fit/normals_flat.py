@@ -5,13 +5,15 @@ plus noise (about 0.3° on the zoo's 8-bit photo_srgb8), and the noise costs hel
 lobes move with it). Each pixel keeps its estimate only when it explains its own shots
 significantly better than (0, 0, 1) does — an F-test of the two extra parameters against the
 pixel's own residual (noise that grows with the signal, misfit and quantisation included): with
-the texture re-solved for both and the Cauchy weights of the estimate fixed,
-Δ = Σ w·r²(flat) − Σ w·r²(estimate), c = Σ w·r²(estimate) and ν = (usable shots) − 3,
+the texture re-solved for both over the estimate's inliers (Cauchy weight > 1/2: glints and
+shadows the refinement rejected stay out), Δ = Σ r²(flat) − Σ r²(estimate), c = Σ r²(estimate)
+and ν = (inlier shots) − 3,
 
     F = (Δ/2)/(c/ν),   p = P(F(2, ν) > F) = (1 + Δ/c)^(−ν/2)   (closed form for 2 numerator dof)
 
-and the estimate is kept when p < FLAT_P. Tilts the shots resolve pass easily (a sphere, the
-zoo's bumps); noise does not.
+and the estimate is kept when p < FLAT_P, or when it is steeper than 5° (where a pixel has few
+usable shots the test has no power, e.g. at a sphere's limb; noise about flat is ~0.3°). Tilts
+the shots resolve pass easily (a sphere, the zoo's bumps); noise does not.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from torchmetal.fit.normals_refine import (
 )
 
 FLAT_P = 1e-3  # the test's false-alarm rate on a flat pixel
+FLAT_TILT_MAX = 0.0875  # tan 5°: steeper estimates are kept whatever the test (few usable shots: no power)
 
 
 def flat_where_unresolved(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
@@ -45,12 +48,15 @@ def flat_where_unresolved(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
         th = _theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
         st = _model(sub, th, spec, sub.ok.to(dt), jac=False)
         sigma = _robust_scale(st.r, sub.ok, floor)
-        wt = _cauchy_weights(sub, st.r, CAUCHY_C * sigma)
+        for _ in range(2):  # IRLS: a glint must not drag the texture and with it every residual
+            st = _model(sub, th, spec, _cauchy_weights(sub, st.r, CAUCHY_C * sigma), jac=False)
+        wt = (_cauchy_weights(sub, st.r, CAUCHY_C * sigma) > 0.5).to(dt)  # the inliers of the estimate
         c_est = _model(sub, th, spec, wt, jac=False).cost
         c_flat = _model(sub, torch.zeros_like(th), spec, wt, jac=False).cost
-        nu = (wt > 0.5).sum(0)[0].to(dt) - 3.0  # shots that count, less D and θ
+        nu = wt.sum(0)[0] - 3.0  # shots that count, less D and θ
         gain = (c_flat - c_est).clamp_min(0.0) / c_est.clamp_min(1e-30 * float(sigma) ** 2 + 1e-30)
         flat = ~(0.5 * nu * torch.log1p(gain) > -torch.log(torch.tensor(FLAT_P, dtype=dt))) | (nu < 1)
+        flat &= th.square().sum(0) < FLAT_TILT_MAX ** 2  # a steep estimate is not noise about flat
         idx = keep[flat]
         if idx.numel():
             blk = out[:, r0:r1].reshape(3, -1)
