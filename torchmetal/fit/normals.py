@@ -194,6 +194,9 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         normals, s, alpha, rep = joint_refine(capture, normals, s, alpha, active=solvable)
         history.append({"round": "joint", "s": s.tolist(), "alpha": alpha.tolist(), **rep,
                         "time": time.perf_counter() - t1})
+        t1 = time.perf_counter()  # the joint terms: refine and propagate once more
+        normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
+        history.append({"round": "polish", **rep, "time": time.perf_counter() - t1})
     n_flat = 0
     if flat_test:
         from torchmetal.fit.normals_flat import flat_where_unresolved

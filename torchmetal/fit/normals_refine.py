@@ -269,7 +269,9 @@ def _shifted(x: Tensor, width: int, dy: int, dx: int) -> Tensor:
     return m[:, rows][:, :, cols].reshape(x.shape)
 
 
-PROPAGATE = ((0, 1), (0, -1), (1, 0), (-1, 0))  # neighbours whose normals a pixel tries
+PROPAGATE = tuple((d * sy, d * sx) for d in (1, 3, 9) for sy, sx in ((0, 1), (0, -1), (1, 0), (-1, 0)))
+"""Shifts (rows, cols) of the neighbours whose normals a pixel tries: 1, 3 and 9 px in the four
+directions, so a patch caught in a wrong minimum near a highlight takes its rim's normals."""
 
 
 def _solve_chunk(ch: _Chunk, width: int, active: Tensor, candidates: list, iters: int, floor: float,
@@ -334,7 +336,8 @@ def refine_normals(
         iters: LM iterations per pixel.
         active: (H, W) bool pixels to refine (default: the mask); the others keep the first
             candidate's normals.
-        propagate: then try the 4 neighbours' normals too (under the first candidate's terms).
+        propagate: then try the neighbours' normals too (:data:`PROPAGATE`, under the first
+            candidate's terms).
 
     Returns:
         normals (3, H, W) and a report (LM iterations, mean robust cost per pixel).
