@@ -18,6 +18,8 @@ the shots resolve pass easily (a sphere, the zoo's bumps); noise does not.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -55,7 +57,7 @@ def flat_where_unresolved(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
         c_flat = _model(sub, torch.zeros_like(th), spec, wt, jac=False).cost
         nu = wt.sum(0)[0] - 3.0  # shots that count, less D and θ
         gain = (c_flat - c_est).clamp_min(0.0) / c_est.clamp_min(1e-30 * float(sigma) ** 2 + 1e-30)
-        flat = ~(0.5 * nu * torch.log1p(gain) > -torch.log(torch.tensor(FLAT_P, dtype=dt))) | (nu < 1)
+        flat = ~(0.5 * nu * torch.log1p(gain) > math.log(1.0 / FLAT_P)) | (nu < 1)
         flat &= th.square().sum(0) < FLAT_TILT_MAX ** 2  # a steep estimate is not noise about flat
         idx = keep[flat]
         if idx.numel():
