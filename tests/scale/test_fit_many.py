@@ -30,16 +30,21 @@ def single(captures, tmp_path_factory):
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_fit_many_equals_single_fits(captures, single, tmp_path, workers):
+    bad = tmp_path / "broken"  # a capture fit rejects: failed once, its error kept, the others unaffected
+    bad.mkdir()
+    (bad / "capture.json").write_text("{not json")
     out = tmp_path / "out"
-    recs = fit_many(captures, out, fit_args=FIT_ARGS, workers=workers, progress=False)
-    assert [r.status for r in recs] == ["ok"] * 3 and [r.attempts for r in recs] == [1] * 3
+    recs = fit_many([*captures, bad], out, fit_args=FIT_ARGS, workers=workers, progress=False)
+    assert [r.status for r in recs] == ["ok"] * 3 + ["failed"] and [r.attempts for r in recs] == [1] * 4
+    assert "expected valid JSON" in recs[3].errors[0]  # bad input: not retried
     for cap in captures:  # bit-identical to a single fit, whatever the number of workers
         assert material_fingerprint(out / cap.name) == single[cap.name]
     rows = list(csv.DictReader((out / "summary.csv").open()))
-    assert [r["name"] for r in rows] == [c.name for c in captures] and all(r["status"] == "ok" for r in rows)
-    assert all(float(r["rmse"]) > 0 and float(r["time_s"]) > 0 for r in rows)
+    assert [r["name"] for r in rows] == [c.name for c in captures] + ["broken"]
+    assert [r["status"] for r in rows] == ["ok"] * 3 + ["failed"] and "expected valid JSON" in rows[3]["errors"]
+    assert all(float(r["rmse"]) > 0 and float(r["time_s"]) > 0 for r in rows[:3])
     md = (out / "summary.md").read_text()
-    assert "3 fitted" in md and md.count("| cap") == 3
+    assert "3 fitted" in md and "1 failed" in md and md.count("| cap") == 3
 
 
 def test_killed_worker_is_retried_then_resume_redoes_nothing(captures, single, tmp_path):
@@ -59,18 +64,6 @@ def test_killed_worker_is_retried_then_resume_redoes_nothing(captures, single, t
     other = fit_many(captures[:1], out, fit_args=[*FIT_ARGS, "--tol", "1e-5"], progress=False, task=never_task,
                      retries=0)
     assert other[0].status == "failed" and "task ran" in other[0].errors[0]
-
-
-def test_bad_capture_fails_once_with_its_error(captures, tmp_path):
-    bad = tmp_path / "broken"
-    bad.mkdir()
-    (bad / "capture.json").write_text("{not json")
-    out = tmp_path / "out"
-    recs = fit_many([captures[0], bad], out, fit_args=FIT_ARGS, progress=False)
-    assert [r.status for r in recs] == ["ok", "failed"]
-    assert recs[1].attempts == 1 and "expected valid JSON" in recs[1].errors[0]  # bad input: not retried
-    rows = list(csv.DictReader((out / "summary.csv").open()))
-    assert rows[1]["status"] == "failed" and "expected valid JSON" in rows[1]["errors"]
 
 
 def test_cli_fit_many(captures, single, tmp_path, capsys):
