@@ -30,7 +30,7 @@ def test_auto_picks_the_truth(truth):
     sel = fit.lobe_selection
     assert fit.lobe == truth == sel["lobe"], sel["reason"]
     assert set(sel["mse"]) == {"phong", "blinn", "ggx"} and set(sel["z"]) == {"blinn", "ggx"}
-    assert len(sel["holds"]) == 3 and sel["reason"]
+    assert len(sel["holds"]) == 12 and sel["reason"]
     assert min(sel["mse"], key=sel["mse"].get) == truth
     rep = fit.report()
     assert rep["lobe"] == truth and rep["lobe_selection"]["lobe"] == truth

@@ -57,7 +57,8 @@ def score_fit(case, result, seconds: float) -> dict:
     away = None if case.truth.flakes is None else ~case.flake_pixels
     row = {"psnr": _psnr(pred, case.clean), "psnr_coat": _psnr(coat, case.clean, away), "s": s, "alpha": alpha, "time": seconds,
            "stage_times": dict(result.report.get("stage_times", {})), "skipped": list(result.report.get("skipped", [])),
-           "flake_model": m.flakes is not None, "specular": getattr(result.fit, "specular", None)}
+           "flake_model": m.flakes is not None, "specular": getattr(result.fit, "specular", None),
+           "lobe": m.lobe}
     if case.scene.phong_truth or case.scene.flakes is not None:
         row["s_err"] = rel_err(s, case.truth_stats["s"])
         row["alpha_err"] = rel_err(alpha, case.truth_stats["alpha"])

@@ -42,7 +42,6 @@ SIGMA_FLOOR = 1e-5  # residual scale floor, relative to the largest pixel value
 INIT_TOL = 1e-3  # the paper's scheme as init: |ΔErr| ≤ 1e-3·Err …
 INIT_ITERS = 10  # … or 10 iterations
 OUTLIER_SKIP = 1e-5  # fewer outliers than this on the subsample: none are looked for at full resolution
-LOBE_PIXELS = 4  # lobe="auto" compares lobes on 4× the selection subsample (the held-out gain is small beside noise)
 
 
 # ------------------------------------------------------------------------------- checks
@@ -202,7 +201,7 @@ def fit_phong(
         if lobe == "auto" and specular != "none":
             h, w = capture.images.shape[-2:]
             with run.stage("lobe"):
-                lobe_sel = choose_lobe(capture, stride=grid_stride(h, w, LOBE_PIXELS * select_pixels), tol=max(tol, 1e-4),
+                lobe_sel = choose_lobe(capture, stride=grid_stride(h, w, select_pixels), tol=max(tol, 1e-4),
                                        max_iters=max_iters, dtype=compute_dtype(capture.images), chunk=max_pixels_per_chunk)
             lobe = lobe_sel.lobe
         elif lobe == "auto":

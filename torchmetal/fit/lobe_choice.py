@@ -2,13 +2,13 @@
 
 On the selection subsample (the same strided pixel grid as the cluster choice), a global Phong
 fit on all shots ranks the shots by predicted specular energy; the ``holds`` most telling ones
-are left out in turn. For each candidate lobe and each left-out shot: a coarse α grid, then the
+(every shot, up to 12) are left out in turn. For each candidate lobe and each left-out shot: a coarse α grid, then the
 variable-projection LM (:func:`~torchmetal.fit.refine.fit_specular`) on the other shots, and the
 squared errors of rendering the left-out shot's valid observations.
 
 Phong — DESIGN 2.2's model — is kept unless another lobe's errors are lower *beyond noise*: the
 held-out MSE is mostly the photo's own noise (on the zoo's blinn scene, Blinn is 1.2 dB closer to the
-clean truth than Phong but only 0.3 % lower in held-out MSE), so a relative-gain rule cannot see
+clean truth than Phong but only 0.1 % lower in held-out MSE, leave-one-out over its 10 shots), so a relative-gain rule cannot see
 the lobe. The errors of two lobes pair up observation by observation (same pixels, same noise), and
 the paired difference's mean over its standard error (z) measures the gain against that noise; a lobe
 replaces Phong when z > ``z_min`` and its MSE is lower by at least ``min_gain``. So a Phong-like sample
@@ -32,9 +32,9 @@ from torchmetal.lobes import LOBES
 __all__ = ["LobeSelection", "choose_lobe", "LOBE_GRID", "MIN_GAIN", "HOLDS"]
 
 LOBE_GRID = tuple(float(2**i) for i in range(14))  # α = 1 … 8192, ×2 steps: every lobe starts near its optimum
-MIN_GAIN = 1e-3  # another lobe must lower the held-out MSE by 0.1 % …
+MIN_GAIN = 5e-4  # another lobe must lower the held-out MSE by 0.05 % …
 Z_MIN = 4.0  # … and by more than 4 standard errors of the paired difference
-HOLDS = 3  # shots left out in turn (the ones with most predicted specular energy)
+HOLDS = 12  # shots left out in turn (the ones with most predicted specular energy): every shot of most captures
 
 
 @dataclass
@@ -106,7 +106,7 @@ def choose_lobe(
         return LobeSelection("phong", reason="no highlight evidence: the lobe shape is not observable; phong (DESIGN 2.2)")
     order = torch.argsort(specular_energy(every, base), descending=True).tolist()
     del every
-    held = order[: max(1, min(holds, n - 2))]
+    held = order[: max(1, min(holds, n))]
     sel = LobeSelection("phong", holds=held)
     errors: dict[str, Tensor] = {}
     for lobe in candidates:
