@@ -25,7 +25,9 @@ l, v, E come from :mod:`torchmetal.geometry` (point and directional lights, any 
 4. **Joint refinement** of the normals with the global s, α
    (:func:`~torchmetal.fit.normals_joint.joint_refine`): the alternation alone has a biased fixed
    point (normal errors broaden the lobe the Phong fit sees).
-5. **Flat where the photos cannot tell** (:mod:`~torchmetal.fit.normals_flat`): a per-pixel
+5. **The neighbourhood's normal where it explains a pixel as well** (:mod:`~torchmetal.fit.normals_median`,
+   a truncated loss: a glint explained by a tilted normal), then
+   **flat where the photos cannot tell** (:mod:`~torchmetal.fit.normals_flat`): a per-pixel
    likelihood-ratio test against (0, 0, 1).
 
 The normals are fitted to the channel sum of each shot, z_k = Σ_c y_kc (shots with a clipped
@@ -122,8 +124,8 @@ def _check_capture(capture) -> None:
                          f"directions of rank < 3 (singular values {[round(float(x), 4) for x in sv]})")
 
 
-def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool = True, flat_test: bool = True,
-                     fit_kwargs: dict | None = None) -> NormalsEstimate:
+def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool = True, median_test: bool = True,
+                     flat_test: bool = True, fit_kwargs: dict | None = None) -> NormalsEstimate:
     """Per-pixel normals from the photos and the known lights (see the module docstring).
 
     Args:
@@ -132,6 +134,8 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         iters: LM iterations per pixel and round.
         joint: finish with the joint refinement of the normals and s, α
             (:func:`~torchmetal.fit.normals_joint.joint_refine`).
+        median_test: take the 5×5 neighbourhood's median normal where it explains a pixel as well
+            (:func:`~torchmetal.fit.normals_median.median_where_as_good`: glints, noisy dark pixels).
         flat_test: keep (0, 0, 1) where the estimate does not explain the shots significantly
             better (:func:`~torchmetal.fit.normals_flat.flat_where_unresolved`).
         fit_kwargs: extra arguments of :func:`~torchmetal.fit.fit_phong` for the rounds' fits
@@ -197,6 +201,11 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         t1 = time.perf_counter()  # the joint terms: refine and propagate once more
         normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
         history.append({"round": "polish", **rep, "time": time.perf_counter() - t1})
+    n_median = 0
+    if median_test:
+        from torchmetal.fit.normals_median import median_where_as_good
+
+        normals, n_median = median_where_as_good(capture, normals, s, alpha, active=solvable)
     n_flat = 0
     if flat_test:
         from torchmetal.fit.normals_flat import flat_where_unresolved
@@ -209,7 +218,7 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
     tilt = torch.rad2deg(torch.acos(normals[2][inside].clamp(-1, 1)))
     report = {
         "mode": "estimate", "rounds": history, "time": time.perf_counter() - t0,
-        "pixels": int(inside.sum()), "unsolved_pixels": int((inside & ~solvable).sum()), "kept_flat": n_flat,
+        "pixels": int(inside.sum()), "unsolved_pixels": int((inside & ~solvable).sum()), "took_median": n_median, "kept_flat": n_flat,
         "tilt_deg": {"mean": float(tilt.mean()) if tilt.numel() else 0.0,
                      "max": float(tilt.max()) if tilt.numel() else 0.0},
     }
