@@ -30,6 +30,15 @@ def tiled256(tmp_path_factory):
     return convert_capture(root / "png", root / "tiled")
 
 
+@pytest.fixture(scope="module")
+def tiled128(tmp_path_factory):
+    from torchmetal.synth import synth_capture, write_synth
+
+    root = tmp_path_factory.mktemp("t128")
+    write_synth(synth_capture(size=128, shots=8, seed=6, noise=0.003, bits=16), root / "png")
+    return convert_capture(root / "png", root / "tiled")
+
+
 def assert_same_fit(a, b):
     assert rel_err(b.s, a.s) <= REL and rel_err(b.alpha, a.alpha) <= REL, (a.s, b.s, a.alpha, b.alpha)
     assert rel_err(b.texture, a.texture) <= REL
@@ -46,12 +55,12 @@ def test_tiled_equals_in_memory_256(tiled256, tmp_path):
     assert torch.equal(b.normals, load_capture(tiled256).normals)
 
 
-def test_tiled_strided_subsample_and_clusters(tiled256, tmp_path):
-    """Subsample decisions on a strided grid read from the files, clustered specular per tile,
-    and a tile size that does not divide the image."""
-    kw = dict(sub_pixels=4096, select_pixels=1024, specular="clustered", max_iters=20)
-    a = fit_phong(load_capture(tiled256), **kw)
-    b = fit_tiled(tiled256, tile=100, scratch=tmp_path, **kw)
+def test_tiled_strided_subsample_and_clusters(tiled128, tmp_path):
+    """128² × 8: subsample decisions on a strided grid read from the files, clustered specular per
+    tile, and a tile size that does not divide the image."""
+    kw = dict(sub_pixels=2048, select_pixels=512, specular="clustered", max_iters=20)
+    a = fit_phong(load_capture(tiled128), **kw)
+    b = fit_tiled(tiled128, tile=50, scratch=tmp_path, **kw)
     assert a.specular == "clustered"
     assert_same_fit(a, b)
     assert torch.equal(b.spec_labels, a.spec_labels)
@@ -86,11 +95,11 @@ def test_bad_arguments(tiled256):
         fit_tiled(tiled256, specular="shiny")
 
 
-def test_tiles_on_a_process_pool_are_bit_identical(tiled256, tmp_path):
+def test_tiles_on_a_process_pool_are_bit_identical(tiled128, tmp_path):
     """The same tile tasks on 2 pool workers (results reduced in tile order) = in this process."""
-    kw = dict(tile=128, sub_pixels=4096, select_pixels=1024, max_iters=20)
-    here = fit_tiled(tiled256, scratch=tmp_path / "here", **kw)
-    pool = fit_tiled(tiled256, scratch=tmp_path / "pool", engine="local", workers=2, threads=1, **kw)
+    kw = dict(tile=48, sub_pixels=2048, select_pixels=512, max_iters=20)
+    here = fit_tiled(tiled128, scratch=tmp_path / "here", **kw)
+    pool = fit_tiled(tiled128, scratch=tmp_path / "pool", engine="local", workers=2, threads=1, **kw)
     assert pool.tiled["engine"] == "local" and pool.tiled["passes"] == here.tiled["passes"]
     assert torch.equal(pool.s, here.s) and torch.equal(pool.alpha, here.alpha)
     assert torch.equal(pool.texture, here.texture)
