@@ -47,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     plan = quick_plan() if args.quick else full_plan()
+    plan.full_rows = bool(args.full)
     if args.timeout is not None:
         plan.timeout_s = args.timeout
     if args.isolate is not None:

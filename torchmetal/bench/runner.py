@@ -19,6 +19,12 @@ realflakes  cards_blue: flake statistics, MD and PSNR of a left-out shot with an
           flake term, detections drawn on a shot (``flakes_<capture>.png``)
 zoo       the scene zoo (torchmetal.synth.zoo), one child per scene: default pipeline vs the paper
           scheme against the noise-free truth, oracle dB, s/α and flake errors (``zoo.json``)
+command   the whole ``torchmetal fit`` command (fresh process) beside the in-process fit and the numpy
+          paper scheme's whole process, held-out error against the clean truth; start-up; peak
+          memory (torchmetal.bench.command)
+onnx_kinds  ONNX frame time and file size per material kind at 1024² (torchmetal.bench.kinds)
+gpu       fit 4096²×16, flake stage, renderer, ONNX CUDA provider where CUDA is present, else one
+          line saying why not (torchmetal.bench.gpu)
 ========  ==================================================================================
 
 Outputs in ``--out`` (default ``bench-results/``): ``results.md``, ``results.csv``,
@@ -41,7 +47,8 @@ from pathlib import Path
 
 from torchmetal.bench.zoo_section import scene_sizes, zoo_jobs, zoo_markdown, zoo_scene_names
 
-SECTIONS = ("sweep", "load", "fit1024", "skip", "flakes", "onnx", "real", "realflakes", "zoo")
+SECTIONS = ("sweep", "load", "fit1024", "skip", "flakes", "onnx", "real", "realflakes", "zoo", "command", "onnx_kinds",
+            "gpu")
 METHODS = ("torchmetal", "torchmetal-paper", "paper-numpy", "adam")
 EQUAL_DB = 0.1  # "equal error": held-out PSNR within this many dB
 MiB = 2**20
@@ -84,6 +91,7 @@ class Plan:
     threads: int | None = None  # intra-op threads of every child (None: torch's default)
     zoo_ci: bool = False  # zoo scenes at their ci_scenes() size
     zoo_scenes: tuple[str, ...] | None = None  # None: every scene of the zoo
+    full_rows: bool = False  # ``--full`` given: the command section's 2048² rows too
 
 
 def full_plan() -> Plan:
@@ -777,6 +785,44 @@ class Bench:
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "zoo.json").write_text(json.dumps(self.raw["zoo"], indent=1, default=str))
         self.add(zoo_markdown(names, res, scene_sizes(p.zoo_ci, names)))
+
+    # -- command, onnx_kinds, gpu (issue 13) ----------------------------------------------
+
+    def _child_json(self, argv: list[str], out: Path) -> dict:
+        from torchmetal.bench.command import timed_process
+
+        r = timed_process([sys.executable, "-m", *argv, str(out)], _env(self.plan.threads), self.plan.timeout_s)
+        return json.loads(out.read_text()) if "error" not in r else r
+
+    def run_command(self) -> None:
+        from torchmetal.bench import command
+
+        self.section("Whole command as the user runs it: torchmetal fit vs the numpy paper process (fresh processes)")
+        res = command.run_section(self.plan.name, self.plan.full_rows, self.tmp, _env(self.plan.threads),
+                                  self.plan.timeout_s, say=self.say)
+        self.raw["command"] = res
+        self.add(command.markdown(res))
+
+    def run_onnx_kinds(self) -> None:
+        from torchmetal.bench import kinds
+
+        size = self.plan.onnx_size
+        self.section(f"ONNX renderer per material kind, {size}²")
+        rows = [self._child_json(["torchmetal.bench.kinds", k, str(size), "10" if self.plan.name == "full" else "2"],
+                                 self.tmp / f"kind{i}.json") for i, k in enumerate(kinds.kinds())]
+        self.raw["onnx_kinds"] = rows
+        self.add(kinds.markdown(rows))
+
+    def run_gpu(self) -> None:
+        from torchmetal.bench import gpu
+
+        self.section("GPU: fit, flake stage, renderer, ONNX CUDA provider")
+        reason = gpu.skip_reason()
+        size = 4096 if self.plan.name == "full" else 64
+        res = {"skipped": reason} if reason else self._child_json(["torchmetal.bench.gpu", "cuda", str(size), "16"],
+                                                                   self.tmp / "gpu.json")
+        self.raw["gpu"] = res
+        self.add(gpu.markdown(res))
 
     # -- output ---------------------------------------------------------------------------
 
