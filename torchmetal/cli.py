@@ -194,7 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("capture", help="capture directory (DESIGN 2.1)")
     f.add_argument("-o", "--output", required=True, help="material directory to write")
     f.add_argument("--scheme", choices=["refine", "paper"], default="refine")
-    f.add_argument("--specular", choices=["auto", "global", "clustered", "none"], default="auto")
+    f.add_argument("--specular", choices=["auto", "global", "clustered", "maps", "none"], default="auto",
+                   help="auto: global, or clustered / gloss maps (per-pixel s, alpha) when a held-out shot says they help")
     f.add_argument("--flakes", choices=["auto", "on", "off"], default="auto")
     f.add_argument("--robust", choices=["auto", "none", "huber", "cauchy"], default="auto",
                    help="IRLS weights of the Phong fit (auto: plain least squares)")

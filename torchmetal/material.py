@@ -6,6 +6,7 @@ material/
   texture.npy            (H, W, 3) float32 linear diffuse texture d(p)
   normals.npy            (H, W, 3) float32, only when not flat
   specular_labels.npy    (H, W) int32, only with clustered specular
+  gloss_s.npy, gloss_alpha.npy   (H, W, 3) float32 gloss maps, only with specular="maps"
   renderer.onnx          when exported
 ```
 Writes are atomic: everything goes to a temporary sibling directory that replaces the target in
@@ -61,6 +62,8 @@ class Material:
     flakes: FlakeModel | None = None
     report: dict = field(default_factory=dict)
     lobe: str = "phong"
+    gloss_s: Tensor | None = None  # (3, H, W) gloss maps (torchmetal.fit.gloss); s, alpha hold their means
+    gloss_alpha: Tensor | None = None
 
     def __post_init__(self) -> None:
         from torchmetal.lobes import LOBES
@@ -86,8 +89,27 @@ class Material:
             k = self.cluster_s.shape[0]
             if self.cluster_s.shape != (k, 3) or self.cluster_alpha.shape != (k, 3):
                 raise MaterialError(f"cluster_s/cluster_alpha: expected (K, 3), found {tuple(self.cluster_s.shape)}, {tuple(self.cluster_alpha.shape)}")
+        self._check_gloss()
         if not (all(math.isfinite(v) and v > 0 for v in self.size) and len(self.size) == 2):
             raise MaterialError(f"size: expected two positive numbers (width, height), found {self.size!r}")
+
+    def _check_gloss(self) -> None:
+        if (self.gloss_s is None) != (self.gloss_alpha is None):
+            raise MaterialError("gloss maps: expected gloss_s and gloss_alpha together, found only one")
+        if self.gloss_s is None:
+            return
+        if self.spec_labels is not None:
+            raise MaterialError("gloss maps: expected either gloss maps or clustered specular, found both")
+        for name in ("gloss_s", "gloss_alpha"):
+            x = getattr(self, name)
+            if not isinstance(x, Tensor) or tuple(x.shape) != tuple(self.texture.shape):
+                found = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+                raise MaterialError(f"{name}: expected shape {tuple(self.texture.shape)}, found {found}")
+            if not bool(torch.isfinite(x).all()):
+                raise MaterialError(f"{name}: expected finite values, found NaN/Inf")
+        if bool((self.gloss_s < 0).any()) or bool((self.gloss_alpha <= 0).any()):
+            raise MaterialError(f"gloss maps: expected s >= 0 and alpha > 0, found min s {float(self.gloss_s.min()):g}, "
+                                f"min alpha {float(self.gloss_alpha.min()):g}")
 
     @property
     def height(self) -> int:
@@ -110,7 +132,9 @@ class Material:
         return n
 
     def specular_maps(self) -> tuple[Tensor, Tensor]:
-        """s and α as (3,) globals, or (3, H, W) maps for clustered specular."""
+        """s and α as (3,) globals, or (3, H, W) maps for clustered specular and gloss maps."""
+        if self.gloss_s is not None:
+            return self.gloss_s, self.gloss_alpha
         if self.spec_labels is None:
             return self.s, self.alpha
         lab = self.spec_labels.long()
@@ -121,7 +145,7 @@ class Material:
         return Material(
             move(self.texture), move(self.s), move(self.alpha), self.size, move(self.normals),
             move(self.spec_labels), move(self.cluster_s), move(self.cluster_alpha), self.flakes, dict(self.report),
-            lobe=self.lobe,
+            lobe=self.lobe, gloss_s=move(self.gloss_s), gloss_alpha=move(self.gloss_alpha),
         )
 
 
@@ -144,6 +168,7 @@ def material_to_json(m: Material) -> dict:
             "clusters": None
             if m.spec_labels is None
             else {"labels": "specular_labels.npy", "s": _to_list(m.cluster_s), "alpha": _to_list(m.cluster_alpha)},
+            "maps": None if m.gloss_s is None else {"s": "gloss_s.npy", "alpha": "gloss_alpha.npy"},
         },
         "flakes": m.flakes.to_dict() if m.flakes is not None else None,
         "fit": m.report,
@@ -169,6 +194,9 @@ def save_material(m: Material, path: str | os.PathLike, *, extra_files: dict[str
             np.save(tmp / "normals.npy", _hwc(m.normals))
         if m.spec_labels is not None:
             np.save(tmp / "specular_labels.npy", m.spec_labels.detach().cpu().numpy().astype(np.int32))
+        if m.gloss_s is not None:
+            np.save(tmp / "gloss_s.npy", _hwc(m.gloss_s))
+            np.save(tmp / "gloss_alpha.npy", _hwc(m.gloss_alpha))
         (tmp / "material.json").write_text(json.dumps(material_to_json(m), indent=2, allow_nan=False))
         keep = path / "renderer.onnx"
         if keep.is_file() and not (extra_files and "renderer.onnx" in extra_files):
@@ -204,6 +232,14 @@ def _load_array(root: Path, name: str, shape_hint: str) -> np.ndarray:
         raise MaterialError(f"{f}: expected a numpy .npy file, found unreadable data ({e})") from None
 
 
+def _load_map(root: Path, name: str, shape: torch.Size) -> Tensor:
+    """(H, W, 3) gloss map file → (3, H, W) float32."""
+    a = _load_array(root, name, "(H, W, 3)")
+    if a.shape != (shape[1], shape[2], 3):
+        raise MaterialError(f"{root / name}: expected shape {(shape[1], shape[2], 3)}, found {a.shape}")
+    return torch.from_numpy(a.astype(np.float32)).permute(2, 0, 1).contiguous()
+
+
 def load_material(path: str | os.PathLike) -> Material:
     """Read a material directory written by :func:`save_material`."""
     root = Path(path)
@@ -235,6 +271,9 @@ def load_material(path: str | os.PathLike) -> Material:
             labels = torch.from_numpy(_load_array(root, cl["labels"], "(H, W)").astype(np.int64))
             cs = torch.tensor(cl["s"], dtype=torch.float32)
             ca = torch.tensor(cl["alpha"], dtype=torch.float32)
+        gs = ga = None
+        if ph.get("maps"):
+            gs, ga = (_load_map(root, ph["maps"][k], texture.shape) for k in ("s", "alpha"))
         flakes = FlakeModel.from_dict(meta["flakes"]) if meta.get("flakes") else None
         size = (float(meta["surface"]["width"]), float(meta["surface"]["height"]))
         lobe = meta.get("lobe", "phong")  # absent: a material from before the lobe choice
@@ -245,4 +284,5 @@ def load_material(path: str | os.PathLike) -> Material:
     for name, x in (("texture", texture), ("s", s), ("alpha", alpha)):
         if not bool(torch.isfinite(x).all()):
             raise MaterialError(f"{root}: expected finite {name}, found NaN/Inf")
-    return Material(texture, s, alpha, size, normals, labels, cs, ca, flakes, meta.get("fit") or {}, lobe=lobe)
+    return Material(texture, s, alpha, size, normals, labels, cs, ca, flakes, meta.get("fit") or {}, lobe=lobe,
+                    gloss_s=gs, gloss_alpha=ga)

@@ -273,6 +273,7 @@ def _annotate(proto, renderer: MaterialRenderer, opset: int) -> None:
         "surface_height": repr(renderer.size[1]),
         "flat_normals": str(renderer.flat).lower(),
         "clustered_specular": str(renderer.clustered).lower(),
+        "gloss_maps": str(getattr(renderer, "mapped", False)).lower(),
         "lobe": renderer.lobe,
         "flakes": "none" if not renderer.has_flakes else ("dense" if renderer.flake_pixels < 0 else f"sparse:{renderer.flake_pixels}"),
         "opset": str(opset),

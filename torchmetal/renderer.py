@@ -103,7 +103,12 @@ class MaterialRenderer(nn.Module):
             self.register_buffer("normals", m.normals.detach().to(f32).clone())
 
         self.clustered = m.clustered
-        if self.clustered:
+        self.mapped = m.gloss_s is not None  # gloss maps: (3, H, W) s and α buffers
+        if self.mapped:
+            self.register_buffer("gloss_s", m.gloss_s.detach().to(f32).contiguous().clone())
+            self.register_buffer("gloss_alpha", m.gloss_alpha.detach().to(f32).contiguous().clone())
+            alpha_min = float(self.gloss_alpha.min())
+        elif self.clustered:
             k = int(m.cluster_s.shape[0])
             lab_dtype = torch.uint8 if k <= 256 else torch.int32
             self.register_buffer("spec_labels", m.spec_labels.detach().to(dev).to(lab_dtype).clone())
@@ -118,7 +123,7 @@ class MaterialRenderer(nn.Module):
             self.register_buffer("s", m.s.detach().to(f32).clone())
             self.register_buffer("alpha", m.alpha.detach().to(f32).clone())
             alpha_min = float(self.alpha.min())
-        self.alpha_uniform = (not self.clustered) and bool((self.alpha == self.alpha[0]).all())
+        self.alpha_uniform = not (self.clustered or self.mapped) and bool((self.alpha == self.alpha[0]).all())
         # With α ≥ 1 the clipped log-lobe past the horizon gives a lobe ≤ 1e-38; smaller
         # exponents get an exact zero there (two more single-channel ops).
         self.exact_horizon = not alpha_min >= 1.0 and self.lobe != "ggx"  # GGX: no clipped log-lobe
@@ -161,7 +166,7 @@ class MaterialRenderer(nn.Module):
 
     def extra_repr(self) -> str:
         return (
-            f"{self.height}x{self.width}, flat={self.flat}, clustered={self.clustered}, lobe={self.lobe}, "
+            f"{self.height}x{self.width}, flat={self.flat}, clustered={self.clustered}, maps={self.mapped}, lobe={self.lobe}, "
             f"flakes={'off' if not self.has_flakes else ('dense' if self.flake_pixels < 0 else f'{self.flake_pixels} px')}"
         )
 
@@ -220,7 +225,7 @@ class MaterialRenderer(nn.Module):
         shade = light_intensity.reshape(-1, 3, 1, 1)  # (B,3,1,1)
         q_diffuse = shade * (n_dot_l.clamp_min(0.0) * inv_d2)  # outer products (B,3,H,W)
         q_spec = (shade if lit is None else shade * lit)
-        if self.clustered:
+        if self.clustered or self.mapped:
             s, alpha = self._specular_maps()
             spec = s * (torch.exp(alpha * t) if ggx is None else ggx_lobe(*ggx, alpha))
         else:
@@ -254,6 +259,8 @@ class MaterialRenderer(nn.Module):
         return 0.5 * (dx * dx + dy * dy + dz * dz), nx * wx + ny * wy + nz * wz, v_dot_h
 
     def _specular_maps(self) -> tuple[Tensor, Tensor]:
+        if self.mapped:
+            return self.gloss_s, self.gloss_alpha
         if torch.compiler.is_exporting():
             # in the file: uint8 labels + (3, K) tables; onnxruntime folds the gather at load
             return self._gather_specular()

@@ -23,7 +23,10 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
-from torchmetal.fit.clusters import Labeler, Selection, choose_specular, evidence, fit_clustered, heldout_evidence
+from torchmetal.fit.clusters import (
+    Labeler, Selection, choose_specular, evidence, fit_clustered, heldout_evidence, heldout_mse,
+)
+from torchmetal.fit.gloss import choose_maps, fit_gloss_maps
 from torchmetal.fit.lobe_choice import LOBE_GRID, choose_lobe
 from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.paper import paper_scheme
@@ -31,13 +34,14 @@ from torchmetal.fit.problem import (
     ROBUST, Observations, Reference, Weighting, build_observations, compute_dtype, grid_stride,
 )
 from torchmetal.fit.refine import (
-    ALPHA_MIN, SpecFit, evaluate_specular, fill_unobserved, fit_specular, grid_beta, residual_scale, texture_map, unobserved,
+    ALPHA_MIN, SpecFit, evaluate_specular, fill_unobserved, fit_specular, grid_beta, pixel_map, residual_scale, texture_map,
+    unobserved,
 )
 from torchmetal.fit.result import FitResult, IterationCounts
 from torchmetal.lobes import LOBES, check_lobe
 
 SCHEMES = ("paper", "refine")
-SPECULARS = ("auto", "global", "clustered", "none")
+SPECULARS = ("auto", "global", "clustered", "maps", "none")
 SIGMA_FLOOR = 1e-5  # residual scale floor, relative to the largest pixel value
 INIT_TOL = 1e-3  # the paper's scheme as init: |ΔErr| ≤ 1e-3·Err …
 INIT_ITERS = 10  # … or 10 iterations
@@ -52,9 +56,9 @@ def _check_args(capture, scheme, specular, tol, max_iters, robust, outliers, clu
         raise InputError(f"scheme: expected one of {list(SCHEMES)}, found {scheme!r}")
     if specular not in SPECULARS:
         raise InputError(f"specular: expected one of {list(SPECULARS)}, found {specular!r}")
-    if scheme == "paper" and specular == "clustered":
+    if scheme == "paper" and specular in ("clustered", "maps"):
         raise InputError("specular: expected 'auto', 'global' or 'none' with scheme='paper' (the paper's specular is "
-                         "global), found 'clustered'")
+                         f"global), found {specular!r}")
     if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
         raise InputError(f"tol: expected a finite number > 0, found {tol!r}")
     if not (isinstance(max_iters, int) and max_iters >= 1):
@@ -164,8 +168,9 @@ def fit_phong(
             saturated observations and n·l ≤ 0 are left out.
         scheme: "paper" (section 4.1 only) or "refine" (the paper's scheme as init, then the
             joint variable-projection refinement).
-        specular: "auto" (global, or clustered only when it wins on a held-out shot), "global",
-            "clustered" or "none".
+        specular: "auto" (global, or clustered / gloss maps only when they win on a held-out shot),
+            "global", "clustered", "maps" (per-pixel s, α with an edge-aware smoothness prior,
+            :mod:`torchmetal.fit.gloss`) or "none".
         tol: relative tolerance of the stopping rules (|ΔErr| ≤ tol·Err; β step ≤ tol).
         max_iters: iteration cap per stage.
         robust: None (least squares), "huber" or "cauchy" (IRLS weights).
@@ -397,6 +402,12 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
             if sel.k == 1:
                 run.skipped.append(f"specular clusters: not kept ({sel.reason})")
     labeler: Labeler | None = sel.labeler if sel is not None and sel.k > 1 else None
+    # 4b. gloss maps (from the global fit): forced, or kept when they beat global/clustered on the held-out shot
+    use_maps, maps_info = _maps_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, sub=sub,
+                                         sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
+                                         weighting=weighting, lobe=lobe)
+    if use_maps:
+        labeler = None
     if labeler is not None:
         with run.stage("refine"):
             sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
@@ -412,7 +423,7 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
             ref = Reference(torch.zeros(1, 3, dtype=torch.float64, device=imgs.device),
                             torch.ones(1, 3, dtype=torch.float64, device=imgs.device))
         full = build_observations(capture, lobe=lobe, dtype=dt, chunk=chunk, ref=ref, weighting=weighting, labeler=labeler,
-                                  with_stats=spec is not None)
+                                  with_stats=spec is not None, want_tmin=use_maps)
     n_obs = max(1.0, float(full.n.double().sum()))
     if spec is None:
         with run.stage("texture"):
@@ -435,6 +446,8 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
         fit = fit_specular(full, torch.log(spec.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix,
                            on_iter=run.logger("refine", full.num_pixels), first=full.first_stats)
         full.first_stats = None
+    if use_maps:
+        return _finish_maps(capture, run, full, fit, k, tol=tol, max_iters=max_iters, sel_info=sel, maps_info=maps_info)
     with run.stage("texture"):
         tex = _finish_texture(texture_map(full, fit.s, fit.eb), full, capture, run)
     _check_finite("fit_phong(scheme='refine')", tex, fit.s, fit.alpha, fit.cost)
@@ -442,10 +455,63 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
     sel_info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason}
     if k == 1:
         return _result(capture, run, tex, fit.s[0], fit.alpha[0], status=fit.status, rmse=rmse, scheme="refine",
-                       specular="global", selection=sel_info)
+                       specular="global", selection=sel_info, maps_selection=maps_info)
     labels = _grid_maps(full.labels, h, w)
     area = torch.bincount(full.labels, minlength=k).to(torch.float64)
     area = area / area.sum().clamp_min(1.0)
     return _result(capture, run, tex, (area @ fit.s).to(dt), (area @ fit.alpha).to(dt), spec_labels=labels,
                    cluster_s=fit.s.to(dt), cluster_alpha=fit.alpha.to(dt), status=fit.status, rmse=rmse,
-                   scheme="refine", specular="clustered", selection=sel_info)
+                   scheme="refine", specular="clustered", selection=sel_info, maps_selection=maps_info)
+
+
+def _maps_decision(capture, run: _Run, glob, sel, *, specular, s_fixed, sub, sel_stride, tol, max_iters, dt, chunk,
+                   weighting, lobe) -> tuple[bool, dict | None]:
+    """Whether the full-resolution fit gets gloss maps (and the held-out evidence behind it).
+
+    The maps start from the global fit (they carry the spatial variation themselves) and must beat
+    the best of global and clustered on the selection's held-out shot."""
+    n_shots = int(capture.images.shape[0])
+    if glob is None or specular not in ("auto", "maps"):
+        return False, None
+    if n_shots < 3:
+        if specular == "auto":
+            run.skipped.append(f"gloss maps: a held-out test needs >= 3 shots, found {n_shots}")
+            return False, None
+        return True, {"kept": True, "hold": -1, "mse": {}, "reason": "forced (specular='maps'); no shot to hold out"}
+    if s_fixed is not None and specular == "auto":
+        run.skipped.append("gloss maps: not tried (some channels show no highlight)")
+        return False, None
+    have_sel = sel is not None and sel.hold >= 0 and sel.mse
+    hold = sel.hold if have_sel else _hold_shot(sub, glob)
+    base_mse = min(sel.mse.values()) if have_sel and sel.k > 1 else (sel.mse.get("global") if have_sel else None)
+    with run.stage("select"):
+        ms = choose_maps(capture, Reference(glob.s, glob.alpha), stride=sel_stride, hold=hold, force=specular == "maps",
+                         tol=tol, max_iters=max_iters, dtype=dt, chunk=chunk, weighting=weighting, lobe=lobe,
+                         base_mse=base_mse)
+    if not ms.kept:
+        run.skipped.append(f"gloss maps: not kept ({ms.reason})")
+    return ms.kept, ms.to_dict()
+
+
+def _finish_maps(capture, run: _Run, full: Observations, fit: SpecFit, k: int, *, tol, max_iters, sel_info, maps_info) -> FitResult:
+    """Full-resolution gloss maps from the global/clustered fit ``fit``; texture at the maps."""
+    h, w = capture.images.shape[-2:]
+    dt = full.dtype
+    labels = full.labels if k > 1 else None
+    with run.stage("maps"):
+        maps = fit_gloss_maps(full, pixel_map(fit.s, labels), pixel_map(fit.alpha, labels), stride=1, tol=max(tol, 1e-4),
+                              max_iters=max_iters)
+        run.log("maps", maps.iterations, 0.0, 1.0, full.num_pixels)
+    with run.stage("texture"):
+        tex = _finish_texture(maps.texture(full), full, capture, run)
+    s_p, a_p, ar = maps.per_pixel()
+    rmse = math.sqrt(heldout_mse(full, maps.texture(full), s_p, a_p, ar))
+    _check_finite("fit_phong(specular='maps')", tex, maps.s, maps.alpha)
+    inside = capture.mask.reshape(-1).bool() & (full.n.sum(0) > 0)
+    wgt = inside.to(torch.float64) / inside.sum().clamp_min(1)
+    s_mean = (maps.s.double() @ wgt) if bool(inside.any()) else fit.s[0].double()
+    a_mean = (maps.alpha.double() @ wgt) if bool(inside.any()) else fit.alpha[0].double()
+    sel = None if sel_info is None else {"k": sel_info.k, "hold": sel_info.hold, "mse": sel_info.mse, "reason": sel_info.reason}
+    return _result(capture, run, tex, s_mean.to(dt), a_mean.to(dt), gloss_s=_grid_maps(maps.s.to(dt), h, w),
+                   gloss_alpha=_grid_maps(maps.alpha.to(dt), h, w), status=fit.status, rmse=rmse, scheme="refine",
+                   specular="maps", selection=sel, maps_selection=maps_info)

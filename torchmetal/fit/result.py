@@ -65,6 +65,7 @@ class FitResult:
         texture: (3, H, W) diffuse texture d(p).
         s, alpha: (3,) global specular terms (area-weighted cluster means when clustered).
         spec_labels: (H, W) int64 cluster of each pixel, or None (global specular).
+        gloss_s, gloss_alpha: (3, H, W) gloss maps (specular="maps"; s, alpha hold their mask means), or None.
         cluster_s, cluster_alpha: (K, 3) or None.
         normals: (3, H, W) the capture's normals; size: (width, height).
         history: one dict per iteration: stage, iter, rmse, active (+ pixels on subsamples).
@@ -98,13 +99,18 @@ class FitResult:
     flat: bool = True
     lobe: str = "phong"
     lobe_selection: dict | None = None
+    gloss_s: Tensor | None = None
+    gloss_alpha: Tensor | None = None
+    maps_selection: dict | None = None
 
     @property
     def clustered(self) -> bool:
         return self.spec_labels is not None
 
     def specular_maps(self) -> tuple[Tensor, Tensor]:
-        """s and α as (3,) globals or, when clustered, (3, H, W) maps."""
+        """s and α as (3,) globals or, when clustered or with gloss maps, (3, H, W) maps."""
+        if self.gloss_s is not None:
+            return self.gloss_s, self.gloss_alpha
         if self.spec_labels is None:
             return self.s, self.alpha
         return self.cluster_s[self.spec_labels].permute(2, 0, 1), self.cluster_alpha[self.spec_labels].permute(2, 0, 1)
@@ -130,6 +136,7 @@ class FitResult:
             "history": stages, "skipped": list(self.skipped),
             "selection": self.selection,
             "lobe": self.lobe, "lobe_selection": self.lobe_selection,
+            "maps_selection": self.maps_selection,
         }
 
     def to_material(self, report_extra: dict | None = None) -> Material:
@@ -144,11 +151,18 @@ class FitResult:
             cluster_s=None if self.cluster_s is None else self.cluster_s.detach().float(),
             cluster_alpha=None if self.cluster_alpha is None else self.cluster_alpha.detach().float(),
             report=rep, lobe=self.lobe,
+            gloss_s=None if self.gloss_s is None else self.gloss_s.detach().float(),
+            gloss_alpha=None if self.gloss_alpha is None else self.gloss_alpha.detach().float(),
         )
 
     def to_module(self) -> nn.Module:
         """A trainable module: :class:`PhongModel` (global; :class:`~torchmetal.lobes.LobeModel` for
-        another lobe) or :class:`ClusteredPhongModel`."""
+        another lobe) or :class:`ClusteredPhongModel` (gloss maps: one cluster per pixel)."""
+        if self.gloss_s is not None:
+            h, w = self.gloss_s.shape[-2:]
+            labels = torch.arange(h * w, device=self.gloss_s.device).view(h, w)
+            return ClusteredPhongModel(self.texture, labels, self.gloss_s.reshape(3, -1).T, self.gloss_alpha.reshape(3, -1).T,
+                                       self.normals, self.size, lobe=self.lobe)
         if self.spec_labels is None:
             if self.lobe != "phong":
                 return LobeModel(self.texture, self.s, self.alpha, self.normals, self.size, lobe=self.lobe)
