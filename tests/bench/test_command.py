@@ -55,4 +55,4 @@ def test_timed_process_failures_are_rows():
 def test_plans():
     assert (2048, 8) not in command.command_plan("full")["fits"]
     assert (2048, 16) in command.command_plan("full", full=True)["fits"]
-    assert command.command_plan("quick", full=True)["fits"] == [(32, 4)]
+    assert command.command_plan("quick", full=True)["fits"] == [(24, 4)]

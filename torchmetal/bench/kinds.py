@@ -38,6 +38,8 @@ KINDS: dict[str, tuple[str, str, bool, str]] = {
 }
 
 
+QUICK_KINDS = ["bumpy · clustered · flakes"]  # ``--quick``: the largest graph only (an export costs ~10 s here)
+
 #: kinds of work in progress elsewhere, benchmarked when the Material has the field: name → (field, base kind)
 OPTIONAL_KINDS = {"flat · gloss maps": ("gloss_s", "flat · global"),
                   "flat · global · observed flakes": ("observed_flakes", "flat · global · flakes")}
