@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
-from torchmetal.fit.api import INIT_ITERS, INIT_TOL, _hold_shot, _Run
+from torchmetal.fit.api import INIT_ITERS, INIT_TOL, _hold_shot, _maps_decision, _Run
 from torchmetal.fit.clusters import choose_specular, evidence, fit_clustered, heldout_evidence
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.paper import paper_scheme
@@ -218,6 +218,12 @@ def _subsample_decisions(cap, run: _Run, *, specular, tol, max_iters, clusters, 
             if sel.k == 1:
                 run.skipped.append(f"specular clusters: not kept ({sel.reason})")
     labeler = sel.labeler if sel is not None and sel.k > 1 else None
+    use_maps, maps_info = _maps_decision(cap, run, glob, sel, specular=specular, s_fixed=s_fixed, sub=sub,
+                                         sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
+                                         weighting=None, lobe="phong")
+    if use_maps:
+        raise FitError("fit --tile: gloss maps win on the held-out shot, and the tiled fit does not fit them (their "
+                       "smoothness prior couples all pixels); fit this capture in memory or with --specular global")
     spec = glob
     if labeler is not None:
         with run.stage("refine"):
@@ -225,6 +231,7 @@ def _subsample_decisions(cap, run: _Run, *, specular, tol, max_iters, clusters, 
                                      labeler=labeler, want_tmin=True)
             spec = fit_clustered(sub, labeler, glob, tol=sub_tol, max_iters=max_iters)
     info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason}
+    run.maps_info = maps_info
     return spec, labeler, s_fixed, info
 
 
@@ -336,6 +343,7 @@ def _fit(cap: TiledCapture, run: _Run, bar, *, tile, specular, tol, max_iters, c
         frac = area / area.sum().clamp_min(1.0)
         result = FitResult(s=(frac @ s).to(dt), alpha=(frac @ alpha).to(dt), spec_labels=torch.from_numpy(lab_file),
                            cluster_s=s.to(dt), cluster_alpha=alpha.to(dt), specular="clustered", **common)
+    result.maps_selection = getattr(run, "maps_info", None)
     result.tiled = {"tile": tile, "tiles": len(tiles), "passes": passes.passes, "scratch": str(scratch),
                     "engine": "here" if engine is None else engine.name, "workers": workers}
     if not bool(torch.isfinite(result.s).all() and torch.isfinite(result.alpha).all()) or not math.isfinite(rmse):
