@@ -7,6 +7,7 @@ material/
   normals.npy            (H, W, 3) float32, only when not flat
   specular_labels.npy    (H, W) int32, only with clustered specular
   gloss_s.npy, gloss_alpha.npy   (H, W, 3) float32 gloss maps, only with specular="maps"
+  flakes_*.npy           observed flakes (torchmetal.flakes.observed), named in material.json
   renderer.onnx          when exported
 ```
 Writes are atomic: everything goes to a temporary sibling directory that replaces the target in
@@ -29,6 +30,7 @@ from torch import Tensor
 
 from torchmetal.errors import MaterialError
 from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.observed import ObservedFlakes, load_observed, observed_json, save_observed
 
 FORMAT = "torchmetal-material"
 VERSION = 1
@@ -62,6 +64,7 @@ class Material:
     flakes: FlakeModel | None = None
     report: dict = field(default_factory=dict)
     lobe: str = "phong"
+    observed_flakes: "ObservedFlakes | None" = None  # the sample's own flakes (torchmetal.flakes.observed)
     gloss_s: Tensor | None = None  # (3, H, W) gloss maps (torchmetal.fit.gloss); s, alpha hold their means
     gloss_alpha: Tensor | None = None
 
@@ -145,7 +148,7 @@ class Material:
         return Material(
             move(self.texture), move(self.s), move(self.alpha), self.size, move(self.normals),
             move(self.spec_labels), move(self.cluster_s), move(self.cluster_alpha), self.flakes, dict(self.report),
-            lobe=self.lobe, gloss_s=move(self.gloss_s), gloss_alpha=move(self.gloss_alpha),
+            lobe=self.lobe, observed_flakes=self.observed_flakes, gloss_s=move(self.gloss_s), gloss_alpha=move(self.gloss_alpha),
         )
 
 
@@ -171,6 +174,7 @@ def material_to_json(m: Material) -> dict:
             "maps": None if m.gloss_s is None else {"s": "gloss_s.npy", "alpha": "gloss_alpha.npy"},
         },
         "flakes": m.flakes.to_dict() if m.flakes is not None else None,
+        "observed_flakes": None if m.observed_flakes is None else observed_json(m.observed_flakes),
         "fit": m.report,
     }
 
@@ -197,6 +201,8 @@ def save_material(m: Material, path: str | os.PathLike, *, extra_files: dict[str
         if m.gloss_s is not None:
             np.save(tmp / "gloss_s.npy", _hwc(m.gloss_s))
             np.save(tmp / "gloss_alpha.npy", _hwc(m.gloss_alpha))
+        if m.observed_flakes is not None:
+            save_observed(m.observed_flakes, tmp)
         (tmp / "material.json").write_text(json.dumps(material_to_json(m), indent=2, allow_nan=False))
         keep = path / "renderer.onnx"
         if keep.is_file() and not (extra_files and "renderer.onnx" in extra_files):
@@ -275,6 +281,7 @@ def load_material(path: str | os.PathLike) -> Material:
         if ph.get("maps"):
             gs, ga = (_load_map(root, ph["maps"][k], texture.shape) for k in ("s", "alpha"))
         flakes = FlakeModel.from_dict(meta["flakes"]) if meta.get("flakes") else None
+        observed = load_observed(root, meta.get("observed_flakes")) if flakes is not None else None
         size = (float(meta["surface"]["width"]), float(meta["surface"]["height"]))
         lobe = meta.get("lobe", "phong")  # absent: a material from before the lobe choice
     except KeyError as e:
@@ -285,4 +292,4 @@ def load_material(path: str | os.PathLike) -> Material:
         if not bool(torch.isfinite(x).all()):
             raise MaterialError(f"{root}: expected finite {name}, found NaN/Inf")
     return Material(texture, s, alpha, size, normals, labels, cs, ca, flakes, meta.get("fit") or {}, lobe=lobe,
-                    gloss_s=gs, gloss_alpha=ga)
+                    observed_flakes=observed, gloss_s=gs, gloss_alpha=ga)

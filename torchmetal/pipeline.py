@@ -191,4 +191,8 @@ def fit_material(
     }
     material = fit.to_material(report_extra=report)
     material.flakes = flake_model
+    if flake_model is not None:  # the sample's own flakes, where the fit shots saw them
+        from torchmetal.flakes.observed import observed_flakes
+
+        material.observed_flakes = observed_flakes(capture, flake_result.particles, flake_result.flake_id, flake_model)
     return PipelineResult(material=material, fit=fit, flakes=flake_result, report=material.report)

@@ -45,7 +45,8 @@ from torch import Tensor, nn
 
 from torchmetal.checks import check_finite, check_float, check_shape
 from torchmetal.errors import InputError
-from torchmetal.flakes.field import FlakeField, flake_field, sparkle_shading
+from torchmetal.flakes.field import FlakeField, sparkle_shading
+from torchmetal.flakes.observed import material_flake_field
 from torchmetal.geometry import shading_geometry, surface_points
 from torchmetal.lobes import ggx_lobe
 from torchmetal.material import Material
@@ -140,7 +141,7 @@ class MaterialRenderer(nn.Module):
 
     def _bake_flakes(self, m: Material) -> None:
         normals = m.flat_normals().detach().to(torch.float32)
-        f = flake_field(m.flakes, m.height, m.width, normals)
+        f = material_flake_field(m.flakes, m.observed_flakes, m.height, m.width, normals, self.size)
         self.glint_sigma = float(f.glint_sigma)
         wc = (f.weight * f.color).to(torch.float32)  # (3, H, W) footprint × colour
         keep = (f.weight[0] > 0) & (wc.abs().sum(0) > 0)
