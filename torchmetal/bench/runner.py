@@ -808,8 +808,10 @@ class Bench:
 
         size = self.plan.onnx_size
         self.section(f"ONNX renderer per material kind, {size}²")
-        rows = [self._child_json(["torchmetal.bench.kinds", k, str(size), "10" if self.plan.name == "full" else "2"],
-                                 self.tmp / f"kind{i}.json") for i, k in enumerate(kinds.kinds() if self.plan.name == "full" else kinds.QUICK_KINDS)]
+        names = kinds.kinds() if self.plan.name == "full" else kinds.QUICK_KINDS
+        rows = [{"kind": k, "size": size, **self._child_json(["torchmetal.bench.kinds", k, str(size),
+                                                                "10" if self.plan.name == "full" else "2"],
+                                                               self.tmp / f"kind{i}.json")} for i, k in enumerate(names)]
         self.raw["onnx_kinds"] = rows
         self.add(kinds.markdown(rows))
 
