@@ -53,6 +53,26 @@ def render_shots(fit, capture, *, chunk: int = 4) -> torch.Tensor:
     return torch.cat(parts)
 
 
+def render_sampled(fit, capture, stride: int, *, chunk: int = 4) -> torch.Tensor:
+    """Renders of every shot on the pixels (i·stride, j·stride) only: (N, 3, ⌈H/stride⌉, ⌈W/stride⌉)."""
+    from torchmetal.geometry import shading_geometry, surface_points
+    from torchmetal.lobes import lobe_shading
+
+    tex = fit.texture
+    h, w = tex.shape[-2:]
+    grid = (..., slice(None, None, stride), slice(None, None, stride))
+    s, alpha = fit.specular_maps()
+    s, alpha = (x[grid] if x.dim() == 3 else x for x in (s, alpha))
+    pts = surface_points(h, w, fit.size, dtype=tex.dtype, device=tex.device)[grid]
+    normals, dt = fit.normals[grid], tex.dtype
+    parts = []
+    for k in range(0, capture.num_shots, chunk):
+        geom = shading_geometry(normals, capture.lights[k : k + chunk].to(dt), capture.intensities[k : k + chunk].to(dt),
+                                capture.cameras[k : k + chunk].to(dt), points=pts)
+        parts.append(lobe_shading(tex[grid], s, alpha, geom, fit.lobe))
+    return torch.cat(parts)
+
+
 def _without_glints(capture, labels: torch.Tensor):
     """The capture with every pixel a detection covers in some shot (grown by 1 px) masked out."""
     import torch.nn.functional as F
@@ -68,11 +88,24 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     ``coat_fit``, the coating is ``coat_fit(capture without the detected pixels)`` — glints must
     not steer the specular (a held-out shot shows the same flakes glinting, so a "glinty" specular
     cluster wins there) — and its texture is re-solved under the detections.
+    A pixel screen (:func:`~torchmetal.flakes.prescreen.glint_screen`) goes first: when its
+    residual outliers are as often negative as positive, the stage stops before any detection.
     Returns (stage result, the coating's fit, its texture)."""
+    from torchmetal.flakes.detect import Particles
+    from torchmetal.flakes.prescreen import SCREEN_STRIDE, glint_screen
     from torchmetal.flakes.stage import FlakeStageResult, detect_capture, flake_stage, glint_excess
     from torchmetal.flakes.texture import texture_without_glints
 
     t0 = time.perf_counter()
+    grid = (..., slice(None, None, SCREEN_STRIDE), slice(None, None, SCREEN_STRIDE))
+    valid = capture.mask[grid].unsqueeze(0) & ~capture.saturated[grid].any(1, keepdim=True)
+    passed, screen = glint_screen(capture.images[grid], render_sampled(fit, capture, SCREEN_STRIDE), valid)
+    if not passed:
+        report = {"skipped": ("residual outliers consistent with noise and misfit: no SNR at which positive pixels "
+                              f"exceed negative ones ({screen['positive']} vs {screen['negative']} of "
+                              f"{screen['pixels']} sampled pixels, above SNR {screen['snr']})"),
+                  "screen": screen, "times": {"total": time.perf_counter() - t0}}
+        return FlakeStageResult(None, Particles.empty(capture.images.device), report), fit, fit.texture
     phong_images = render_shots(fit, capture)
     det = detect_capture(capture, phong_images)
     if len(det.particles) < CLEAN_MIN_PARTICLES:  # fewer particles than the statistics' minimum flake count

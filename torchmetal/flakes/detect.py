@@ -139,6 +139,14 @@ class Particles:
         return Particles(**{f.name: getattr(self, f.name).to(*args, **kwargs) for f in fields(self)})
 
     @staticmethod
+    def empty(device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> "Particles":
+        """A table with no rows (a stage that stopped before detecting)."""
+        widths = {"rgb": 3, "lab": 3, "peak": 3}
+        return Particles(**{f.name: torch.zeros((0, widths[f.name]) if f.name in widths else (0,),
+                                                dtype=torch.int64 if f.name == "shot" else dtype, device=device)
+                            for f in fields(Particles)})
+
+    @staticmethod
     def cat(parts: list["Particles"]) -> "Particles":
         return Particles(**{f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Particles)})
 

@@ -111,8 +111,12 @@ def glint_excess(positive: Particles, mirrored: Particles, shape: tuple[int, int
         top = torch.maximum(best_p, best_m)
         pos.append(int(((top > t) & (best_p >= best_m)).sum()))
         neg.append(int(((top > t) & (best_m > best_p)).sum()))
-    kept = any(p - m >= max(min_excess, 3.0 * math.sqrt(p + m)) and p >= 2 * m for p, m in zip(pos, neg))
-    return kept, {"snr": list(ladder), "positive": pos, "mirrored": neg}
+    return glint_rule(pos, neg, min_excess), {"snr": list(ladder), "positive": pos, "mirrored": neg}
+
+
+def glint_rule(positive: list[int], negative: list[int], min_excess: int = MIN_EXCESS, ratio: float = 2.0) -> bool:
+    """Glints rather than misfit: at some rung, P − M ≥ max(min_excess, 3·√(P + M)) and P ≥ ratio·M."""
+    return any(p - m >= max(min_excess, 3.0 * math.sqrt(p + m)) and p >= ratio * m for p, m in zip(positive, negative))
 
 
 def flake_stage(
