@@ -468,8 +468,9 @@ def _maps_decision(capture, run: _Run, glob, sel, *, specular, s_fixed, sub, sel
                    weighting, lobe) -> tuple[bool, dict | None]:
     """Whether the full-resolution fit gets gloss maps (and the held-out evidence behind it).
 
-    The maps start from the global fit (they carry the spatial variation themselves) and must beat
-    the best of global and clustered on the selection's held-out shot."""
+    The maps start from the global fit (they carry the spatial variation themselves). With
+    specular="auto" they are tried only when clusters were not kept, and must beat global on the
+    selection's held-out shot."""
     n_shots = int(capture.images.shape[0])
     if glob is None or specular not in ("auto", "maps"):
         return False, None
@@ -480,6 +481,9 @@ def _maps_decision(capture, run: _Run, glob, sel, *, specular, s_fixed, sub, sel
         return True, {"kept": True, "hold": -1, "mse": {}, "reason": "forced (specular='maps'); no shot to hold out"}
     if s_fixed is not None and specular == "auto":
         run.skipped.append("gloss maps: not tried (some channels show no highlight)")
+        return False, None
+    if specular == "auto" and sel is not None and sel.k > 1:  # a kept clustered result stays as it was
+        run.skipped.append("gloss maps: not tried (clustered specular kept)")
         return False, None
     have_sel = sel is not None and sel.hold >= 0 and sel.mse
     hold = sel.hold if have_sel else _hold_shot(sub, glob)
