@@ -67,7 +67,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         result = fit_material(
             capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
             tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
-            progress=not args.quiet, normals=args.normals, lobe=args.lobe,
+            progress=not args.quiet, normals=args.normals, lobe=args.lobe, observed_flakes=args.observed_flakes,
         )
     extra = {}
     if args.export:
@@ -202,6 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
     f.add_argument("--max-iters", type=int, default=100)
     f.add_argument("--seed", type=int, default=0, help="seed of the flake field")
+    f.add_argument("--observed-flakes", action="store_true",
+                   help="keep the flakes the shots saw where they are (the statistical field fills the rest)")
     f.add_argument("--lobe", choices=["phong", "blinn", "ggx", "auto"], default="phong",
                    help="specular lobe: phong (DESIGN 2.2, default), blinn, ggx (microfacet, Fresnel, shadowing) "
                         "or auto (the best on held-out shots)")

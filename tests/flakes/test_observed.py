@@ -141,7 +141,7 @@ def flakes_b(tmp_path_factory):
 
     scene = next(s for s in ci_scenes() if s.name == "flakes_b").with_(size=160)  # ~15 s CPU
     case = make_case(scene, tmp_path_factory.mktemp("zoo") / scene.name)
-    return case, fit_material(load_capture(case.capture_dir))
+    return case, fit_material(load_capture(case.capture_dir), observed_flakes=True)
 
 
 def test_zoo_flakes_b_observed_beats_none_and_statistical(flakes_b):
@@ -165,5 +165,5 @@ def test_flake_free_scene_gets_no_observed_flakes(tmp_path):
 
     scene = next(s for s in ci_scenes(64) if s.name == "three_shots")
     case = make_case(scene, tmp_path / scene.name)
-    m = fit_material(load_capture(case.capture_dir)).material
+    m = fit_material(load_capture(case.capture_dir), observed_flakes=True).material
     assert m.flakes is None and m.observed_flakes is None
