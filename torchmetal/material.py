@@ -31,6 +31,7 @@ from torch import Tensor
 from torchmetal.errors import MaterialError
 from torchmetal.flakes.model import FlakeModel
 from torchmetal.flakes.observed import ObservedFlakes, load_observed, observed_json, save_observed
+from torchmetal.io.capture import replace_dir
 
 FORMAT = "torchmetal-material"
 VERSION = 1
@@ -209,23 +210,11 @@ def save_material(m: Material, path: str | os.PathLike, *, extra_files: dict[str
             shutil.copy2(keep, tmp / "renderer.onnx")
         for name, src in (extra_files or {}).items():
             shutil.copy2(src, tmp / name)
-        _replace_dir(tmp, path)
+        replace_dir(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return path
-
-
-def _replace_dir(tmp: Path, path: Path) -> None:
-    """Move ``tmp`` to ``path``; an existing directory is swapped out, then removed."""
-    if path.exists():
-        old = path.with_name(f".{path.name}.old")
-        shutil.rmtree(old, ignore_errors=True)
-        os.replace(path, old)
-        os.replace(tmp, path)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, path)
 
 
 def _load_array(root: Path, name: str, shape_hint: str) -> np.ndarray:

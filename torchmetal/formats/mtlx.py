@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
@@ -32,8 +30,8 @@ import torch
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.engine import EngineMaterial, engine_material
-from torchmetal.formats.textures import (f0_to_ior, gray, hwc, is_constant, is_up, png_bytes, specular_encoding,
-                                         to_srgb)
+from torchmetal.formats.textures import (f0_to_ior, gray, hwc, is_constant, is_up, specular_encoding, to_srgb,
+                                         write_texture_dir)
 
 TARGETS = ("glsl", "osl", "mdl")
 
@@ -263,20 +261,7 @@ def write(material, path: str | os.PathLike, *, views=None, capture=None) -> Pat
     opts.writeXIncludeEnable = False
     opts.elementPredicate = lambda e: not e.hasSourceUri()  # never the library elements
     text = mx.writeToXmlString(doc, opts)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{tex_dir.name}.", dir=path.parent))
-    try:
-        for name, planes in textures.items():
-            (tmp / f"{name}.png").write_bytes(png_bytes(planes))
-        old = tex_dir.with_name(f".{tex_dir.name}.old")
-        shutil.rmtree(old, ignore_errors=True)
-        if tex_dir.exists():
-            os.replace(tex_dir, old)
-        os.replace(tmp, tex_dir)
-        shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    write_texture_dir(tex_dir, textures)
     atomic_write_bytes(path, text.encode())
     return path
 

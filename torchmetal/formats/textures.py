@@ -95,3 +95,21 @@ def write_png(path: str | os.PathLike, planes: np.ndarray) -> Path:
 def gray(x: np.ndarray) -> np.ndarray:
     """(H, W, 1) → (H, W, 3) by repetition (grey PNGs that every reader takes)."""
     return np.repeat(x, 3, 2)
+
+
+def write_texture_dir(tex_dir: Path, textures: dict[str, np.ndarray]) -> None:
+    """Write ``{name: planes}`` as ``tex_dir/name.png``, the folder replaced as a whole (atomic)."""
+    import shutil
+    import tempfile
+
+    from torchmetal.io.capture import replace_dir
+
+    tex_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{tex_dir.name}.", dir=tex_dir.parent))
+    try:
+        for name, planes in textures.items():
+            (tmp / f"{name}.png").write_bytes(png_bytes(planes))
+        replace_dir(tmp, tex_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise

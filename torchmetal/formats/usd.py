@@ -18,15 +18,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.engine import EngineMaterial, engine_material
-from torchmetal.formats.textures import gray, hwc, is_constant, is_up, png_bytes, to_srgb
+from torchmetal.formats.textures import gray, hwc, is_constant, is_up, to_srgb, write_texture_dir
 
 ROOT = "/torchmetal"
 MATERIAL = f"{ROOT}/Looks/M_torchmetal"
@@ -246,20 +244,7 @@ def write(material, path: str | os.PathLike, *, views=None, capture=None, flakes
     stage, textures = build_stage(material, tex_dir.name, views=resolve_views(views, capture), flakes=flakes,
                                   texels_per_pixel=texels_per_pixel)
     text = stage.GetRootLayer().ExportToString()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{tex_dir.name}.", dir=path.parent))
-    try:
-        for name, planes in textures.items():
-            (tmp / f"{name}.png").write_bytes(png_bytes(planes))
-        old = tex_dir.with_name(f".{tex_dir.name}.old")
-        shutil.rmtree(old, ignore_errors=True)
-        if tex_dir.exists():
-            os.replace(tex_dir, old)
-        os.replace(tmp, tex_dir)
-        shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    write_texture_dir(tex_dir, textures)
     atomic_write_bytes(path, text.encode())
     return path
 
