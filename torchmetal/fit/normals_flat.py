@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    CAUCHY_C, _cauchy_weights, _chunk, _model, _robust_scale, _row_blocks, _Spec, _subset, _theta_of, _work_dtype,
+    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _robust_scale, _Spec, _theta_of, _work_dtype,
 )
 
 FLAT_P = 1e-3  # the test's false-alarm rate on a flat pixel
@@ -42,11 +42,7 @@ def flat_where_unresolved(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
     floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
     out = normals.clone()
     count = 0
-    for r0, r1 in _row_blocks(capture):
-        keep = act[r0:r1].reshape(-1).nonzero().squeeze(1)
-        if not keep.numel():
-            continue
-        sub = _subset(_chunk(capture, r0, r1, dt), keep)
+    for r0, r1, keep, sub in _active_blocks(capture, act, dt):
         th = _theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
         st = _model(sub, th, spec, sub.ok.to(dt), jac=False)
         sigma = _robust_scale(st.r, sub.ok, floor)

@@ -23,8 +23,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    CAUCHY_C, _cauchy_weights, _chunk, _model, _normals_of, _robust_scale, _row_blocks, _Spec, _subset, _theta_of,
-    _work_dtype,
+    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _normals_of, _robust_scale, _Spec, _theta_of, _work_dtype,
 )
 
 
@@ -52,12 +51,7 @@ def joint_refine(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: i
     floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
     spec0 = _Spec(s0, a0)
     parts = []  # (r0, r1, keep, chunk of the active pixels, θ, weights)
-    for r0, r1 in _row_blocks(capture):
-        a = act[r0:r1].reshape(-1)
-        keep = a.nonzero().squeeze(1)
-        if not keep.numel():
-            continue
-        sub = _subset(_chunk(capture, r0, r1, dt), keep)
+    for r0, r1, keep, sub in _active_blocks(capture, act, dt):
         th = _theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
         st = _model(sub, th, spec0, sub.ok.to(dt), jac=False)
         scale = CAUCHY_C * _robust_scale(st.r, sub.ok, floor)

@@ -17,8 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    CAUCHY_C, _cauchy_weights, _chunk, _model, _normals_of, _robust_scale, _row_blocks, _Spec, _subset, _theta_of,
-    _work_dtype,
+    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _normals_of, _robust_scale, _Spec, _theta_of, _work_dtype,
 )
 
 WINDOW = 5
@@ -59,11 +58,7 @@ def median_where_as_good(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
     med = _median_theta(theta, act)
     out = normals.clone()
     count = 0
-    for r0, r1 in _row_blocks(capture):
-        keep = act[r0:r1].reshape(-1).nonzero().squeeze(1)
-        if not keep.numel():
-            continue
-        sub = _subset(_chunk(capture, r0, r1, dt), keep)
+    for r0, r1, keep, sub in _active_blocks(capture, act, dt):
         own = theta[:, r0:r1].reshape(2, -1)[:, keep]
         cand = med[:, r0:r1].reshape(2, -1)[:, keep]
         sigma = _robust_scale(_model(sub, own, spec, sub.ok.to(dt), jac=False).r, sub.ok, floor)

@@ -70,6 +70,14 @@ def _row_blocks(capture):
     return [(r0, min(capture.height, r0 + rows)) for r0 in range(0, capture.height, rows)]
 
 
+def _active_blocks(capture, act: Tensor, dt: torch.dtype):
+    """Per row block with active pixels: (r0, r1, keep (k,) indices into the block, the block's chunk of them)."""
+    for r0, r1 in _row_blocks(capture):
+        keep = act[r0:r1].reshape(-1).nonzero().squeeze(1)
+        if keep.numel():
+            yield r0, r1, keep, _subset(_chunk(capture, r0, r1, dt), keep)
+
+
 def _robust_scale(x: Tensor, keep: Tensor, floor: float) -> Tensor:
     """σ = 1.4826·median|x| over the ``keep`` entries (a 0-d tensor, at least ``floor``)."""
     vals = x[keep].abs()
