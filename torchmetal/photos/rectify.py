@@ -128,6 +128,16 @@ def _paper(board: Board, points: np.ndarray, values: np.ndarray, pose) -> np.nda
     return np.median(v[bright], axis=0) * float(np.median(falloff))
 
 
+def _block_mean(a: np.ndarray, ss: int) -> np.ndarray:
+    """(h·ss, w·ss[, C]) float32 → (h, w[, C]): the mean of each ss × ss block (OpenCV's integer-factor
+    area reduction, ~5x faster than numpy's strided mean; equal to it to float32 rounding)."""
+    import cv2
+
+    if ss == 1:
+        return a
+    return cv2.resize(a, (a.shape[1] // ss, a.shape[0] // ss), interpolation=cv2.INTER_AREA)
+
+
 def _sample(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
     """Bilinear lookup (any number of points, reshaped to fit cv2.remap's size limits)."""
     import cv2
@@ -166,9 +176,9 @@ def rectify(obs: Observation, board: Board, intr: Intrinsics, pose, h: int, w: i
     mx, my = allpx[:, 0] - x0, allpx[:, 1] - y0
     vals = _sample(linear, mx, my)
     sats = _sample(clipped, mx, my)
-    img = vals[:n].reshape(h, ss, w, ss, 3).mean((1, 3))
-    sat = sats[:n].reshape(h, ss, w, ss, 3).max((1, 3)) > 0
-    seen = in_img[:n].reshape(h, ss, w, ss).all((1, 3))
+    img = _block_mean(vals[:n].reshape(h * ss, w * ss, 3), ss)
+    sat = _block_mean(sats[:n].reshape(h * ss, w * ss, 3), ss) > 0  # bilinear reads of 0/1 are >= 0: mean > 0 iff any
+    seen = _block_mean(in_img[:n].reshape(h * ss, w * ss).astype(np.float32), ss) == 1.0
     ring_ok = in_img[n:] & ~(sats[n:] > 0).any(1)
     ring_vals = vals[n:][ring_ok][:, ::-1]
     paper = _paper(board, ring[ring_ok], ring_vals, pose) if len(ring_vals) >= 20 else None
