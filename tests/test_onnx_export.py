@@ -230,3 +230,11 @@ class TestExportApi:
         assert time_renderer(r, repeats=1)["backend"] == "torch-eager"
         with pytest.raises(ExportError):
             time_renderer(path, repeats=0)
+
+
+def test_session_options_no_spinning_all_optimisations(tmp_path):
+    so = ox.session_options(2, profile_prefix=str(tmp_path / "p"))
+    assert so.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+    assert so.graph_optimization_level == ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    assert so.intra_op_num_threads == 2 and so.enable_profiling
+    assert ox.session_options().intra_op_num_threads == 0 and not ox.session_options().enable_profiling

@@ -107,14 +107,10 @@ def profile_ops(path: Path, threads: int = THREADS, frames: int = 5, top: int = 
     """The ``top`` operator types by mean ms per frame, from onnxruntime's profiler."""
     import onnxruntime as ort
 
-    from torchmetal.onnx_export import parity_inputs
+    from torchmetal.onnx_export import parity_inputs, session_options
 
-    so = ort.SessionOptions()
-    so.log_severity_level = 3
-    so.intra_op_num_threads = threads
-    so.enable_profiling = True
     with tempfile.TemporaryDirectory() as d:
-        so.profile_file_prefix = str(Path(d) / "prof")
+        so = session_options(threads, profile_prefix=str(Path(d) / "prof"))
         sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
         meta = sess.get_modelmeta().custom_metadata_map
         size = (float(meta.get("surface_width", 1.0)), float(meta.get("surface_height", 1.0)))
