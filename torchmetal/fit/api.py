@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -91,7 +92,7 @@ def _check_finite(name: str, *xs: Tensor) -> None:
 # ------------------------------------------------------------------------------- the fit
 
 
-class _Run:
+class FitRun:
     """Timers, history and the progress bar of one fit."""
 
     def __init__(self, progress: bool) -> None:
@@ -200,7 +201,7 @@ def fit_phong(
     check_lobe(lobe, (*LOBES, "auto"))
     if scheme == "paper" and lobe != "phong":
         raise InputError(f"lobe: expected 'phong' with scheme='paper' (the paper's lobe), found {lobe!r}")
-    run = _Run(progress)
+    run = FitRun(progress)
     lobe_sel = None
     try:
         if lobe == "auto" and specular != "none":
@@ -227,7 +228,7 @@ def fit_phong(
     return res
 
 
-def _result(capture, run: _Run, texture: Tensor, s: Tensor, alpha: Tensor, **kw) -> FitResult:
+def _result(capture, run: FitRun, texture: Tensor, s: Tensor, alpha: Tensor, **kw) -> FitResult:
     normals = capture.normals
     flat = bool((normals[0] == 0).all() and (normals[1] == 0).all() and (normals[2] == 1).all())
     dt = texture.dtype
@@ -241,7 +242,7 @@ def _no_specular_texture(obs: Observations) -> Tensor:
     return torch.where(obs.saa > 0, obs.d0, obs.fallback)
 
 
-def _finish_texture(tex: Tensor, obs: Observations, capture, run: _Run) -> Tensor:
+def _finish_texture(tex: Tensor, obs: Observations, capture, run: FitRun) -> Tensor:
     """(3, P) → (3, H, W), ≥ 0; mask pixels the shots do not determine are inpainted (reported)."""
     h, w = capture.images.shape[-2:]
     bad = unobserved(obs, capture.mask.reshape(-1).bool())
@@ -254,7 +255,7 @@ def _finish_texture(tex: Tensor, obs: Observations, capture, run: _Run) -> Tenso
     return tex.clamp_min(0.0)
 
 
-def _fit_paper(capture, run: _Run, *, specular: str, tol: float, max_iters: int, chunk: int, robust: str | None) -> FitResult:
+def _fit_paper(capture, run: FitRun, *, specular: str, tol: float, max_iters: int, chunk: int, robust: str | None) -> FitResult:
     dt = compute_dtype(capture.images)
     h, w = capture.images.shape[-2:]
     with run.stage("geometry"):
@@ -305,8 +306,24 @@ def _hold_shot(obs: Observations, fit: SpecFit) -> int:
     return int(energy.argmax())
 
 
-def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outliers, clusters, chunk, sub_pixels,
-                select_pixels, seed, lobe="phong") -> FitResult:
+@dataclass
+class SubsampleDecisions:
+    """What the refine scheme decides on strided subsamples (steps 1–4b), before the full-resolution solve."""
+
+    spec: SpecFit | None  # the global or clustered fit on the subsample (None: no specular term)
+    labeler: Labeler | None  # the kept clusters' pixel labeler (None: global or maps)
+    s_fixed: Tensor | None  # (1, 3): NaN where s is fitted, 0 in channels without highlight evidence
+    sel: Selection | None  # global vs clustered (None when not tried)
+    use_maps: bool  # the full-resolution fit gets gloss maps
+    maps_info: dict | None
+    weighting: Weighting | None  # robust weights / outlier masks for the full-resolution observations
+
+
+def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robust, outliers, clusters, chunk,
+                        sub_pixels, select_pixels, seed, lobe="phong") -> SubsampleDecisions:
+    """Steps 1–4b of the refine scheme (module docstring) on strided pixel subsamples of ``capture``
+    (any object with ``images`` (N, 3, H, W) readable by :func:`~torchmetal.fit.problem.build_observations`,
+    such as the tiled fit's memory-mapped capture): the same values bit for bit for the same pixels."""
     imgs = capture.images
     dt = compute_dtype(imgs)
     n_shots, _, h, w = imgs.shape
@@ -415,6 +432,19 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
             spec = fit_clustered(sub, labeler, glob, tol=sub_tol, max_iters=max_iters)
     else:
         spec = glob
+    return SubsampleDecisions(spec, labeler, s_fixed, sel, use_maps, maps_info, weighting)
+
+
+def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outliers, clusters, chunk, sub_pixels,
+                select_pixels, seed, lobe="phong") -> FitResult:
+    d = subsample_decisions(capture, run, specular=specular, tol=tol, max_iters=max_iters, robust=robust,
+                            outliers=outliers, clusters=clusters, chunk=chunk, sub_pixels=sub_pixels,
+                            select_pixels=select_pixels, seed=seed, lobe=lobe)
+    spec, labeler, s_fixed, sel, use_maps, maps_info, weighting = (
+        d.spec, d.labeler, d.s_fixed, d.sel, d.use_maps, d.maps_info, d.weighting)
+    imgs = capture.images
+    dt = compute_dtype(imgs)
+    h, w = imgs.shape[-2:]
 
     # 5. full resolution
     with run.stage("geometry"):
@@ -464,7 +494,7 @@ def _fit_refine(capture, run: _Run, *, specular, tol, max_iters, robust, outlier
                    scheme="refine", specular="clustered", selection=sel_info, maps_selection=maps_info)
 
 
-def _maps_decision(capture, run: _Run, glob, sel, *, specular, s_fixed, sub, sel_stride, tol, max_iters, dt, chunk,
+def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, sub, sel_stride, tol, max_iters, dt, chunk,
                    weighting, lobe) -> tuple[bool, dict | None]:
     """Whether the full-resolution fit gets gloss maps (and the held-out evidence behind it).
 
@@ -497,7 +527,7 @@ def _maps_decision(capture, run: _Run, glob, sel, *, specular, s_fixed, sub, sel
     return ms.kept, ms.to_dict()
 
 
-def _finish_maps(capture, run: _Run, full: Observations, fit: SpecFit, k: int, *, tol, max_iters, sel_info, maps_info) -> FitResult:
+def _finish_maps(capture, run: FitRun, full: Observations, fit: SpecFit, k: int, *, tol, max_iters, sel_info, maps_info) -> FitResult:
     """Full-resolution gloss maps from the global/clustered fit ``fit``; texture at the maps."""
     h, w = capture.images.shape[-2:]
     dt = full.dtype

@@ -32,12 +32,10 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
-from torchmetal.fit.api import INIT_ITERS, INIT_TOL, _hold_shot, _maps_decision, _Run
-from torchmetal.fit.clusters import choose_specular, evidence, fit_clustered, heldout_evidence
+from torchmetal.fit.api import FitRun, subsample_decisions
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
-from torchmetal.fit.paper import paper_scheme
-from torchmetal.fit.problem import Reference, build_observations, compute_dtype, grid_stride
-from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms, fit_specular, grid_beta
+from torchmetal.fit.problem import Reference, compute_dtype
+from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms
 from torchmetal.fit.result import FitResult
 from torchmetal.scale.tile_tasks import _OPEN, TilePasses
 from torchmetal.scale.tiled_texture import SeenStats, fill_tiles
@@ -137,7 +135,7 @@ def fit_tiled(
         raise InputError(f"max_iters: expected an int >= 1, found {max_iters!r}")
     scratch = Path(scratch) if scratch is not None else Path(tempfile.mkdtemp(prefix="torchmetal-tiled-"))
     scratch.mkdir(parents=True, exist_ok=True)
-    run = _Run(False)
+    run = FitRun(False)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -162,91 +160,32 @@ def fit_tiled(
             eng.close()
 
 
-def _subsample_decisions(cap, run: _Run, *, specular, tol, max_iters, clusters, chunk, stride, sel_stride, seed, dt):
-    """Steps 1–4 of ``fit_phong``'s refine scheme (least squares) on the strided subsamples:
-    returns (spec fit or None, labeler or None, s_fixed or None, selection info or None)."""
-    n_shots = cap.num_shots
-    sub_tol = max(tol, 1e-4)
-    with run.stage("init"):
-        sub = build_observations(cap, stride=stride, dtype=dt, chunk=chunk)
-        coarse = sub if sel_stride == stride else build_observations(cap, stride=sel_stride, dtype=dt, chunk=chunk)
-    if specular == "none":
-        run.skipped.append("specular: disabled by the caller (specular='none')")
-        return None, None, None, None
-    with run.stage("paper"):
-        pf = paper_scheme(coarse, tol=max(tol, INIT_TOL), max_iters=min(max_iters, INIT_ITERS),
-                          on_iter=lambda st, it, r, a: run.log(st, it, r, a, coarse.num_pixels))
-    with run.stage("init"):
-        beta0 = grid_beta(coarse, 1, extra=pf.alpha.view(1, 3))
-        del coarse
-    with run.stage("refine"):
-        glob = fit_specular(sub, beta0, tol=sub_tol, max_iters=max_iters, on_iter=run.logger("refine.sub", sub.num_pixels))
-    s_fixed = None
-    ev = evidence(glob)[0]
-    reason = None
-    if not bool(ev.any()):
-        one = " (one shot cannot separate diffuse and specular)" if n_shots == 1 else ""
-        frac = float(((glob.A - glob.cost) / glob.Y.clamp_min(1e-300)).max().clamp_min(0.0))
-        reason = (f"no highlight evidence{one}: the best specular term explains {frac:.1e} of the image energy "
-                  f"({float(glob.explained().max()):.1%} of the diffuse-only residual)")
-    elif n_shots >= 3:
-        with run.stage("select"):
-            kept, mse_s, mse_d = heldout_evidence(cap, glob, stride=sel_stride, hold=_hold_shot(sub, glob), tol=sub_tol,
-                                                  max_iters=max_iters, dtype=dt, chunk=chunk, weighting=None)
-        if not kept:
-            reason = (f"no highlight evidence on a held-out shot (MSE {mse_s:.4g} with the specular term vs "
-                      f"{mse_d:.4g} diffuse only)")
-    if reason is not None:
-        run.skipped.append(f"specular: {reason}; s = 0")
-        return None, None, None, None
-    if not bool(ev.all()):
-        chans = [c for c, e in zip("RGB", ev.tolist()) if not e]
-        run.skipped.append(f"specular: no highlight evidence in channel(s) {', '.join(chans)}; s = 0 there")
-        s_fixed = torch.where(ev, torch.full_like(glob.s[0], math.nan), torch.zeros_like(glob.s[0])).view(1, 3)
-    sel = None
-    if specular in ("auto", "clustered"):
-        if n_shots < 3 and specular == "auto":
-            run.skipped.append(f"specular clusters: a held-out test needs >= 3 shots, found {n_shots}")
-        elif s_fixed is not None and specular == "auto":
-            run.skipped.append("specular clusters: not tried (some channels show no highlight)")
-        else:
-            with run.stage("select"):
-                hold = _hold_shot(sub, glob) if n_shots >= 3 else None
-                sel = choose_specular(cap, glob, candidates=clusters, stride=sel_stride, hold=hold,
-                                      force=specular == "clustered", tol=sub_tol, max_iters=max_iters, dtype=dt,
-                                      chunk=chunk, weighting=None, seed=seed)
-            if sel.k == 1:
-                run.skipped.append(f"specular clusters: not kept ({sel.reason})")
-    labeler = sel.labeler if sel is not None and sel.k > 1 else None
-    use_maps, maps_info = _maps_decision(cap, run, glob, sel, specular=specular, s_fixed=s_fixed, sub=sub,
-                                         sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
-                                         weighting=None, lobe="phong")
-    if use_maps:
+def _subsample_decisions(cap, run: FitRun, *, specular, tol, max_iters, clusters, chunk, sub_pixels, select_pixels, seed):
+    """Steps 1–4b of ``fit_phong``'s refine scheme (least squares, Phong) on the strided subsamples, by
+    :func:`~torchmetal.fit.api.subsample_decisions` itself: returns (spec fit or None, labeler or None,
+    s_fixed or None, selection info or None). Gloss maps that win are refused (one line)."""
+    d = subsample_decisions(cap, run, specular=specular, tol=tol, max_iters=max_iters, robust=None, outliers=None,
+                            clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed)
+    if d.use_maps:
         raise FitError("fit --tile: gloss maps win on the held-out shot, and the tiled fit does not fit them (their "
                        "smoothness prior couples all pixels); fit this capture in memory or with --specular global")
-    spec = glob
-    if labeler is not None:
-        with run.stage("refine"):
-            sub = build_observations(cap, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
-                                     labeler=labeler, want_tmin=True)
-            spec = fit_clustered(sub, labeler, glob, tol=sub_tol, max_iters=max_iters)
+    sel = d.sel
     info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason}
-    run.maps_info = maps_info
-    return spec, labeler, s_fixed, info
+    run.maps_info = d.maps_info
+    return d.spec, d.labeler, d.s_fixed, info
 
 
 def _memmap(path: Path, shape: tuple[int, ...], dtype) -> np.memmap:
     return np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape)
 
 
-def _fit(cap: TiledCapture, run: _Run, bar, *, tile, specular, tol, max_iters, clusters, chunk, sub_pixels, select_pixels,
+def _fit(cap: TiledCapture, run: FitRun, bar, *, tile, specular, tol, max_iters, clusters, chunk, sub_pixels, select_pixels,
          seed, scratch: Path, engine, workers: int, threads: int | None) -> FitResult:
     dt = compute_dtype(cap.images)
     h, w = cap.height, cap.width
-    stride, sel_stride = grid_stride(h, w, sub_pixels), grid_stride(h, w, select_pixels)
     spec, labeler, s_fixed, sel_info = _subsample_decisions(
-        cap, run, specular=specular, tol=tol, max_iters=max_iters, clusters=clusters, chunk=chunk, stride=stride,
-        sel_stride=sel_stride, seed=seed, dt=dt)
+        cap, run, specular=specular, tol=tol, max_iters=max_iters, clusters=clusters, chunk=chunk, sub_pixels=sub_pixels,
+        select_pixels=select_pixels, seed=seed)
     k = 1 if spec is None else spec.k
     ref = None if spec is None else Reference(spec.s, spec.alpha)
     tiles = tile_grid(h, w, tile)
