@@ -107,13 +107,21 @@ def _hwm_kb() -> int:
     return 0
 
 
+def _cpu_s() -> float:
+    """CPU seconds (user + system) of this process and its finished children (tile workers)."""
+    import resource
+
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def _fit_child(argv: list[str]) -> int:
     """``_fit MODE CAPTURE OUT [TILE]``: fit, save s/α/texture to OUT, print measurements (JSON)."""
     import torch
 
     mode, capture, out = argv[0], argv[1], Path(argv[2])
     peak, stop = _peak_sampler()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _cpu_s()
     if mode == "tiled":
         from torchmetal.scale.tiled import fit_tiled
 
@@ -123,13 +131,14 @@ def _fit_child(argv: list[str]) -> int:
         from torchmetal.io.capture import load_capture
 
         res = fit_phong(load_capture(capture))
-    dt = time.perf_counter() - t0
+    dt, cpu = time.perf_counter() - t0, _cpu_s() - c0
     stop.set()
     out.mkdir(parents=True, exist_ok=True)
     np.save(out / "s_alpha.npy", torch.stack([res.s.double(), res.alpha.double()]).numpy())
     if mode != "tiled":
         np.save(out / "scratch_texture.npy", res.texture.permute(1, 2, 0).numpy())
-    print(json.dumps({"mode": mode, "time_s": dt, "peak_rss_mib": _hwm_kb() / 1024, "peak_anon_mib": peak["anon_kb"] / 1024,
+    print(json.dumps({"mode": mode, "time_s": dt, "cpu_s": cpu, "load_average_1min": os.getloadavg()[0],
+                      "peak_rss_mib": _hwm_kb() / 1024, "peak_anon_mib": peak["anon_kb"] / 1024,
                       "rmse": res.rmse, "iterations": dict(res.iterations), "tiled": getattr(res, "tiled", None)}))
     return 0
 
