@@ -164,19 +164,24 @@ def compare(mem_out: Path, tiled_out: Path) -> dict:
     return {"s_rel": rel(b[0], a[0]), "alpha_rel": rel(b[1], a[1]), "texture_rel": tex}
 
 
-def bench_fit_many(root: Path, n: int, size: int) -> dict:
+def bench_fit_many(root: Path, n: int, size: int, engines: tuple[str, ...] = ("local",)) -> dict:
+    """Captures per minute of ``fit-many`` (``--flakes off``, 1 torch thread per fit) with 1 and 2 workers
+    per engine (Ray: a local cluster started per run, its start-up included); CPU seconds of this process
+    and its reaped children (the local pool's workers; Ray's workers are not counted fully)."""
     from torchmetal.scale.fit_many import fit_many
 
     caps = [write_plane_capture(root / f"many{k}", size, seed=k) for k in range(n)]
     out = {}
-    for workers in (1, 2):
-        t0 = time.perf_counter()
-        recs = fit_many(caps, root / f"out{workers}", fit_args=["--flakes", "off"], workers=workers, threads=1,
-                        progress=False)
-        dt = time.perf_counter() - t0
-        out[f"workers_{workers}"] = {"captures": n, "size": size, "seconds": dt, "captures_per_min": 60 * n / dt,
-                                     "ok": sum(r.status == "ok" for r in recs),
-                                     "load_average_1min": os.getloadavg()[0]}  # other work on the machine
+    for engine in engines:
+        for workers in (1, 2):
+            t0, c0 = time.perf_counter(), _cpu_s()
+            recs = fit_many(caps, root / f"out-{engine}{workers}", fit_args=["--flakes", "off"], engine=engine,
+                            workers=workers, threads=1, progress=False, resume=False)
+            dt = time.perf_counter() - t0
+            key = f"workers_{workers}" if engine == "local" else f"{engine}_workers_{workers}"
+            out[key] = {"engine": engine, "captures": n, "size": size, "seconds": dt, "cpu_s": _cpu_s() - c0,
+                        "captures_per_min": 60 * n / dt, "ok": sum(r.status == "ok" for r in recs),
+                        "load_average_1min": os.getloadavg()[0]}  # other work on the machine
     return out
 
 
@@ -188,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
     p.add_argument("--many", type=int, default=6, help="captures for the throughput run")
     p.add_argument("--many-size", type=int, default=128)
+    p.add_argument("--engines", nargs="+", default=["local"], choices=["local", "ray"], help="fit-many engines to time")
     p.add_argument("--size", type=int, default=2048, help="tiled vs in-memory comparison size")
     p.add_argument("--big", type=int, default=8192, help="tiled-only size (0: skip)")
     p.add_argument("--big-in-memory", action="store_true", help="also fit the big capture in memory")
@@ -208,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
             Path(args.output).write_text(json.dumps(results, indent=1))
 
     if "many" not in args.skip:
-        results["fit_many"] = bench_fit_many(root, args.many, args.many_size)
+        results["fit_many"] = bench_fit_many(root, args.many, args.many_size, tuple(args.engines))
         report()
     if "compare" not in args.skip:
         t0 = time.perf_counter()
