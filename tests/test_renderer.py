@@ -187,6 +187,25 @@ def test_small_alpha_is_exact_past_the_horizon(kind):
         assert scaled_error(r(light, inten, camera).numpy(), reference(m, light, inten, camera).numpy()) <= 2e-5
 
 
+@pytest.mark.parametrize("lobe", ["blinn", "ggx"])
+@pytest.mark.parametrize("kind", ["phong", "clustered", "bumpy"])
+@pytest.mark.parametrize("category", ["mixed", "grazing", "overhead", "near", "directional", "orthographic"])
+def test_lobes_match_functional_model(lobe, kind, category):
+    """Blinn and GGX (select-free, folded in the renderer) == lobes.lobe_render in float64."""
+    from torchmetal.lobes import lobe_render
+
+    m = make_material(kind)
+    m.lobe = lobe
+    r = MaterialRenderer(m)
+    light, inten, camera = light_camera_cases(m.size, category, batch=12, seed=len(category) + 7)
+    s, alpha = m.specular_maps()
+    with torch.no_grad():
+        got = r(light, inten, camera)
+        ref = lobe_render(m.texture.double(), s.double(), alpha.double(), m.flat_normals().double(), light.double(),
+                          inten.double(), camera.double(), m.size, lobe)
+    assert scaled_error(got.numpy(), ref.numpy()) <= 2e-5
+
+
 class TestState:
     def test_only_what_the_material_uses(self):
         phong = MaterialRenderer(make_material("phong"))

@@ -24,14 +24,16 @@ and for a small ONNX graph (DESIGN 2.4):
   the Phong image. If the footprint covers more than a quarter of the texture, dense maps are
   used instead.
 
-- **No per-pixel selects.** The lobe's log is clipped instead of masked (a lobe ≤ 1e-38 past the
-  horizon when every α ≥ 1; materials with some α < 1 get an exact mask), "point vs directional
-  light" is folded into the separable sums, and sparkles are scatter-added into the specular
-  term so that the last op writes the output.
+- **No per-pixel selects.** onnxruntime's ``Where`` costs about 20 ``Mul`` on a 1024² map, so
+  masks are 0/1 factors of a single-channel weight (lit pixels of a bumpy surface, the exact
+  horizon, seen pixels of GGX) and the lobe's log is clipped instead of masked (a lobe ≤ 1e-38
+  past the horizon when every α ≥ 1; materials with some α < 1 get an exact mask). "Point vs
+  directional light" is folded into the separable sums, and sparkles are scatter-added into the
+  specular term so that the last op writes the output.
 
-- **Lobes.** ``material.lobe`` "blinn" takes the Phong path with 1 − n·h (from the half vector,
-  |n − h|²/2) in place of 1 − r·v; "ggx" evaluates :func:`torchmetal.lobes.ggx_lobe` on the same
-  separable geometry.
+- **Lobes.** ``material.lobe`` "blinn" takes the Phong path with 1 − n·h in place of 1 − r·v;
+  "ggx" evaluates :func:`torchmetal.lobes.ggx_lobe` as one fraction whose single-channel
+  numerator carries the weights (:meth:`MaterialRenderer._ggx_spec`). Both use v·h = |l + v|/2.
 
 All state lives in buffers, so ``.to()``, ``state_dict`` and ONNX export need no extra code.
 The specular lobe uses the same Kahan ``log1p`` form as :func:`torchmetal.phong.specular_lobe`
@@ -48,8 +50,9 @@ from torchmetal.errors import InputError
 from torchmetal.flakes.field import FlakeField, sparkle_shading
 from torchmetal.flakes.observed import material_flake_field
 from torchmetal.geometry import shading_geometry, surface_points
-from torchmetal.lobes import ggx_lobe
+from torchmetal.lobes import fresnel_ratio, ggx_k
 from torchmetal.material import Material
+from torchmetal.phong import channel_map
 
 __all__ = ["MaterialRenderer", "DENSE_FLAKE_FRACTION"]
 
@@ -198,65 +201,96 @@ class MaterialRenderer(nn.Module):
             n_dot_l = uz
             ex, ey, ez = ux + wx, uy + wy, uz - wz
             lit = (lz > 0).to(dtype)  # (B,1,1,1), folded into the specular scale below
+            weight = inv_d2
         else:
             nx, ny, nz = self.normals[0:1].unsqueeze(0), self.normals[1:2].unsqueeze(0), self.normals[2:3].unsqueeze(0)
             n_dot_l = nx * ux + ny * uy + nz * uz
             two_nl = 2.0 * n_dot_l
             ex, ey, ez = two_nl * nx - ux - wx, two_nl * ny - uy - wy, two_nl * nz - uz - wz
+            # lit as a 0/1 factor of the specular weight, not a select: onnxruntime's Where costs
+            # ~20 Muls on a 1024² map
             lit = None
-
-        # log of the lobe max(r·v, 0) with y = −q = −|r − v|²/2: log1p(y) in the Kahan form
-        # y·log(u)/(u − 1), u = fl(1 + y). u is clipped to [tiny, 1 − 2⁻²⁴]: the upper clip only
-        # touches u == 1 (then the ratio is 1 to 1 ulp), the lower one gives a log-lobe ≤ −87·|y|
-        # past the horizon (r·v ≤ 0), i.e. a lobe ≤ 1e-38 for α ≥ 1 instead of selects.
-        ggx = None  # GGX geometry (1 − n·h, n·l, n·v, v·h)
-        if self.lobe == "phong":
-            yq = -0.5 * (ex * ex + ey * ey + ez * ez)
-        else:  # blinn: the same log-lobe of n·h; ggx: its own lobe of the half-vector terms
-            hq, n_dot_v, v_dot_h = self._half_terms(ux, uy, uz, wx, wy, wz)
-            yq = -hq
-            if self.lobe == "ggx":
-                ggx = (hq, n_dot_l, n_dot_v, v_dot_h)
-        if ggx is None:
-            if lit is None:
-                yq = torch.where(n_dot_l > 0, yq, -2.0)  # unlit pixel: no lobe
-            u = (1.0 + yq).clamp(_TINY, _BELOW_ONE)
-            t = torch.log(u) * (yq / (u - 1.0))
+            weight = inv_d2 * (n_dot_l > 0).to(dtype)
 
         shade = light_intensity.reshape(-1, 3, 1, 1)  # (B,3,1,1)
         q_diffuse = shade * (n_dot_l.clamp_min(0.0) * inv_d2)  # outer products (B,3,H,W)
         q_spec = (shade if lit is None else shade * lit)
-        if self.clustered or self.mapped:
-            s, alpha = self._specular_maps()
-            spec = s * (torch.exp(alpha * t) if ggx is None else ggx_lobe(*ggx, alpha))
+        if self.lobe == "ggx":
+            spec = self._ggx_spec(*self._half_terms(ux, uy, uz, wx, wy, wz), n_dot_l, weight)
         else:
-            q_spec = q_spec * self.s.view(1, 3, 1, 1)
-            if ggx is not None:  # G₁(n·l) = 0 at n·l ≤ 0: unlit pixels get no lobe
-                spec = ggx_lobe(*ggx, self.alpha)
-            elif self.alpha_uniform:  # one exponent for all channels: one (B,1,H,W) exp
-                spec = torch.exp(self.alpha[0] * t)
-            else:
-                spec = torch.exp(self.alpha.view(1, 3, 1, 1) * t)
-        if self.exact_horizon:
-            inv_d2 = inv_d2 * (yq > -1.0).to(dtype)
-        spec = spec * (q_spec * inv_d2)
+            if self.lobe == "phong":
+                yq = -0.5 * (ex * ex + ey * ey + ez * ez)
+            else:  # blinn: the same log-lobe of n·h
+                yq = -self._half_terms(ux, uy, uz, wx, wy, wz)[0]
+            # log of the lobe max(r·v, 0) with y = −q = −|r − v|²/2: log1p(y) in the Kahan form
+            # y·log(u)/(u − 1), u = fl(1 + y). u is clipped to [tiny, 1 − 2⁻²⁴]: the upper clip only
+            # touches u == 1 (then the ratio is 1 to 1 ulp), the lower one gives a log-lobe ≤ −87·|y|
+            # past the horizon (r·v ≤ 0), i.e. a lobe ≤ 1e-38 for α ≥ 1 instead of selects.
+            u = (1.0 + yq).clamp(_TINY, _BELOW_ONE)
+            t = torch.log(u) * (yq / (u - 1.0))
+            if self.exact_horizon:
+                weight = weight * (yq > -1.0).to(dtype)
+            spec, q_spec = self._log_lobe_spec(t, weight, q_spec)
+        spec = spec * q_spec
         if self.has_flakes:
             # sparkles are added into the specular term, so the last op writes the output
             # directly (onnxruntime copies a reshape that produces a graph output)
             spec = self._add_sparkle(spec, light, light_intensity, camera)
         return self.texture * q_diffuse + spec
 
+    def _log_lobe_spec(self, t: Tensor, weight: Tensor, q_spec: Tensor) -> tuple[Tensor, Tensor]:
+        """s·exp(α·t)·weight and the per-shot scale left, with global s folded into that scale.
+
+        t, weight (B,1,H,W) (weight may broadcast); q_spec (B,3,1,1). Returns (B,1|3,H,W) and
+        (B,3,1,1): one (B,1,H,W) exp when all channels share one exponent.
+        """
+        if self.clustered or self.mapped:
+            s, alpha = self._specular_maps()
+            return s * torch.exp(alpha * t) * weight, q_spec
+        q_spec = q_spec * self.s.view(1, 3, 1, 1)
+        if self.alpha_uniform:
+            return torch.exp(self.alpha[0] * t) * weight, q_spec
+        return torch.exp(self.alpha.view(1, 3, 1, 1) * t) * weight, q_spec
+
+    def _ggx_spec(self, hq: Tensor, n_dot_v: Tensor, v_dot_h: Tensor, n_dot_l: Tensor, weight: Tensor) -> Tensor:
+        """s·ggx_lobe(hq, n·l, n·v, v·h, α)·weight as one fraction, without selects: (B,3,H,W).
+
+        :func:`torchmetal.lobes.ggx_lobe` = D̂·F̂·G₁(n·l)·G₁(n·v)/(n·v)·[n·v > 0] with
+        D̂ = (k/(k + (1 − k)w))², G₁(x) = 2x/(x + √(k + (1 − k)x²)), written as
+        s·k²·4·n·l·F̂·[n·v > 0] / ((k + (1 − k)w)²·(n·l + √…)·(n·v + √…)). The denominator is
+        ≥ k³ > 0 for n·l, n·v clamped to [0, 1], so the [n·v > 0] factor zeroes unseen pixels
+        exactly; the single-channel numerator carries the weight, every (3,)-dependent term is
+        one broadcast op. Inputs (B,1,H,W) (weight may broadcast).
+        """
+        s, alpha = self._specular_maps() if (self.clustered or self.mapped) else (self.s, self.alpha)
+        k = channel_map(ggx_k(alpha))
+        k1, sk2 = 1.0 - k, channel_map(s) * (k * k)
+        hq = hq.clamp(0.0, 1.0)
+        w = hq * (2.0 - hq)  # 1 − (n·h)², exact near the peak
+        nl = n_dot_l.clamp(0.0, 1.0)
+        nv = n_dot_v.clamp(0.0, 1.0)
+        num = (4.0 * nl) * fresnel_ratio(v_dot_h) * (weight * (n_dot_v > 0).to(nl.dtype))
+        d = k + k1 * w
+        den = (d * d) * (nl + torch.sqrt(k + k1 * (nl * nl))) * (nv + torch.sqrt(k + k1 * (nv * nv)))
+        return (sk2 * num) / den
+
     def _half_terms(self, ux, uy, uz, wx, wy, wz) -> tuple[Tensor, Tensor, Tensor]:
-        """1 − n·h = |n − h|²/2, n·v and v·h from unit l and v components (broadcasting pieces)."""
-        hx, hy, hz = ux + wx, uy + wy, uz + wz
-        inv = 1.0 / torch.sqrt((hx * hx + hy * hy + hz * hz).clamp_min(_EPS2))
-        hx, hy, hz = hx * inv, hy * inv, hz * inv
-        v_dot_h = wx * hx + wy * hy + wz * hz
+        """1 − n·h, n·v and v·h from unit l and v components (broadcasting pieces).
+
+        With S = l + v, h = S/|S| and v·h = |S|/2 (unit l, v). Flat n: 1 − n·h = 1 − S_z/|S| =
+        (S_x² + S_y²)/(|S|² + S_z·|S|), without the cancellation of 1 − h_z near the peak; other
+        normals: |n − h|²/2.
+        """
+        sx, sy, sz = ux + wx, uy + wy, uz + wz
+        sxy = sx * sx + sy * sy
+        hs = (sxy + sz * sz).clamp_min(_EPS2)
+        norm = torch.sqrt(hs)
+        v_dot_h = 0.5 * norm
         if self.flat:
-            dz = 1.0 - hz
-            return 0.5 * (hx * hx + hy * hy + dz * dz), wz, v_dot_h
+            return sxy / (hs + sz * norm).clamp_min(_EPS2), wz, v_dot_h
+        inv = 1.0 / norm
         nx, ny, nz = self.normals[0:1].unsqueeze(0), self.normals[1:2].unsqueeze(0), self.normals[2:3].unsqueeze(0)
-        dx, dy, dz = nx - hx, ny - hy, nz - hz
+        dx, dy, dz = nx - sx * inv, ny - sy * inv, nz - sz * inv
         return 0.5 * (dx * dx + dy * dy + dz * dz), nx * wx + ny * wy + nz * wz, v_dot_h
 
     def _specular_maps(self) -> tuple[Tensor, Tensor]:
