@@ -223,10 +223,12 @@ class TestExportApi:
 
     def test_time_renderer(self, exported):
         r, path, _ = exported["flakes"]
-        keys = {"backend", "height", "width", "batch", "repeats", "threads", "ms_median", "ms_min", "ms_mean", "ms_per_shot", "fps"}
+        keys = {"backend", "height", "width", "batch", "repeats", "threads", "ms_median", "ms_min", "ms_mean", "ms_per_shot", "fps",
+                "cpu_ms", "load_1min"}
         for target in (path, str(path), session(path), r):
             t = time_renderer(target, repeats=2, warmup=1, batch=2)
             assert keys <= set(t) and t["height"] == r.height and t["ms_min"] > 0 and t["batch"] == 2
+            assert t["cpu_ms"] > 0 and t["load_1min"] >= 0
         assert time_renderer(r, repeats=1)["backend"] == "torch-eager"
         with pytest.raises(ExportError):
             time_renderer(path, repeats=0)

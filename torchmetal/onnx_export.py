@@ -343,6 +343,8 @@ def time_renderer(
 
     Returns:
         dict with backend, height, width, batch, repeats, threads, ms_median, ms_min, ms_mean,
+        cpu_ms (this process's CPU time per call, all threads: the work, nearly independent of
+        other processes on the cores), load_1min (the 1-minute load average after the timing),
         ms_per_shot (median / batch), fps (shots per second at the median).
     """
     if repeats < 1 or batch < 1:
@@ -362,10 +364,12 @@ def time_renderer(
                 for _ in range(warmup):
                     out = renderer(*args)
                 times = []
+                cpu0 = time.process_time()
                 for _ in range(repeats):
                     t0 = time.perf_counter()
                     out = renderer(*args)
                     times.append(time.perf_counter() - t0)
+                cpu = time.process_time() - cpu0
         finally:
             torch.set_num_threads(old)
         backend, used_threads, shape = "torch-eager", threads or old, tuple(out.shape)
@@ -384,10 +388,12 @@ def time_renderer(
         for _ in range(warmup):
             out = sess.run(None, feeds)[0]
         times = []
+        cpu0 = time.process_time()
         for _ in range(repeats):
             t0 = time.perf_counter()
             out = sess.run(None, feeds)[0]
             times.append(time.perf_counter() - t0)
+        cpu = time.process_time() - cpu0
         backend = "onnxruntime-cpu"
         opts = sess.get_session_options()
         used_threads = threads or opts.intra_op_num_threads or os.cpu_count()
@@ -403,6 +409,8 @@ def time_renderer(
         "ms_median": med,
         "ms_min": min(times) * 1e3,
         "ms_mean": statistics.fmean(times) * 1e3,
+        "cpu_ms": cpu / repeats * 1e3,
+        "load_1min": os.getloadavg()[0],
         "ms_per_shot": med / batch,
         "fps": 1e3 * batch / med,
     }

@@ -216,7 +216,7 @@ class MaterialRenderer(nn.Module):
         q_diffuse = shade * (n_dot_l.clamp_min(0.0) * inv_d2)  # outer products (B,3,H,W)
         q_spec = (shade if lit is None else shade * lit)
         if self.lobe == "ggx":
-            spec = self._ggx_spec(*self._half_terms(ux, uy, uz, wx, wy, wz), n_dot_l, weight)
+            spec = self._ggx_spec(*self._half_terms(ux, uy, uz, wx, wy, wz), n_dot_l, weight, q_spec)
         else:
             if self.lobe == "phong":
                 yq = -0.5 * (ex * ex + ey * ey + ez * ez)
@@ -230,41 +230,41 @@ class MaterialRenderer(nn.Module):
             t = torch.log(u) * (yq / (u - 1.0))
             if self.exact_horizon:
                 weight = weight * (yq > -1.0).to(dtype)
-            spec, q_spec = self._log_lobe_spec(t, weight, q_spec)
-        spec = spec * q_spec
+            spec = self._log_lobe_spec(t, weight, q_spec)
         if self.has_flakes:
             # sparkles are added into the specular term, so the last op writes the output
             # directly (onnxruntime copies a reshape that produces a graph output)
             spec = self._add_sparkle(spec, light, light_intensity, camera)
         return self.texture * q_diffuse + spec
 
-    def _log_lobe_spec(self, t: Tensor, weight: Tensor, q_spec: Tensor) -> tuple[Tensor, Tensor]:
-        """s·exp(α·t)·weight and the per-shot scale left, with global s folded into that scale.
+    def _log_lobe_spec(self, t: Tensor, weight: Tensor, q_spec: Tensor) -> Tensor:
+        """q_spec·s·exp(α·t)·weight (B,3,H,W), global s folded into the per-shot scale q_spec.
 
-        t, weight (B,1,H,W) (weight may broadcast); q_spec (B,3,1,1). Returns (B,1|3,H,W) and
-        (B,3,1,1): one (B,1,H,W) exp when all channels share one exponent.
+        t, weight (B,1,H,W) (weight may broadcast); q_spec (B,3,1,1). One (B,1,H,W) exp when all
+        channels share one exponent.
         """
         if self.clustered or self.mapped:
             s, alpha = self._specular_maps()
-            return s * torch.exp(alpha * t) * weight, q_spec
+            return s * torch.exp(alpha * t) * weight * q_spec
         q_spec = q_spec * self.s.view(1, 3, 1, 1)
         if self.alpha_uniform:
-            return torch.exp(self.alpha[0] * t) * weight, q_spec
-        return torch.exp(self.alpha.view(1, 3, 1, 1) * t) * weight, q_spec
+            return torch.exp(self.alpha[0] * t) * weight * q_spec
+        return torch.exp(self.alpha.view(1, 3, 1, 1) * t) * weight * q_spec
 
-    def _ggx_spec(self, hq: Tensor, n_dot_v: Tensor, v_dot_h: Tensor, n_dot_l: Tensor, weight: Tensor) -> Tensor:
-        """s·ggx_lobe(hq, n·l, n·v, v·h, α)·weight as one fraction, without selects: (B,3,H,W).
+    def _ggx_spec(self, hq: Tensor, n_dot_v: Tensor, v_dot_h: Tensor, n_dot_l: Tensor, weight: Tensor, q_spec: Tensor) -> Tensor:
+        """q_spec·s·ggx_lobe(hq, n·l, n·v, v·h, α)·weight as one fraction, without selects: (B,3,H,W).
 
         :func:`torchmetal.lobes.ggx_lobe` = D̂·F̂·G₁(n·l)·G₁(n·v)/(n·v)·[n·v > 0] with
         D̂ = (k/(k + (1 − k)w))², G₁(x) = 2x/(x + √(k + (1 − k)x²)), written as
         s·k²·4·n·l·F̂·[n·v > 0] / ((k + (1 − k)w)²·(n·l + √…)·(n·v + √…)). The denominator is
         ≥ k³ > 0 for n·l, n·v clamped to [0, 1], so the [n·v > 0] factor zeroes unseen pixels
-        exactly; the single-channel numerator carries the weight, every (3,)-dependent term is
-        one broadcast op. Inputs (B,1,H,W) (weight may broadcast).
+        exactly; the single-channel numerator carries the weight, the per-shot scale q_spec
+        (B,3,1,1) joins s·k², every (3,)-dependent term is one broadcast op. Geometry (B,1,H,W)
+        (weight may broadcast).
         """
         s, alpha = self._specular_maps() if (self.clustered or self.mapped) else (self.s, self.alpha)
         k = channel_map(ggx_k(alpha))
-        k1, sk2 = 1.0 - k, channel_map(s) * (k * k)
+        k1, sk2 = 1.0 - k, q_spec * (channel_map(s) * (k * k))
         hq = hq.clamp(0.0, 1.0)
         w = hq * (2.0 - hq)  # 1 − (n·h)², exact near the peak
         nl = n_dot_l.clamp(0.0, 1.0)

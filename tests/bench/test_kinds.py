@@ -24,6 +24,7 @@ def test_run_kind_times_and_profiles(monkeypatch):
     monkeypatch.setattr(kinds, "TARGET_MS", 0.0)  # every kind "misses": the profiler runs
     r = kinds.run_kind("bumpy · clustered · flakes", 16, repeats=2)
     assert r["file_bytes"] > 0 and r["export_s"] > 0 and 0 < r["ms_min"] <= r["ms_median"]
+    assert r["cpu_ms"] > 0 and r["load_1min"] >= 0
     assert r["top_ops"] and all(ms >= 0 for _, ms in r["top_ops"]) and sum(ms for _, ms in r["top_ops"]) > 0
     md = kinds.markdown([r, {"kind": "x", "error": "boom"}])
     assert "| bumpy · clustered · flakes |" in md and "| no |" in md and "boom" in md
