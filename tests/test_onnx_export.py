@@ -240,3 +240,13 @@ def test_session_options_no_spinning_all_optimisations(tmp_path):
     assert so.graph_optimization_level == ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     assert so.intra_op_num_threads == 2 and so.enable_profiling
     assert ox.session_options().intra_op_num_threads == 0 and not ox.session_options().enable_profiling
+
+
+@pytest.mark.parametrize("lobe", ["phong", "ggx"])
+def test_channel_shared_cluster_alpha_exports(tmp_path, lobe):
+    m = make_material("clustered")
+    m.lobe = lobe
+    m.cluster_alpha = torch.tensor([[8.0] * 3, [900.0] * 3, [60.0] * 3])
+    r = MaterialRenderer(m)
+    assert r.alpha_uniform
+    assert verify_onnx(export_onnx(r, tmp_path / "u.onnx"), r) <= PARITY_TOL

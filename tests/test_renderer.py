@@ -206,6 +206,29 @@ def test_lobes_match_functional_model(lobe, kind, category):
     assert scaled_error(got.numpy(), ref.numpy()) <= 2e-5
 
 
+@pytest.mark.parametrize("lobe", ["phong", "ggx"])
+@pytest.mark.parametrize("kind", ["clustered", "bumpy"])
+def test_channel_shared_alpha_is_one_channel(lobe, kind):
+    """α shared by the channels (per cluster or global): a (B,1,H,W) lobe, same image as the function."""
+    from torchmetal.lobes import lobe_render
+
+    m = make_material(kind)
+    m.lobe = lobe
+    if m.clustered:
+        m.cluster_alpha = torch.tensor([[8.0] * 3, [900.0] * 3, [60.0] * 3])
+    else:
+        m.alpha = torch.full((3,), 150.0)
+    r = MaterialRenderer(m)
+    assert r.alpha_uniform and not MaterialRenderer(make_material(kind)).alpha_uniform
+    light, inten, camera = light_camera_cases(m.size, "mixed", batch=12, seed=5)
+    s, alpha = m.specular_maps()
+    with torch.no_grad():
+        got = r(light, inten, camera)
+        ref = lobe_render(m.texture.double(), s.double(), alpha.double(), m.flat_normals().double(), light.double(),
+                          inten.double(), camera.double(), m.size, lobe)
+    assert scaled_error(got.numpy(), ref.numpy()) <= 2e-5
+
+
 class TestState:
     def test_only_what_the_material_uses(self):
         phong = MaterialRenderer(make_material("phong"))

@@ -127,7 +127,9 @@ class MaterialRenderer(nn.Module):
             self.register_buffer("s", m.s.detach().to(f32).clone())
             self.register_buffer("alpha", m.alpha.detach().to(f32).clone())
             alpha_min = float(self.alpha.min())
-        self.alpha_uniform = not (self.clustered or self.mapped) and bool((self.alpha == self.alpha[0]).all())
+        # one exponent for all channels (per pixel or global): the lobe is a (B,1,H,W) map
+        alpha_tab = self.gloss_alpha if self.mapped else self.cluster_alpha if self.clustered else self.alpha
+        self.alpha_uniform = bool((alpha_tab == alpha_tab[0:1]).all())
         # With α ≥ 1 the clipped log-lobe past the horizon gives a lobe ≤ 1e-38; smaller
         # exponents get an exact zero there (two more single-channel ops).
         self.exact_horizon = not alpha_min >= 1.0 and self.lobe != "ggx"  # GGX: no clipped log-lobe
@@ -237,19 +239,23 @@ class MaterialRenderer(nn.Module):
             spec = self._add_sparkle(spec, light, light_intensity, camera)
         return self.texture * q_diffuse + spec
 
-    def _log_lobe_spec(self, t: Tensor, weight: Tensor, q_spec: Tensor) -> Tensor:
-        """q_spec·s·exp(α·t)·weight (B,3,H,W), global s folded into the per-shot scale q_spec.
+    def _spec_terms(self) -> tuple[Tensor, Tensor]:
+        """s (1,3,1,1) or (1,3,H,W) and α of the same shape, with 1 channel when ``alpha_uniform``."""
+        s, alpha = self._specular_maps() if (self.clustered or self.mapped) else (self.s, self.alpha)
+        alpha = channel_map(alpha)
+        return channel_map(s), (alpha[:, 0:1] if self.alpha_uniform else alpha)
 
-        t, weight (B,1,H,W) (weight may broadcast); q_spec (B,3,1,1). One (B,1,H,W) exp when all
-        channels share one exponent.
+    def _log_lobe_spec(self, t: Tensor, weight: Tensor, q_spec: Tensor) -> Tensor:
+        """q_spec·s·exp(α·t)·weight (B,3,H,W); global s is folded into the per-shot scale q_spec.
+
+        t, weight (B,1,H,W) (weight may broadcast); q_spec (B,3,1,1). The exp is one (B,1,H,W)
+        map when all channels share the exponent.
         """
+        s, alpha = self._spec_terms()
+        lobe = torch.exp(alpha * t) * weight
         if self.clustered or self.mapped:
-            s, alpha = self._specular_maps()
-            return s * torch.exp(alpha * t) * weight * q_spec
-        q_spec = q_spec * self.s.view(1, 3, 1, 1)
-        if self.alpha_uniform:
-            return torch.exp(self.alpha[0] * t) * weight * q_spec
-        return torch.exp(self.alpha.view(1, 3, 1, 1) * t) * weight * q_spec
+            return s * lobe * q_spec
+        return lobe * (q_spec * s)
 
     def _ggx_spec(self, hq: Tensor, n_dot_v: Tensor, v_dot_h: Tensor, n_dot_l: Tensor, weight: Tensor, q_spec: Tensor) -> Tensor:
         """q_spec·s·ggx_lobe(hq, n·l, n·v, v·h, α)·weight as one fraction, without selects: (B,3,H,W).
@@ -259,12 +265,12 @@ class MaterialRenderer(nn.Module):
         s·k²·4·n·l·F̂·[n·v > 0] / ((k + (1 − k)w)²·(n·l + √…)·(n·v + √…)). The denominator is
         ≥ k³ > 0 for n·l, n·v clamped to [0, 1], so the [n·v > 0] factor zeroes unseen pixels
         exactly; the single-channel numerator carries the weight, the per-shot scale q_spec
-        (B,3,1,1) joins s·k², every (3,)-dependent term is one broadcast op. Geometry (B,1,H,W)
-        (weight may broadcast).
+        (B,3,1,1) joins s·k², every α-dependent term is one broadcast op (one channel when α is
+        shared by the channels). Geometry (B,1,H,W) (weight may broadcast).
         """
-        s, alpha = self._specular_maps() if (self.clustered or self.mapped) else (self.s, self.alpha)
-        k = channel_map(ggx_k(alpha))
-        k1, sk2 = 1.0 - k, q_spec * (channel_map(s) * (k * k))
+        s, alpha = self._spec_terms()
+        k = ggx_k(alpha)
+        k1, sk2 = 1.0 - k, q_spec * (s * (k * k))
         hq = hq.clamp(0.0, 1.0)
         w = hq * (2.0 - hq)  # 1 − (n·h)², exact near the peak
         nl = n_dot_l.clamp(0.0, 1.0)
@@ -272,7 +278,7 @@ class MaterialRenderer(nn.Module):
         num = (4.0 * nl) * fresnel_ratio(v_dot_h) * (weight * (n_dot_v > 0).to(nl.dtype))
         d = k + k1 * w
         den = (d * d) * (nl + torch.sqrt(k + k1 * (nl * nl))) * (nv + torch.sqrt(k + k1 * (nv * nv)))
-        return (sk2 * num) / den
+        return sk2 * (num / den)
 
     def _half_terms(self, ux, uy, uz, wx, wy, wz) -> tuple[Tensor, Tensor, Tensor]:
         """1 − n·h, n·v and v·h from unit l and v components (broadcasting pieces).
