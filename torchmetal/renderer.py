@@ -264,21 +264,28 @@ class MaterialRenderer(nn.Module):
         D̂ = (k/(k + (1 − k)w))², G₁(x) = 2x/(x + √(k + (1 − k)x²)), written as
         s·k²·4·n·l·F̂·[n·v > 0] / ((k + (1 − k)w)²·(n·l + √…)·(n·v + √…)). The denominator is
         ≥ k³ > 0 for n·l, n·v clamped to [0, 1], so the [n·v > 0] factor zeroes unseen pixels
-        exactly; the single-channel numerator carries the weight, the per-shot scale q_spec
-        (B,3,1,1) joins s·k², every α-dependent term is one broadcast op (one channel when α is
-        shared by the channels). Geometry (B,1,H,W) (weight may broadcast).
+        exactly; the single-channel numerator carries the weight and the per-shot scale q_spec
+        (B,3,1,1) joins s·k². The α-dependent denominator is one (B,1,H,W) map per channel
+        (joined by a concat), or a single one when α is shared by the channels: on this CPU three
+        single-channel passes cost less than one (B,3,H,W) broadcast pass. Geometry (B,1,H,W)
+        (weight may broadcast).
         """
         s, alpha = self._spec_terms()
-        k = ggx_k(alpha)
-        k1, sk2 = 1.0 - k, q_spec * (s * (k * k))
+        k = ggx_k(alpha)  # (1, 1 or 3, 1 or H, 1 or W)
         hq = hq.clamp(0.0, 1.0)
         w = hq * (2.0 - hq)  # 1 − (n·h)², exact near the peak
         nl = n_dot_l.clamp(0.0, 1.0)
         nv = n_dot_v.clamp(0.0, 1.0)
+        nl2, nv2 = nl * nl, nv * nv
         num = (4.0 * nl) * fresnel_ratio(v_dot_h) * (weight * (n_dot_v > 0).to(nl.dtype))
-        d = k + k1 * w
-        den = (d * d) * (nl + torch.sqrt(k + k1 * (nl * nl))) * (nv + torch.sqrt(k + k1 * (nv * nv)))
-        return sk2 * (num / den)
+
+        def fraction(kc: Tensor) -> Tensor:
+            k1 = 1.0 - kc
+            d = kc + k1 * w
+            return num / ((d * d) * (nl + torch.sqrt(kc + k1 * nl2)) * (nv + torch.sqrt(kc + k1 * nv2)))
+
+        frac = fraction(k) if k.shape[1] == 1 else torch.cat([fraction(kc) for kc in k.split(1, dim=1)], 1)
+        return (q_spec * (s * (k * k))) * frac
 
     def _half_terms(self, ux, uy, uz, wx, wy, wz) -> tuple[Tensor, Tensor, Tensor]:
         """1 − n·h, n·v and v·h from unit l and v components (broadcasting pieces).
