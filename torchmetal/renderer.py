@@ -33,7 +33,12 @@ and for a small ONNX graph (DESIGN 2.4):
 
 - **Lobes.** ``material.lobe`` "blinn" takes the Phong path with 1 − n·h in place of 1 − r·v;
   "ggx" evaluates :func:`torchmetal.lobes.ggx_lobe` as one fraction whose single-channel
-  numerator carries the weights (:meth:`MaterialRenderer._ggx_spec`). Both use v·h = |l + v|/2.
+  numerator carries the weights (:meth:`MaterialRenderer._ggx_spec`); its α-dependent part is
+  single-channel work, once per channel or once when the channels share α. The half-vector
+  terms use v·h = |l + v|/2 and, on flat surfaces, 1 − n·h without cancellation.
+
+- **Channel-shared α** (global, per cluster or per pixel): the Phong/Blinn exp is one
+  (B,1,H,W) map.
 
 All state lives in buffers, so ``.to()``, ``state_dict`` and ONNX export need no extra code.
 The specular lobe uses the same Kahan ``log1p`` form as :func:`torchmetal.phong.specular_lobe`
