@@ -103,3 +103,27 @@ def test_tiles_on_a_process_pool_are_bit_identical(tiled128, tmp_path):
     assert pool.tiled["engine"] == "local" and pool.tiled["passes"] == here.tiled["passes"]
     assert torch.equal(pool.s, here.s) and torch.equal(pool.alpha, here.alpha)
     assert torch.equal(pool.texture, here.texture)
+
+
+def test_gloss_maps_that_win_are_refused_in_one_line(tmp_path, monkeypatch):
+    """The tiled fit runs fit_phong's own subsample decisions; when they pick gloss maps it stops."""
+    import dataclasses
+
+    import torchmetal.scale.tiled as tiled
+    from torchmetal.errors import FitError
+    from torchmetal.synth import synth_capture, write_synth
+
+    write_synth(synth_capture(size=32, shots=6, seed=7, noise=0.003), tmp_path / "png")
+    cap = convert_capture(tmp_path / "png", tmp_path / "tiled")
+    real = tiled.subsample_decisions
+    calls = []
+
+    def maps_win(*args, **kw):
+        calls.append(kw)
+        return dataclasses.replace(real(*args, **kw), use_maps=True)
+
+    monkeypatch.setattr(tiled, "subsample_decisions", maps_win)
+    with pytest.raises(FitError, match="gloss maps win") as err:
+        fit_tiled(cap, tile=16, scratch=tmp_path / "scratch")
+    assert "\n" not in str(err.value)
+    assert len(calls) == 1 and calls[0]["robust"] is None and calls[0]["outliers"] is None  # least squares
