@@ -139,7 +139,8 @@ def _fit_child(argv: list[str]) -> int:
         np.save(out / "scratch_texture.npy", res.texture.permute(1, 2, 0).numpy())
     print(json.dumps({"mode": mode, "time_s": dt, "cpu_s": cpu, "load_average_1min": os.getloadavg()[0],
                       "peak_rss_mib": _hwm_kb() / 1024, "peak_anon_mib": peak["anon_kb"] / 1024,
-                      "rmse": res.rmse, "iterations": dict(res.iterations), "tiled": getattr(res, "tiled", None)}))
+                      "rmse": res.rmse, "iterations": dict(res.iterations), "tiled": getattr(res, "tiled", None),
+                      "stage_s": {k: round(v, 2) for k, v in res.stage_times.items()}}))
     return 0
 
 
