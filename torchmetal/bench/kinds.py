@@ -6,7 +6,8 @@ without flakes, and the Blinn and GGX lobes — as a ``size``² material, export
 :func:`~torchmetal.onnx_export.time_renderer` (one light per frame, onnxruntime CPU) in a fresh
 child per kind: ``python -m torchmetal.bench.kinds KIND SIZE REPEATS OUT.json``. A kind slower
 than :data:`TARGET_MS` is profiled (onnxruntime's profiler) and its costliest operator types are
-reported beside it.
+reported beside it. Each row also has the process CPU time per frame and the machine's 1-minute
+load average: the 2 cores are shared, and wall times grow ~3× at a load of 8–10.
 """
 
 from __future__ import annotations
