@@ -220,8 +220,9 @@ class MaterialRenderer(nn.Module):
             weight = inv_d2 * (n_dot_l > 0).to(dtype)
 
         shade = light_intensity.reshape(-1, 3, 1, 1)  # (B,3,1,1)
-        q_diffuse = shade * (n_dot_l.clamp_min(0.0) * inv_d2)  # outer products (B,3,H,W)
         q_spec = (shade if lit is None else shade * lit)
+        # outer products (B,3,H,W); flat: max(n·l, 0) = l_z/|l|·[l_z > 0], the factor is in q_spec
+        q_diffuse = shade * (n_dot_l.clamp_min(0.0) * inv_d2) if lit is None else q_spec * (n_dot_l * inv_d2)
         if self.lobe == "ggx":
             spec = self._ggx_spec(*self._half_terms(ux, uy, uz, wx, wy, wz), n_dot_l, weight, q_spec)
         else:
