@@ -85,3 +85,12 @@ def test_fit_summary_says_when_density_is_at_capacity():
     assert _density_text(FlakeModel(density=0.01)) == "density 0.01/px"
     capped = FlakeModel(density=MAX_DENSITY, extra={"density_fitted": 0.17})
     assert _density_text(capped) == "density 0.111/px (fitted 0.17, drawn at the field's capacity)"
+
+
+def test_observed_flakes_option_defaults_to_auto_and_bare_flag_is_on():
+    from torchmetal.cli import build_parser
+
+    p = build_parser()
+    assert p.parse_args(["fit", "C", "-o", "M"]).observed_flakes == "auto"
+    assert p.parse_args(["fit", "C", "-o", "M", "--observed-flakes"]).observed_flakes == "on"
+    assert p.parse_args(["fit", "C", "-o", "M", "--observed-flakes", "off"]).observed_flakes == "off"

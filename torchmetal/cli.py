@@ -202,8 +202,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
     f.add_argument("--max-iters", type=int, default=100)
     f.add_argument("--seed", type=int, default=0, help="seed of the flake field")
-    f.add_argument("--observed-flakes", action="store_true",
-                   help="keep the flakes the shots saw where they are (the statistical field fills the rest)")
+    f.add_argument("--observed-flakes", choices=["auto", "on", "off"], nargs="?", const="on", default="auto",
+                   help="keep the flakes the shots saw where they are, the statistical field filling the rest "
+                        "(auto: when left-out shots say they render better; bare flag: on)")
     f.add_argument("--lobe", choices=["phong", "blinn", "ggx", "auto"], default="phong",
                    help="specular lobe: phong (DESIGN 2.2, default), blinn, ggx (microfacet, Fresnel, shadowing) "
                         "or auto (the best on held-out shots)")

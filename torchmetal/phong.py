@@ -8,6 +8,8 @@ per-pixel maps ``(3, H, W)`` (the spatially varying extension); both broadcast t
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor, nn
 
@@ -31,6 +33,13 @@ def channel_map(x: Tensor) -> Tensor:
     return x.reshape(1, 3, 1, 1) if x.dim() == 1 else x.unsqueeze(0)
 
 
+def exp_normal(x: Tensor) -> Tensor:
+    """exp(x) with x clamped to 1 + log(smallest normal number) of its dtype: the result is never
+    subnormal. A far-off lobe exp(α·log cos) lands there (α in the thousands) and subnormal
+    arithmetic is ~10× slower on x86; the clamp changes values below 3.2e-38 (float32) only."""
+    return torch.exp(x.clamp_min(1.0 + math.log(torch.finfo(x.dtype).tiny)))
+
+
 def specular_lobe(spec_q: Tensor, alpha: Tensor) -> Tensor:
     """max(r·v, 0)^α written as exp(α·log1p(−q)) with q = 1 − r·v = |r − v|²/2.
 
@@ -46,7 +55,7 @@ def specular_lobe(spec_q: Tensor, alpha: Tensor) -> Tensor:
     """
     inside = spec_q < 1.0
     q = torch.where(inside, spec_q, torch.full_like(spec_q, 0.5))
-    lobe = torch.exp(channel_map(alpha) * log1p_exact(-q))
+    lobe = exp_normal(channel_map(alpha) * log1p_exact(-q))
     return torch.where(inside, lobe, torch.zeros_like(lobe))
 
 

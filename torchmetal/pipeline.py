@@ -30,6 +30,7 @@ from torchmetal.errors import InputError
 from torchmetal.material import Material
 
 FLAKE_MODES = ("auto", "on", "off")
+OBSERVED_MODES = ("auto", "on", "off")
 ROBUST_GLINTS = "huber"  # robust="auto": the Phong fit's weights once the detections are glints
 CLEAN_MIN_PARTICLES = 20  # fewer first-round detections: no statistics (flake_statistics' min_flakes)
 
@@ -53,26 +54,6 @@ def render_shots(fit, capture, *, chunk: int = 4) -> torch.Tensor:
     return torch.cat(parts)
 
 
-def render_sampled(fit, capture, stride: int, *, chunk: int = 4) -> torch.Tensor:
-    """Renders of every shot on the pixels (i·stride, j·stride) only: (N, 3, ⌈H/stride⌉, ⌈W/stride⌉)."""
-    from torchmetal.geometry import shading_geometry, surface_points
-    from torchmetal.lobes import lobe_shading
-
-    tex = fit.texture
-    h, w = tex.shape[-2:]
-    grid = (..., slice(None, None, stride), slice(None, None, stride))
-    s, alpha = fit.specular_maps()
-    s, alpha = (x[grid] if x.dim() == 3 else x for x in (s, alpha))
-    pts = surface_points(h, w, fit.size, dtype=tex.dtype, device=tex.device)[grid]
-    normals, dt = fit.normals[grid], tex.dtype
-    parts = []
-    for k in range(0, capture.num_shots, chunk):
-        geom = shading_geometry(normals, capture.lights[k : k + chunk].to(dt), capture.intensities[k : k + chunk].to(dt),
-                                capture.cameras[k : k + chunk].to(dt), points=pts)
-        parts.append(lobe_shading(tex[grid], s, alpha, geom, fit.lobe))
-    return torch.cat(parts)
-
-
 def _without_glints(capture, labels: torch.Tensor):
     """The capture with every pixel a detection covers in some shot (grown by 1 px) masked out."""
     import torch.nn.functional as F
@@ -92,14 +73,12 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     residual outliers are as often negative as positive, the stage stops before any detection.
     Returns (stage result, the coating's fit, its texture)."""
     from torchmetal.flakes.detect import Particles
-    from torchmetal.flakes.prescreen import SCREEN_STRIDE, glint_screen
+    from torchmetal.flakes.prescreen import SCREEN_STRIDE, glint_screen, sampled_residual, sampled_valid
     from torchmetal.flakes.stage import FlakeStageResult, detect_capture, flake_stage, glint_excess
     from torchmetal.flakes.texture import texture_without_glints
 
     t0 = time.perf_counter()
-    grid = (..., slice(None, None, SCREEN_STRIDE), slice(None, None, SCREEN_STRIDE))
-    valid = capture.mask[grid].unsqueeze(0) & ~capture.saturated[grid].any(1, keepdim=True)
-    passed, screen = glint_screen(capture.images[grid], render_sampled(fit, capture, SCREEN_STRIDE), valid)
+    passed, screen = glint_screen(sampled_residual(fit, capture, SCREEN_STRIDE), sampled_valid(capture, SCREEN_STRIDE))
     if not passed:
         report = {"skipped": ("residual outliers consistent with noise and misfit: no SNR at which positive pixels "
                               f"exceed negative ones ({screen['positive']} vs {screen['negative']} of "
@@ -148,7 +127,7 @@ def fit_material(
     max_iters: int = 100,
     robust: str | None = "auto",
     seed: int = 0,
-    observed_flakes: bool = False,
+    observed_flakes: str | bool = "auto",
     progress: bool = False,
     lobe: str = "phong",
     normals: str = "given",
@@ -165,10 +144,10 @@ def fit_material(
             (see the module docstring).
         seed: seed of the material's flake field.
         observed_flakes: keep the flakes the fit shots saw where they are
-            (:mod:`torchmetal.flakes.observed`), the field filling the rest. Off by default: on
-            zoo scene flakes_b they win 6 dB held out, but on a dense hemisphere capture
-            (tests/test_pipeline.py case 4) they raise the left-out MD from 3.7 to 5.0, and
-            nothing yet chooses between them on held-out shots.
+            (:mod:`torchmetal.flakes.observed`), the field filling the rest: "auto" when left-out
+            shots render better with them on PSNR and MD (:func:`~torchmetal.flakes.choice.choose_observed`;
+            zoo flakes_b: kept, +5.7 dB and MD 12.1 → 8.3 against the clean truth), "on"/True
+            always, "off"/False never.
         progress: show progress bars.
         lobe: the specular lobe, "phong" (DESIGN 2.2), "blinn", "ggx" or "auto" (chosen on
             held-out shots by the first fit; the refits keep that choice).
@@ -184,6 +163,9 @@ def fit_material(
 
     if flakes not in FLAKE_MODES:
         raise InputError(f"flakes: expected one of {FLAKE_MODES}, found {flakes!r}")
+    mode = {True: "on", False: "off"}.get(observed_flakes, observed_flakes) if isinstance(observed_flakes, (bool, str)) else None
+    if mode not in OBSERVED_MODES:
+        raise InputError(f"observed_flakes: expected one of {OBSERVED_MODES} or a bool, found {observed_flakes!r}")
     auto = robust == "auto"
     t0 = time.perf_counter()
     from torchmetal.fit.normals import with_normals
@@ -230,8 +212,13 @@ def fit_material(
     }
     material = fit.to_material(report_extra=report)
     material.flakes = flake_model
-    if observed_flakes and flake_model is not None:  # the sample's own flakes, where the fit shots saw them
-        from torchmetal.flakes.observed import observed_flakes
+    if mode != "off" and flake_model is not None:  # the sample's own flakes, where the fit shots saw them
+        from torchmetal.flakes.choice import choose_observed
+        from torchmetal.flakes.observed import observed_flakes as measure
 
-        material.observed_flakes = observed_flakes(capture, flake_result.particles, flake_result.flake_id, flake_model)
+        if mode == "on":
+            material.observed_flakes = measure(capture, flake_result.particles, flake_result.flake_id, flake_model)
+        else:
+            material.observed_flakes, material.report["flakes"]["observed_choice"] = choose_observed(
+                capture, material, flake_result)
     return PipelineResult(material=material, fit=fit, flakes=flake_result, report=material.report)

@@ -141,7 +141,7 @@ def flakes_b(tmp_path_factory):
 
     scene = next(s for s in ci_scenes() if s.name == "flakes_b").with_(size=160)  # ~15 s CPU
     case = make_case(scene, tmp_path_factory.mktemp("zoo") / scene.name)
-    return case, fit_material(load_capture(case.capture_dir), observed_flakes=True)
+    return case, fit_material(load_capture(case.capture_dir))  # the default: observed flakes "auto"
 
 
 def test_zoo_flakes_b_observed_beats_none_and_statistical(flakes_b):
@@ -149,6 +149,8 @@ def test_zoo_flakes_b_observed_beats_none_and_statistical(flakes_b):
 
     case, res = flakes_b
     m = res.material
+    choice = res.report["flakes"]["observed_choice"]
+    assert choice["kept"] and len(choice["held"]) == 2, choice  # the left-out shots chose them
     assert m.observed_flakes is not None and len(m.observed_flakes) > 50
     sc = score_observed(case, m)
     assert sc["observed"]["psnr"] >= sc["none"]["psnr"] + 1.0, sc

@@ -8,6 +8,10 @@ from torchmetal.flakes.prescreen import glint_screen
 N, H, W = 8, 96, 96
 
 
+def _screen(photo, phong, valid, **kw):
+    return glint_screen((photo - phong.to(photo.dtype)).sum(1), valid[:, 0], **kw)
+
+
 def _scene(seed: int = 0, noise: float = 0.01):
     g = torch.Generator().manual_seed(seed)
     phong = 0.2 + 0.3 * torch.rand(N, 3, 1, 1, generator=g).expand(N, 3, H, W).clone()
@@ -26,25 +30,25 @@ def _spikes(g, count: int, amp: float, size: int = 2) -> torch.Tensor:
 
 def test_noise_alone_fails():
     _, photo, phong, valid = _scene()
-    passed, counts = glint_screen(photo, phong, valid)
+    passed, counts = _screen(photo, phong, valid)
     assert not passed, counts
     assert counts["pixels"] == N * H * W
-    assert glint_screen(photo, phong, valid, stride=2)[1]["pixels"] == N * (H // 2) * (W // 2)
+    assert _screen(photo, phong, valid, stride=2)[1]["pixels"] == N * (H // 2) * (W // 2)
 
 
 def test_glints_pass_and_their_mirror_fails():
     g, photo, phong, valid = _scene(1)
     glints = _spikes(g, 40, 0.5)
-    passed, counts = glint_screen(photo + glints, phong, valid)
+    passed, counts = _screen(photo + glints, phong, valid)
     assert passed, counts
     assert counts["positive"][-1] >= 30  # bright: still counted at the top rung
-    mirrored, counts = glint_screen(photo - glints, phong, valid)
+    mirrored, counts = _screen(photo - glints, phong, valid)
     assert not mirrored, counts
 
 
 def test_bright_glints_dig_no_negative_halo():
     g, photo, phong, valid = _scene(2)
-    passed, counts = glint_screen(photo + _spikes(g, 30, 20.0, size=1), phong, valid)
+    passed, counts = _screen(photo + _spikes(g, 30, 20.0, size=1), phong, valid)
     assert passed, counts
     assert counts["negative"][0] <= 3, counts
 
@@ -54,7 +58,7 @@ def test_smooth_misfit_is_not_a_glint():
     _, photo, phong, valid = _scene(3)
     yy, xx = torch.meshgrid(torch.arange(H).float(), torch.arange(W).float(), indexing="ij")
     bump = torch.exp(-((yy - 48) ** 2 + (xx - 40) ** 2) / (2 * 10.0**2)) - torch.exp(-((yy - 48) ** 2 + (xx - 60) ** 2) / (2 * 6.0**2))
-    passed, counts = glint_screen(photo + 0.5 * bump, phong, valid)
+    passed, counts = _screen(photo + 0.5 * bump, phong, valid)
     assert not passed, counts
 
 
@@ -62,7 +66,7 @@ def test_masked_glints_do_not_count():
     g, photo, phong, valid = _scene(4)
     glints = _spikes(g, 40, 0.5)
     valid = valid & ~(glints > 0).any(1, keepdim=True)
-    passed, counts = glint_screen(photo + glints, phong, valid)
+    passed, counts = _screen(photo + glints, phong, valid)
     assert not passed, counts
 
 
@@ -70,5 +74,43 @@ def test_masked_glints_do_not_count():
 def test_dtypes_give_the_same_decision(dtype):
     g, photo, phong, valid = _scene(5)
     photo = photo + _spikes(g, 40, 0.5)
-    passed, _ = glint_screen(photo.to(dtype), phong.to(dtype), valid)
+    passed, _ = _screen(photo.to(dtype), phong.to(dtype), valid)
     assert passed
+
+
+@pytest.mark.parametrize("lobe", ["phong", "blinn", "ggx"])
+@pytest.mark.parametrize("bumpy", [False, True])
+@pytest.mark.parametrize("maps", [False, True])
+def test_sampled_residual_is_the_strided_render_residual(lobe, bumpy, maps):
+    """The separable, channel-summed residual equals photo − fit.render on the strided pixels."""
+    from types import SimpleNamespace
+
+    import torch.nn.functional as F
+
+    from torchmetal.fit.result import FitResult
+    from torchmetal.flakes.prescreen import sampled_residual
+
+    g = torch.Generator().manual_seed(7)
+    h, w, n = 37, 30, 5
+    normals = torch.zeros(3, h, w)
+    normals[2] = 1.0
+    if bumpy:
+        normals = F.normalize(normals + 0.2 * torch.randn(3, h, w, generator=g), dim=0)
+    s, alpha = torch.tensor([0.4, 0.5, 0.6]), torch.tensor([30.0, 60.0, 90.0])
+    extra = {}
+    if maps:
+        extra = dict(gloss_s=s[:, None, None] * (0.5 + torch.rand(3, h, w, generator=g)),
+                     gloss_alpha=alpha[:, None, None] * (0.5 + torch.rand(3, h, w, generator=g)))
+    fit = FitResult(texture=torch.rand(3, h, w, generator=g), s=s, alpha=alpha, normals=normals, size=(0.1, 0.12),
+                    lobe=lobe, **extra)
+    lights = torch.cat([0.3 * torch.randn(n, 2, generator=g), 0.2 + 0.2 * torch.rand(n, 1, generator=g),
+                        torch.ones(n, 1)], 1)
+    lights[0] = torch.tensor([0.1, 0.2, 0.9, 0.0])  # a directional light
+    cams = torch.cat([0.05 * torch.randn(n, 2, generator=g), torch.full((n, 1), 0.4), torch.ones(n, 1)], 1)
+    inten = 0.02 + 0.02 * torch.rand(n, 3, generator=g)
+    images = torch.rand(n, 3, h, w, generator=g)
+    cap = SimpleNamespace(images=images, lights=lights, intensities=inten, cameras=cams, num_shots=n)
+    want = (images - fit.render(lights, inten, cams))[..., ::2, ::2].sum(1)
+    got = sampled_residual(fit, cap, 2, chunk=2)
+    assert got.shape == (n, 19, 15)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
