@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from torchmetal.bench import command
-from torchmetal.bench.runner import _env
+from torchmetal.bench.children import _env
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from torchmetal.bench.paper_process import main, read_capture
-from torchmetal.bench.runner import _env
+from torchmetal.bench.children import _env
 from torchmetal.synth.zoo import Scene, make_case
 
 

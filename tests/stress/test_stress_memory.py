@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pytest
 
-from torchmetal.bench.runner import run_jobs
+from torchmetal.bench.children import run_jobs
 from torchmetal.bench.tasks import task_prepare
 
 BUDGET = 80 * 2**20  # working memory a fit may use above the loaded capture

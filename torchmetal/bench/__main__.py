@@ -8,7 +8,8 @@ import sys
 import threading
 from pathlib import Path
 
-from torchmetal.bench.runner import SECTIONS, default_data_dir, full_plan, quick_plan, run
+from torchmetal.bench.plans import full_plan, quick_plan
+from torchmetal.bench.runner import SECTIONS, default_data_dir, run
 
 
 def build_parser() -> argparse.ArgumentParser:

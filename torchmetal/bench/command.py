@@ -239,8 +239,8 @@ def _f(x, spec: str = ".2f") -> str:
 
 def speedup(row: dict) -> tuple[float | None, str]:
     """numpy paper whole-process time / torchmetal whole-command time, where torchmetal's held-out error
-    is equal or better (runner.EQUAL_DB); else the reason."""
-    from torchmetal.bench.runner import speed_ratio
+    is equal or better (tables.EQUAL_DB); else the reason."""
+    from torchmetal.bench.tables import speed_ratio
 
     return speed_ratio(row.get("torchmetal", {}), row.get("paper_numpy", {}))
 
@@ -256,7 +256,7 @@ def _fit_row(label: str, r: dict) -> list[str]:
 
 
 def markdown(res: dict) -> str:
-    from torchmetal.bench.runner import md_table
+    from torchmetal.bench.tables import md_table
 
     head = ["capture (8-bit sRGB)", "torchmetal fit, whole command s", "its CPU s", "in-process load+fit s",
             "start-up + writing s", "held-out PSNR vs truth dB", "numpy paper, whole process s", "its CPU s",

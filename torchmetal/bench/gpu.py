@@ -153,7 +153,7 @@ def _onnx_cuda(material) -> dict:
 
 
 def markdown(res: dict) -> str:
-    from torchmetal.bench.runner import md_table
+    from torchmetal.bench.tables import md_table
 
     if "skipped" in res:
         return f"skipped: {res['skipped']}"
