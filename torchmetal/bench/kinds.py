@@ -149,7 +149,7 @@ def run_kind(kind: str, size: int, repeats: int = 10) -> dict:
 
 
 def markdown(rows: list[dict]) -> str:
-    from torchmetal.bench.runner import MiB, md_table
+    from torchmetal.bench.tables import MiB, md_table
 
     table = []
     for r in rows:
