@@ -4,7 +4,7 @@
 2. Tiled vs in-memory fit of a ``--size``² × 8 capture: times, peak memory, largest relative
    difference of s, α and texture.
 3. A ``--big``² × 8 capture fitted tiled (``--tile``): time and peak memory; the in-memory fit's
-   peak is measured too when ``--big-in-memory`` (it needs ~40 bytes per pixel per shot).
+   peak is measured too when ``--big-in-memory`` (it needs ~49 bytes per pixel per shot: 8192² × 8 ≈ 25 GiB).
 
 Each fit runs in its own process (``python -m torchmetal.scale.bench _fit ...``), so peak memory
 is that process's alone: VmHWM (peak resident set, which counts the pages of memory-mapped files
