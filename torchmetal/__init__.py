@@ -20,7 +20,7 @@ os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 
 # public name -> module that defines it
 _LAZY = {
-    "Capture": "torchmetal.io.capture", "load_capture": "torchmetal.io.capture", "save_capture": "torchmetal.io.capture",
+    "Capture": "torchmetal.io.capture", "load_capture": "torchmetal.io.capture", "save_capture": "torchmetal.io.capture_save",
     "FlakeModel": "torchmetal.flakes.model",
     "Material": "torchmetal.material", "load_material": "torchmetal.material", "save_material": "torchmetal.material",
     "MaterialRenderer": "torchmetal.renderer",
@@ -62,7 +62,8 @@ def __dir__() -> list[str]:
 if TYPE_CHECKING:  # static analysers see the eager imports
     from torchmetal.flakes.model import FlakeModel
     from torchmetal.geometry import ShadingGeometry, shading_geometry, surface_points
-    from torchmetal.io.capture import Capture, load_capture, save_capture
+    from torchmetal.io.capture import Capture, load_capture
+    from torchmetal.io.capture_save import save_capture
     from torchmetal.material import Material, load_material, save_material
     from torchmetal.phong import PhongModel, phong_render, phong_shading, specular_lobe
     from torchmetal.renderer import MaterialRenderer

@@ -31,7 +31,7 @@ from torch import Tensor
 from torchmetal.errors import MaterialError
 from torchmetal.flakes.model import FlakeModel
 from torchmetal.flakes.observed import ObservedFlakes, load_observed, observed_json, save_observed
-from torchmetal.io.capture import replace_dir
+from torchmetal.io.capture_save import replace_dir
 
 FORMAT = "torchmetal-material"
 VERSION = 1

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from torchmetal.errors import CaptureError, InputError
-from torchmetal.io.capture import Capture, check_light_camera, load_capture, save_capture
+from torchmetal.io.capture import Capture, check_light_camera, load_capture
+from torchmetal.io.capture_save import save_capture
 from torchmetal.io.images import code_table, srgb_to_linear, write_image
 
 DATA = (Path(__file__).resolve().parents[2] / "../shared/data").resolve()
@@ -144,7 +145,7 @@ class TestAtomicSave:
     def test_interrupted_save_keeps_old_capture(self, tmp_path, monkeypatch):
         path = save_capture(make_capture(seed=1), tmp_path / "cap")
         before = load_capture(path)
-        import torchmetal.io.capture as cap_mod
+        import torchmetal.io.capture_save as cap_mod
 
         real = cap_mod.encode_image
         calls = []

@@ -263,7 +263,7 @@ def task_method(cfg: dict) -> dict:
 def task_prepare_dir(cfg: dict) -> dict:
     """Synthesise a capture and write it as a capture directory (PNG, ``bits``) to ``cfg['dir']``."""
     synth_capture = _need("torchmetal.synth", "synth_capture")
-    save_capture = _need("torchmetal.io.capture", "save_capture")
+    save_capture = _need("torchmetal.io.capture_save", "save_capture")
     res = synth_capture(size=int(cfg["size"]), shots=int(cfg["shots"]), seed=int(cfg.get("seed", 0)),
                         noise=float(cfg.get("noise", 0.0)), bits=cfg.get("bits"))
     t0 = time.perf_counter()

@@ -102,7 +102,7 @@ def write_texture_dir(tex_dir: Path, textures: dict[str, np.ndarray]) -> None:
     import shutil
     import tempfile
 
-    from torchmetal.io.capture import replace_dir
+    from torchmetal.io.capture_save import replace_dir
 
     tex_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{tex_dir.name}.", dir=tex_dir.parent))

@@ -115,7 +115,8 @@ def write(material, path: str | os.PathLike, *, capture: str | os.PathLike | Non
     import tempfile
 
     from torchmetal.errors import ExportError
-    from torchmetal.io.capture import Capture, load_capture, replace_dir
+    from torchmetal.io.capture import Capture, load_capture
+    from torchmetal.io.capture_save import replace_dir
     from torchmetal.io.images import atomic_write_bytes
     from torchmetal.viewer import site
 

@@ -12,9 +12,7 @@ capture/
 ```
 Loading decodes everything once (BGR, uint8/16, sRGB) into linear float32 tensors and checks
 every value a renderer relies on; each problem is a one-line :class:`CaptureError` naming the
-file, what was expected and what was found. Saving is atomic: the directory is written under a
-temporary sibling name and renamed into place, so an interrupted save never leaves a
-half-written capture.
+file, what was expected and what was found. Saving: :mod:`torchmetal.io.capture_save`.
 """
 
 from __future__ import annotations
@@ -23,27 +21,26 @@ import json
 import math
 import os
 import re
-import shutil
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from torchmetal.errors import CaptureError, InputError, TorchmetalError
-from torchmetal.io.images import PNG_MAX, _cv2, decode_planes, encode_image, linear_to_srgb, quantize, read_raw, srgb_to_linear
+from torchmetal.io.images import _cv2, decode_planes, read_raw, srgb_to_linear
 
-__all__ = ["Capture", "load_capture", "save_capture", "write_capture_files", "check_light_camera", "FORMAT", "VERSION", "COLOR_SPACES"]
+__all__ = ["Capture", "load_capture", "check_light_camera", "read_meta", "parse_meta", "load_mask", "check_pixels",
+           "FORMAT", "VERSION", "COLOR_SPACES", "UNIT_TOL"]
 
 FORMAT = "torchmetal-capture"
 VERSION = 1
 COLOR_SPACES = ("srgb", "linear")
 _SHOT_KEYS = ("image", "light", "light_intensity", "camera")
 _TOP_KEYS = ("color_space", "surface", "shots")
-_UNIT_TOL = 1e-6  # normals within this of unit length are kept bit-exact
+UNIT_TOL = 1e-6  # normals within this of unit length are kept bit-exact
 _SAFE_STEM = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
 
 
@@ -125,7 +122,7 @@ def _check_size(size: object, label: str) -> tuple[float, float]:
     return float(size[0]), float(size[1])  # type: ignore[index]
 
 
-def _check_pixels(t: Tensor, label: str) -> None:
+def check_pixels(t: Tensor, label: str) -> None:
     """Finite and >= 0, in one pass (NaN propagates to min/max); details only on failure."""
     if t.numel() == 0:
         return
@@ -229,7 +226,7 @@ class Capture:
         if self.color_space not in COLOR_SPACES:
             raise CaptureError(f"Capture.color_space: expected one of {list(COLOR_SPACES)}, found {self.color_space!r}")
         for k in range(n):  # shot by shot: no full-size temporaries
-            _check_pixels(x[k], f"Capture.images[{k}] ({self.names[k]})")
+            check_pixels(x[k], f"Capture.images[{k}] ({self.names[k]})")
         nrm = self.normals
         if not bool(torch.isfinite(nrm).all()):
             raise CaptureError("Capture.normals: expected finite unit vectors, found NaN/Inf")
@@ -313,7 +310,7 @@ class _Shot:
     camera: list[float]
 
 
-def _read_meta(meta_file: Path) -> dict:
+def read_meta(meta_file: Path) -> dict:
     if not meta_file.is_file():
         raise CaptureError(f"{meta_file}: expected a capture description file, found nothing")
     try:
@@ -326,7 +323,7 @@ def _read_meta(meta_file: Path) -> dict:
         raise CaptureError(f"{meta_file}: expected a readable file, found {e.strerror or e}") from None
 
 
-def _parse_meta(meta: object, label: str) -> tuple[str, tuple[float, float], str | None, str | None, str | None, list[_Shot]]:
+def parse_meta(meta: object, label: str) -> tuple[str, tuple[float, float], str | None, str | None, str | None, list[_Shot]]:
     if not isinstance(meta, dict):
         raise CaptureError(f"{label}: expected a JSON object, found {type(meta).__name__}")
     if "format" not in meta:
@@ -401,12 +398,12 @@ def _load_normals(f: Path, h: int, w: int) -> Tensor:
     if zero.any():
         i, j = np.argwhere(zero)[0]
         raise CaptureError(f"{f}: expected non-zero normals, found {int(zero.sum())} zero-length (first at row {i}, col {j})")
-    off = np.abs(length - 1.0) > _UNIT_TOL  # leave unit vectors bit-exact, normalise the rest
+    off = np.abs(length - 1.0) > UNIT_TOL  # leave unit vectors bit-exact, normalise the rest
     out = np.where(off, n / length, n).astype(np.float32)
     return torch.from_numpy(np.ascontiguousarray(out.transpose(2, 0, 1)))
 
 
-def _load_mask(f: Path, h: int, w: int) -> Tensor:
+def load_mask(f: Path, h: int, w: int) -> Tensor:
     if f.suffix.lower() == ".npy":
         arr = _load_npy(f, "mask")
     else:
@@ -450,7 +447,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     root = Path(path)
     meta_file = root if root.suffix.lower() == ".json" and not root.is_dir() else root / "capture.json"
     root = meta_file.parent
-    color_space, size, normals_name, mask_name, sat_name, shots = _parse_meta(_read_meta(meta_file), str(meta_file))
+    color_space, size, normals_name, mask_name, sat_name, shots = parse_meta(read_meta(meta_file), str(meta_file))
 
     n = len(shots)
     first = read_raw(root / shots[0].image)
@@ -469,14 +466,14 @@ def load_capture(path: str | os.PathLike) -> Capture:
         # integer codes go through the lookup table (sRGB included); floats are checked as stored
         decode_planes(raw, images_np[k], saturated_np[k], srgb=color_space == "srgb" and not is_float)
         if is_float:  # integer files are finite and >= 0 by construction
-            _check_pixels(images[k], str(f))
+            check_pixels(images[k], str(f))
             if color_space == "srgb":
                 images[k] = srgb_to_linear(images[k])
         del raw
     del first
 
     normals = _load_normals(root / normals_name, h, w) if normals_name else None
-    mask = _load_mask(root / mask_name, h, w) if mask_name else None
+    mask = load_mask(root / mask_name, h, w) if mask_name else None
     if sat_name:
         saturated |= _load_saturated(root / sat_name, n, h, w)
 
@@ -487,130 +484,3 @@ def load_capture(path: str | os.PathLike) -> Capture:
         cameras=f32([s.camera for s in shots]), size=size, saturated=saturated,
         names=[s.image for s in shots], color_space=color_space,
     )
-
-
-# --------------------------------------------------------------------------------- saving
-
-
-def _file_names(names: list[str], suffix: str) -> list[str]:
-    """images/<stem><suffix>, keeping the source stems when they are safe and unique."""
-    stems = [PurePosixPath(str(nm).replace("\\", "/")).stem for nm in names]
-    if len(set(stems)) != len(stems) or not all(_SAFE_STEM.match(s) for s in stems):
-        stems = [f"{k:03d}" for k in range(len(names))]
-    return [f"images/{s}{suffix}" for s in stems]
-
-
-def _hwc(t: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().cpu().permute(1, 2, 0).numpy())
-
-
-def _row(t: Tensor) -> list[float]:
-    return [float(v) for v in t.detach().cpu().tolist()]
-
-
-def write_capture_files(
-    capture: Capture, root: str | os.PathLike, *, bits: int | str = "npy", color_space: str | None = None
-) -> dict:
-    """Write the files of ``capture`` into the existing, empty directory ``root`` (not atomic:
-    :func:`save_capture` wraps it). Returns the capture.json dictionary written."""
-    if bits not in (8, 16, "npy"):
-        raise CaptureError(f"bits: expected 8, 16 or 'npy', found {bits!r}")
-    cs = color_space or ("linear" if bits == "npy" else capture.color_space)
-    if cs not in COLOR_SPACES:
-        raise CaptureError(f"color_space: expected one of {list(COLOR_SPACES)}, found {cs!r}")
-    capture.validate()
-    root = Path(root)
-    (root / "images").mkdir(parents=True, exist_ok=True)
-    suffix = ".npy" if bits == "npy" else ".png"
-    names = _file_names(capture.names, suffix)
-    need_sat_file = False
-    for k, name in enumerate(names):
-        img = capture.images[k].detach().cpu().double()  # one shot at a time, encoded in float64
-        if cs == "srgb":
-            img = linear_to_srgb(img)
-        arr = _hwc(img)
-        (root / name).write_bytes(encode_image(arr, suffix, 8 if bits == "npy" else int(bits)))
-        sat = _hwc(capture.saturated[k])
-        if bits == "npy":
-            need_sat_file |= bool(sat.any())
-        else:
-            need_sat_file |= bool((sat & (quantize(arr, int(bits)) != PNG_MAX[int(bits)])).any())
-    meta: dict = {
-        "format": FORMAT,
-        "version": VERSION,
-        "color_space": cs,
-        "surface": {"width": float(capture.size[0]), "height": float(capture.size[1])},
-    }
-    if not capture.flat:
-        np.save(root / "normals.npy", _hwc(capture.normals.float()), allow_pickle=False)
-        meta["normals"] = "normals.npy"
-    if not bool(capture.mask.all()):
-        m = capture.mask[0].detach().cpu().numpy().astype(np.uint8) * 255
-        ok, buf = _cv2().imencode(".png", m)
-        if not ok:
-            raise CaptureError(f"mask: expected a PNG-encodable mask, found shape {m.shape}")
-        (root / "mask.png").write_bytes(buf.tobytes())
-        meta["mask"] = "mask.png"
-    if need_sat_file:
-        np.save(root / "saturated.npy", capture.saturated.detach().cpu().permute(0, 2, 3, 1).numpy(), allow_pickle=False)
-        meta["saturated"] = "saturated.npy"
-    meta["shots"] = [
-        {"image": name, "light": _row(capture.lights[k]), "light_intensity": _row(capture.intensities[k]),
-         "camera": _row(capture.cameras[k])}
-        for k, name in enumerate(names)
-    ]
-    (root / "capture.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
-    return meta
-
-
-def replace_dir(tmp: Path, path: Path) -> None:
-    """Move the finished directory ``tmp`` to ``path``; an existing capture there is swapped out."""
-    if path.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=path.parent))
-        os.replace(path, old / path.name)
-        try:
-            os.replace(tmp, path)
-        except BaseException:
-            os.replace(old / path.name, path)  # put the old capture back
-            raise
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, path)
-
-
-def prepare_target(path: str | os.PathLike) -> tuple[Path, Path]:
-    """Check that ``path`` may be (re)written as a capture; returns (path, fresh temp sibling dir)."""
-    path = Path(path)
-    if path.exists():
-        if not path.is_dir():
-            raise CaptureError(f"{path}: expected a directory (or nothing) to write the capture to, found a file")
-        if any(path.iterdir()) and not (path / "capture.json").is_file():
-            raise CaptureError(f"{path}: expected an empty directory or an existing capture, found other files (not overwritten)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path, Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp.", dir=path.parent))
-
-
-def save_capture(
-    capture: Capture, path: str | os.PathLike, *, bits: int | str = "npy", color_space: str | None = None
-) -> Path:
-    """Write ``capture`` as a capture directory, atomically; returns the path.
-
-    Args:
-        bits: "npy" (float32 images, bit-exact round trip, the default), 16 or 8 (PNG).
-        color_space: file encoding, "linear" or "srgb"; default "linear" for npy and the
-            capture's own ``color_space`` for PNG (so a PNG capture re-saved with the bit depth
-            it was loaded with reproduces its values exactly).
-
-    Writes capture.json, images/<stem>.png|.npy (source stems kept when safe and unique, else
-    NNN), normals.npy when not flat, mask.png when not all True, saturated.npy when the
-    clipping flags can't be recovered from the image values. An existing capture at ``path`` is
-    replaced in one rename; a directory holding anything else is refused.
-    """
-    path, tmp = prepare_target(path)
-    try:
-        write_capture_files(capture, tmp, bits=bits, color_space=color_space)
-        replace_dir(tmp, path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return path

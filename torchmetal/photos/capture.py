@@ -323,7 +323,7 @@ def save_photo_capture(result: PhotoCapture, out: str | os.PathLike, *, contact_
     import json
     import shutil
 
-    from torchmetal.io.capture import prepare_target, replace_dir, write_capture_files
+    from torchmetal.io.capture_save import prepare_target, replace_dir, write_capture_files
 
     path, tmp = prepare_target(out)
     try:

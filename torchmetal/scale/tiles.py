@@ -33,7 +33,8 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import CaptureError
-from torchmetal.io.capture import _check_pixels, _load_mask, _parse_meta, _read_meta, _UNIT_TOL, replace_dir
+from torchmetal.io.capture import UNIT_TOL, check_pixels, load_mask, parse_meta, read_meta
+from torchmetal.io.capture_save import replace_dir
 from torchmetal.io.images import decode_planes, read_raw, srgb_to_linear
 
 
@@ -87,7 +88,7 @@ class TiledCapture:
         root = Path(path)
         meta_file = root if root.suffix.lower() == ".json" and not root.is_dir() else root / "capture.json"
         self.root = root = meta_file.parent
-        cs, size, normals_name, mask_name, sat_name, shots = _parse_meta(_read_meta(meta_file), str(meta_file))
+        cs, size, normals_name, mask_name, sat_name, shots = parse_meta(read_meta(meta_file), str(meta_file))
         not_npy = [s.image for s in shots if Path(s.image).suffix.lower() != ".npy"]
         if not_npy or (mask_name and Path(mask_name).suffix.lower() != ".npy"):
             raise CaptureError(f"{meta_file}: expected .npy images and mask for a tiled read, found "
@@ -138,7 +139,7 @@ class TiledCapture:
             decode_planes(raw, img, sat, srgb=srgb and not is_float)
             t = torch.from_numpy(img)
             if is_float:
-                _check_pixels(t, str(f))
+                check_pixels(t, str(f))
                 if srgb:
                     t = srgb_to_linear(t)
             parts.append(t)
@@ -182,7 +183,7 @@ class TiledCapture:
         length = np.sqrt((n * n).sum(axis=2, keepdims=True))
         if (length[..., 0] < 1e-12).any():
             raise CaptureError(f"{f}: expected non-zero normals, found zero-length ones")
-        out = np.where(np.abs(length - 1.0) > _UNIT_TOL, n / length, n).astype(np.float32)
+        out = np.where(np.abs(length - 1.0) > UNIT_TOL, n / length, n).astype(np.float32)
         return torch.from_numpy(np.ascontiguousarray(out.transpose(2, 0, 1)))
 
     def region(self, rows: slice, cols: slice):
@@ -214,8 +215,8 @@ def convert_capture(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
     src = Path(src)
     meta_file = src if src.suffix.lower() == ".json" and not src.is_dir() else src / "capture.json"
     root = meta_file.parent
-    meta = _read_meta(meta_file)
-    cs, size, normals_name, mask_name, sat_name, shots = _parse_meta(meta, str(meta_file))
+    meta = read_meta(meta_file)
+    cs, size, normals_name, mask_name, sat_name, shots = parse_meta(meta, str(meta_file))
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
@@ -239,7 +240,7 @@ def convert_capture(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
             decode_planes(raw, img, sat, srgb=cs == "srgb" and not is_float)
             t = torch.from_numpy(img)
             if is_float:
-                _check_pixels(t, str(f))
+                check_pixels(t, str(f))
                 if cs == "srgb":
                     t.copy_(srgb_to_linear(t))
             del raw
@@ -269,7 +270,7 @@ def convert_capture(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
             shutil.copyfile(root / normals_name, tmp / "normals.npy")
             out_meta["normals"] = "normals.npy"
         if mask_name:
-            np.save(tmp / "mask.npy", _load_mask(root / mask_name, h, w)[0].numpy())
+            np.save(tmp / "mask.npy", load_mask(root / mask_name, h, w)[0].numpy())
             out_meta["mask"] = "mask.npy"
         (tmp / "capture.json").write_text(json.dumps(out_meta, indent=1))
         replace_dir(tmp, dst)

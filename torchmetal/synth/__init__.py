@@ -42,7 +42,8 @@ from torch import Tensor
 from torchmetal.errors import CaptureError, InputError
 from torchmetal.flakes.field import flake_field, sparkle_render
 from torchmetal.flakes.model import FlakeModel
-from torchmetal.io.capture import Capture, prepare_target, replace_dir, write_capture_files
+from torchmetal.io.capture import Capture
+from torchmetal.io.capture_save import prepare_target, replace_dir, write_capture_files
 from torchmetal.io.images import PNG_MAX, atomic_write_bytes, srgb_to_linear
 from torchmetal.geometry import surface_points
 from torchmetal.phong import phong_render
@@ -399,7 +400,7 @@ def write_synth(result: SynthResult, out_dir: str | os.PathLike, *, bits: int | 
     """Save the capture in ``out_dir`` and its truth in ``out_dir/truth/``, atomically.
 
     Args:
-        bits: image encoding for :func:`~torchmetal.io.capture.save_capture` semantics
+        bits: image encoding for :func:`~torchmetal.io.capture_save.save_capture` semantics
             (8, 16 or "npy"); default: the bit depth the capture was quantised to, else "npy"
             — either way the capture re-loads bit-exactly.
 
