@@ -49,6 +49,7 @@ class Viewer:
         import onnxruntime as ort
 
         from torchmetal.material import load_material
+        from torchmetal.onnx_export import session_options
 
         root = Path(material_dir)
         self.material = load_material(root)
@@ -62,10 +63,7 @@ class Viewer:
         self.graph_dir = Path(tempfile.mkdtemp(prefix="torchmetal-view-"))
         try:
             graphs = site.export_graphs(self.material, self.graph_dir, reuse=(root / site.GRAPH_FLAKES, *reuse), log=log)
-            so = ort.SessionOptions()
-            so.log_severity_level = 3
-            if threads:
-                so.intra_op_num_threads = int(threads)
+            so = session_options(threads)
             self.sessions = {k: ort.InferenceSession(str(self.graph_dir / name), so, providers=["CPUExecutionProvider"])
                              for k, name in graphs.items()}
         except BaseException:
