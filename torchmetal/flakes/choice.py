@@ -7,8 +7,8 @@ say little about a far direction's glints; there the field's statistics are the 
 So, like the specular and lobe choices, the default asks shots
 left out: for each of the ``HELD`` shots with the most associated detections, the observed flakes
 are measured from the *other* shots' detections only (their probe shots exclude it too), and the
-left-out photo is compared with the material rendered with them and with the statistical field.
-The observed flakes are kept when their mean PSNR over the left-out shots is higher and their mean
+left-out photo is compared with the material rendered with them and with the statistical field
+(the coating and the flake statistics come from every shot: both candidates share them). The observed flakes are kept when their mean PSNR over the left-out shots is higher and their mean
 MD not higher than the field's (a default must never be worse than the simpler option). Zoo
 flakes_b (256²): left out, observed 42.5 dB / MD 5.3 against the field's 38.5 dB / 7.5; kept, and
 against the clean truth of its held-out shots 46.5 dB / MD 8.3 (field 40.8 / 12.1, no flakes 42.6 / 51.5).

@@ -15,8 +15,13 @@ such as embossed foil beside glitter, must reach the full test).
 Pixels are sampled every ``SCREEN_STRIDE``-th row and column (a glint wider than that is always
 sampled; the pipeline renders only those pixels), the channel-summed residual loses its local
 (clipped) mean over a small box (what is wider than a flake is misfit, not a glint), and σ is
-1.4826·MAD over ``tile``×``tile`` sampled pixels of each shot, so a bright highlight's noise does
-not hide a glint in the shade nor the reverse. Outliers are counted once per local peak.
+1.4826·MAD over ``tile``×``tile`` sampled pixels of each shot (from every ``SUB``-th of them), so a
+bright highlight's noise does not hide a glint in the shade nor the reverse. Outliers are counted
+once per local peak.
+
+Cost, skipped flake stage / Phong fit (CPU seconds, one thread; :func:`sampled_residual` renders
+the strided grid separably in float32): 8.6 % at 1024² × 8 shots (zoo few_highlight), 5.4 % at
+512² × 16, 4.8 % at 384² × 12, 2.9 % for 72 shots of 150², ≤ 2.8 % on the zoo's 256² scenes.
 """
 
 from __future__ import annotations
@@ -31,8 +36,6 @@ TILE = 32
 BACKGROUND = 2
 MAD_TO_SIGMA = 1.4826
 SUB = 2  # tile statistics from every 2nd sampled row and column of the tile
-
-
 CLIP = 3.0  # the background box averages the residual clipped to med ± CLIP·σ of its tile
 
 
