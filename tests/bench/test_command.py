@@ -56,3 +56,12 @@ def test_plans():
     assert (2048, 8) not in command.command_plan("full")["fits"]
     assert (2048, 16) in command.command_plan("full", full=True)["fits"]
     assert command.command_plan("quick", full=True)["fits"] == [(24, 4)]
+
+
+def test_torch_import_floor_is_reported_only_where_it_binds():
+    rows = {"fits": [{"scene": "fit1024x8", "size": 1024, "shots": 8, "paper_numpy": {"wall_s": 7.2}}],
+            "dome": {"scene": "dome72", "size": 150, "shots": 66, "paper_numpy": {"wall_s": 40.0}}}
+    line = command._torch_floor(rows, 1.9)
+    assert "fit1024x8: ≥ 10× needs the whole command in ≤ 0.72 s" in line and "1.90 s" in line
+    assert "dome72" not in line  # 40 s / 2 = 20 s is above the import
+    assert command._torch_floor(rows, None) == ""
