@@ -49,3 +49,20 @@ def test_clustered_with_two_shots_has_no_holdout_but_still_clusters():
     a = fit_phong(r.capture, specular="auto")
     assert a.spec_labels is None
     assert any("held-out test needs >= 3 shots" in s or "no highlight" in s for s in a.skipped)
+
+
+def test_heldout_scores_score_the_texture_the_material_stores():
+    """A free variable-projection texture below 0 is scored as the material renders it (clamped)."""
+    from torchmetal.fit.clusters import heldout_mse
+    from torchmetal.fit.lobe_choice import heldout_errors
+    from torchmetal.fit.problem import build_observations
+
+    r = synth(size=16, shots=4, seed=3)
+    obs = build_observations(r.capture, shots=[1])
+    g = torch.Generator().manual_seed(0)
+    tex = torch.rand(3, 256, generator=g) - 0.5
+    s, a = torch.full((1, 3), 0.3), torch.full((1, 3), 20.0)
+    clamped = heldout_mse(obs, tex.clamp_min(0.0), s, a, None)
+    assert heldout_mse(obs, tex, s, a, None) == clamped
+    assert heldout_mse(obs, tex.abs(), s, a, None) != clamped  # the negatives did count as 0
+    assert torch.equal(heldout_errors(obs, tex, s, a), heldout_errors(obs, tex.clamp_min(0.0), s, a))

@@ -72,7 +72,9 @@ def specular_energy(obs: Observations, fit: SpecFit) -> Tensor:
 
 def heldout_errors(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor) -> Tensor:
     """Squared errors (M,) float64 of the valid held-out observations, in a fixed order (the valid
-    set does not depend on the lobe, so two lobes' errors pair up element by element)."""
+    set does not depend on the lobe, so two lobes' errors pair up element by element). The texture
+    is clamped at 0 as the material stores it (see :func:`~torchmetal.fit.clusters.heldout_mse`)."""
+    texture = texture.clamp_min(0.0)
     s3, a3 = s[0].to(hold.dtype).view(1, 3, 1), alpha[0].to(hold.dtype).view(1, 3, 1)
     out = []
     for j, (p0, p1) in enumerate(hold.chunks):
