@@ -216,9 +216,11 @@ def fit_material(
         from torchmetal.flakes.choice import choose_observed
         from torchmetal.flakes.observed import observed_flakes as measure
 
+        t = time.perf_counter()
         if mode == "on":
             material.observed_flakes = measure(capture, flake_result.particles, flake_result.flake_id, flake_model)
         else:
             material.observed_flakes, material.report["flakes"]["observed_choice"] = choose_observed(
                 capture, material, flake_result)
+        material.report["stage_times"]["flakes.observed"] = time.perf_counter() - t
     return PipelineResult(material=material, fit=fit, flakes=flake_result, report=material.report)
