@@ -125,7 +125,8 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int = 
             spec = torch.where(inside, spec, torch.zeros_like(spec))
         diffuse = torch.einsum("bc,chw->bhw", inten, tex)  # Σ_c I_c T_c
         shade = torch.where(nl > 0, diffuse * nl + spec, torch.zeros_like(nl))
-        photo = capture.images[k : k + chunk][grid].to(dt).sum(1)
+        img = capture.images[k : k + chunk, :, ::stride, ::stride].to(dt)  # a view for float32 photos
+        photo = img[:, 0] + img[:, 1] + img[:, 2]  # cheaper than .sum(1) on a strided view
         parts.append(photo - shade / d2)
     return torch.cat(parts)
 
