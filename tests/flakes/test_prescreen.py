@@ -114,3 +114,24 @@ def test_sampled_residual_is_the_strided_render_residual(lobe, bumpy, maps):
     got = sampled_residual(fit, cap, 2, chunk=2)
     assert got.shape == (n, 19, 15)
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+
+
+def test_max3_is_the_3x3_max_pool():
+    from torchmetal.flakes.prescreen import _max3
+
+    x = torch.randn(37, 29, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(_max3(x), torch.nn.functional.max_pool2d(x[None, None], 3, stride=1, padding=1)[0, 0])
+
+
+@pytest.mark.parametrize("clipped", [False, True])
+def test_sampled_valid_is_mask_and_no_saturated_channel(clipped):
+    from types import SimpleNamespace
+
+    from torchmetal.flakes.prescreen import sampled_valid
+
+    g = torch.Generator().manual_seed(4)
+    mask = torch.rand(1, 21, 18, generator=g) > 0.2
+    sat = (torch.rand(5, 3, 21, 18, generator=g) > 0.9) & clipped
+    cap = SimpleNamespace(mask=mask, saturated=sat, num_shots=5)
+    want = (mask & ~sat.any(1))[..., ::2, ::2]
+    assert torch.equal(sampled_valid(cap, 2), want.expand(5, -1, -1))

@@ -69,6 +69,13 @@ def _box_sum(x: Tensor, radius: int) -> Tensor:
     return sum(rows[:, i : i + h] for i in range(k))
 
 
+def _max3(x: Tensor) -> Tensor:
+    """3×3 maximum filter of an (h, w) map (−inf outside), separably by shifted maxima."""
+    p = torch.nn.functional.pad(x, (1, 1, 1, 1), value=-torch.inf)
+    rows = torch.maximum(torch.maximum(p[:, :-2], p[:, 1:-1]), p[:, 2:])
+    return torch.maximum(torch.maximum(rows[:-2], rows[1:-1]), rows[2:])
+
+
 def _high_pass(r: Tensor, ok: Tensor, med: Tensor, sigma: Tensor, radius: int) -> Tensor:
     """r minus its (2·radius+1)² box mean over valid pixels, the box averaging r clipped to
     med ± CLIP·σ — a bright glint must not dig a negative halo around itself: (N, h, w)."""
@@ -133,8 +140,11 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int = 
 
 def sampled_valid(capture, stride: int = SCREEN_STRIDE) -> Tensor:
     """(N, ⌈H/stride⌉, ⌈W/stride⌉) bool: on the sample's mask and saturated in no channel."""
+    mask = capture.mask[..., ::stride, ::stride]
+    if not bool(capture.saturated.any()):  # a contiguous scan is cheaper than the strided ORs
+        return mask.expand(capture.num_shots, -1, -1)
     sat = capture.saturated[..., ::stride, ::stride]
-    return capture.mask[..., ::stride, ::stride] & ~(sat[:, 0] | sat[:, 1] | sat[:, 2])
+    return mask & ~(sat[:, 0] | sat[:, 1] | sat[:, 2])
 
 
 def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int = TILE,
@@ -164,7 +174,7 @@ def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int 
     z = z if every else torch.where(ok, z, torch.zeros_like(z))  # masked pixels count nowhere
     hi, lo = z.amax(0), -z.amin(0)  # per sampled pixel, over the shots
     top, glint = torch.maximum(hi, lo), hi >= lo
-    peak = torch.nn.functional.max_pool2d(top[None, None], 3, stride=1, padding=1)[0, 0] == top
+    peak = _max3(top) == top
     top = torch.where(peak, top, torch.zeros_like(top))  # one count per local peak: a blob is one outlier
     pos = [int(((top > t) & glint).sum()) for t in ladder]
     neg = [int(((top > t) & ~glint).sum()) for t in ladder]
