@@ -29,6 +29,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchmetal.flakes.detect import box_mean
 from torchmetal.flakes.stage import SNR_LADDER, MIN_EXCESS, glint_rule
 
 SCREEN_STRIDE = 2  # the pipeline renders and screens every 2nd row and column
@@ -60,33 +61,21 @@ def _tile_stats(x: Tensor, ok: Tensor, tile: int, sub: int = SUB) -> tuple[Tenso
     return expand(med), expand(sigma).clamp_min(torch.finfo(x.dtype).tiny)
 
 
-def _box_sum(x: Tensor, radius: int) -> Tensor:
-    """Sum over the (2·radius+1)² box around each pixel (zero outside), separably by shifted adds
-    (cheaper than a pooling kernel on CPU): (N, h, w) → (N, h, w)."""
-    k, (h, w) = 2 * radius + 1, x.shape[-2:]
-    p = torch.nn.functional.pad(x, (radius, radius, radius, radius))
-    rows = sum(p[:, :, i : i + w] for i in range(k))
-    return sum(rows[:, i : i + h] for i in range(k))
-
-
 def _max3(x: Tensor) -> Tensor:
-    """3×3 maximum filter of an (h, w) map (−inf outside), separably by shifted maxima."""
+    """3×3 maximum filter of an (h, w) map (−inf outside) by shifted maxima: ~5× cheaper on CPU
+    than ``max_pool2d`` on the one full-size map of the screen."""
     p = torch.nn.functional.pad(x, (1, 1, 1, 1), value=-torch.inf)
     rows = torch.maximum(torch.maximum(p[:, :-2], p[:, 1:-1]), p[:, 2:])
     return torch.maximum(torch.maximum(rows[:-2], rows[1:-1]), rows[2:])
 
 
 def _high_pass(r: Tensor, ok: Tensor, med: Tensor, sigma: Tensor, radius: int) -> Tensor:
-    """r minus its (2·radius+1)² box mean over valid pixels, the box averaging r clipped to
-    med ± CLIP·σ — a bright glint must not dig a negative halo around itself: (N, h, w)."""
-    okf = ok.to(r.dtype)
-    clipped = torch.minimum(torch.maximum(r, med - CLIP * sigma), med + CLIP * sigma) * okf
-    if bool(ok.all()):  # the count of valid box pixels is then the in-image part of the box: separable
-        ones = [torch.ones(1, n, dtype=r.dtype, device=r.device) for n in r.shape[-2:]]
-        count = _box_sum(ones[0].unsqueeze(-1), radius) * _box_sum(ones[1].unsqueeze(-2), radius)
-    else:
-        count = _box_sum(okf, radius)
-    return r - _box_sum(clipped, radius) / count.clamp_min(0.5)
+    """r minus its (2·radius+1)² box mean over valid pixels (:func:`~torchmetal.flakes.detect.box_mean`),
+    the box averaging r clipped to med ± CLIP·σ — a bright glint must not dig a negative halo
+    around itself: (N, h, w)."""
+    clipped = torch.minimum(torch.maximum(r, med - CLIP * sigma), med + CLIP * sigma)
+    weight = None if bool(ok.all()) else ok.unsqueeze(1)
+    return r - box_mean(clipped.unsqueeze(1), radius, weight)[:, 0]
 
 
 def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int = 4) -> Tensor:
