@@ -187,31 +187,33 @@ def test_small_alpha_is_exact_past_the_horizon(kind):
         assert scaled_error(r(light, inten, camera).numpy(), reference(m, light, inten, camera).numpy()) <= 2e-5
 
 
+def _assert_matches_lobe_render(m, r, light, inten, camera):
+    """The renderer ``r`` of material ``m`` == lobes.lobe_render in float64 (scaled error ≤ 2e-5)."""
+    from torchmetal.lobes import lobe_render
+
+    s, alpha = m.specular_maps()
+    with torch.no_grad():
+        got = r(light, inten, camera)
+        ref = lobe_render(m.texture.double(), s.double(), alpha.double(), m.flat_normals().double(), light.double(),
+                          inten.double(), camera.double(), m.size, m.lobe)
+    assert scaled_error(got.numpy(), ref.numpy()) <= 2e-5
+
+
 @pytest.mark.parametrize("lobe", ["blinn", "ggx"])
 @pytest.mark.parametrize("kind", ["phong", "clustered", "bumpy"])
 @pytest.mark.parametrize("category", ["mixed", "grazing", "overhead", "near", "directional", "orthographic"])
 def test_lobes_match_functional_model(lobe, kind, category):
     """Blinn and GGX (select-free, folded in the renderer) == lobes.lobe_render in float64."""
-    from torchmetal.lobes import lobe_render
-
     m = make_material(kind)
     m.lobe = lobe
     r = MaterialRenderer(m)
-    light, inten, camera = light_camera_cases(m.size, category, batch=12, seed=len(category) + 7)
-    s, alpha = m.specular_maps()
-    with torch.no_grad():
-        got = r(light, inten, camera)
-        ref = lobe_render(m.texture.double(), s.double(), alpha.double(), m.flat_normals().double(), light.double(),
-                          inten.double(), camera.double(), m.size, lobe)
-    assert scaled_error(got.numpy(), ref.numpy()) <= 2e-5
+    _assert_matches_lobe_render(m, r, *light_camera_cases(m.size, category, batch=12, seed=len(category) + 7))
 
 
 @pytest.mark.parametrize("lobe", ["phong", "ggx"])
 @pytest.mark.parametrize("kind", ["clustered", "bumpy"])
 def test_channel_shared_alpha_is_one_channel(lobe, kind):
     """α shared by the channels (per cluster or global): a (B,1,H,W) lobe, same image as the function."""
-    from torchmetal.lobes import lobe_render
-
     m = make_material(kind)
     m.lobe = lobe
     if m.clustered:
@@ -220,13 +222,7 @@ def test_channel_shared_alpha_is_one_channel(lobe, kind):
         m.alpha = torch.full((3,), 150.0)
     r = MaterialRenderer(m)
     assert r.alpha_uniform and not MaterialRenderer(make_material(kind)).alpha_uniform
-    light, inten, camera = light_camera_cases(m.size, "mixed", batch=12, seed=5)
-    s, alpha = m.specular_maps()
-    with torch.no_grad():
-        got = r(light, inten, camera)
-        ref = lobe_render(m.texture.double(), s.double(), alpha.double(), m.flat_normals().double(), light.double(),
-                          inten.double(), camera.double(), m.size, lobe)
-    assert scaled_error(got.numpy(), ref.numpy()) <= 2e-5
+    _assert_matches_lobe_render(m, r, *light_camera_cases(m.size, "mixed", batch=12, seed=5))
 
 
 class TestState:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,7 +40,6 @@ COLOR_SPACES = ("srgb", "linear")
 _SHOT_KEYS = ("image", "light", "light_intensity", "camera")
 _TOP_KEYS = ("color_space", "surface", "shots")
 UNIT_TOL = 1e-6  # normals within this of unit length are kept bit-exact
-_SAFE_STEM = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
 
 
 # ------------------------------------------------------------------------------ value checks

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path, PurePosixPath
@@ -17,8 +18,10 @@ from torch import Tensor
 
 __all__ = ["save_capture", "write_capture_files", "prepare_target", "replace_dir"]
 
+_SAFE_STEM = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")  # image stems kept as they are
+
 from torchmetal.errors import CaptureError
-from torchmetal.io.capture import _SAFE_STEM, COLOR_SPACES, FORMAT, VERSION, Capture
+from torchmetal.io.capture import COLOR_SPACES, FORMAT, VERSION, Capture
 from torchmetal.io.images import PNG_MAX, _cv2, encode_image, linear_to_srgb, quantize
 
 
