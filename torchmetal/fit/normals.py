@@ -25,7 +25,10 @@ l, v, E come from :mod:`torchmetal.geometry` (point and directional lights, any 
 4. **Joint refinement** of the normals with the global s, α
    (:func:`~torchmetal.fit.normals_joint.joint_refine`): the alternation alone has a biased fixed
    point (normal errors broaden the lobe the Phong fit sees).
-5. **The neighbourhood's normal where it explains a pixel as well** (:mod:`~torchmetal.fit.normals_median`,
+5. **Second chances** (:mod:`~torchmetal.fit.normals_restart`): pixels whose robust cost stands out
+   try a grid of starts, then neighbours' normals propagate across the image until settled
+   (patches caught in a wrong minimum near highlights, which one propagation pass does not reach).
+6. **The neighbourhood's normal where it explains a pixel as well** (:mod:`~torchmetal.fit.normals_median`,
    a truncated loss: a glint explained by a tilted normal), then
    **flat where the photos cannot tell** (:mod:`~torchmetal.fit.normals_flat`): a per-pixel
    likelihood-ratio test against (0, 0, 1).
@@ -124,8 +127,8 @@ def _check_capture(capture) -> None:
                          f"directions of rank < 3 (singular values {[round(float(x), 4) for x in sv]})")
 
 
-def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool = True, median_test: bool = True,
-                     flat_test: bool = True, fit_kwargs: dict | None = None) -> NormalsEstimate:
+def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool = True, restart: bool = True,
+                     median_test: bool = True, flat_test: bool = True, fit_kwargs: dict | None = None) -> NormalsEstimate:
     """Per-pixel normals from the photos and the known lights (see the module docstring).
 
     Args:
@@ -134,6 +137,8 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         iters: LM iterations per pixel and round.
         joint: finish with the joint refinement of the normals and s, α
             (:func:`~torchmetal.fit.normals_joint.joint_refine`).
+        restart: give high-cost pixels a grid of starts, then propagate neighbours' normals until
+            settled (:func:`~torchmetal.fit.normals_restart.restart_and_settle`: wrong minima near highlights).
         median_test: take the 5×5 neighbourhood's median normal where it explains a pixel as well
             (:func:`~torchmetal.fit.normals_median.median_where_as_good`: glints, noisy dark pixels).
         flat_test: keep (0, 0, 1) where the estimate does not explain the shots significantly
@@ -198,9 +203,15 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         normals, s, alpha, rep = joint_refine(capture, normals, s, alpha, active=solvable)
         history.append({"round": "joint", "s": s.tolist(), "alpha": alpha.tolist(), **rep,
                         "time": time.perf_counter() - t1})
-        t1 = time.perf_counter()  # the joint terms: refine and propagate once more
-        normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
+        t1 = time.perf_counter()  # the joint terms: refine (and propagate, unless the restart's passes will)
+        normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable, propagate=not restart)
         history.append({"round": "polish", **rep, "time": time.perf_counter() - t1})
+    if restart:
+        from torchmetal.fit.normals_restart import restart_and_settle
+
+        t1 = time.perf_counter()
+        normals, rep = restart_and_settle(capture, normals, s, alpha, iters=iters, active=solvable)
+        history.append({"round": "restart", **rep, "time": time.perf_counter() - t1})
     n_median = 0
     if median_test:
         from torchmetal.fit.normals_median import median_where_as_good

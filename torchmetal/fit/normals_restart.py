@@ -1,0 +1,133 @@
+"""Second chances for pixels the per-pixel refinement left in a wrong minimum: a step of
+:func:`~torchmetal.fit.normals.estimate_normals` after the joint refinement.
+
+Near highlights (and on dark, noisy texture) a pixel's robust cost has several minima; its start
+(the Lambertian init, a neighbour's normal) can fall into a wrong one, and whole patches then
+agree with each other, so neither one propagation pass inside a row chunk nor the median test
+can tell (photo_bumpy_noise2: blobs of 100–300 px, 20–50° off, where the true normal costs a
+tenth of the estimate's). Two moves, each kept only where it lowers the pixel's robust cost
+(Cauchy, with the scale of its row chunk fixed at the start):
+
+1. **restart**: pixels whose robust cost exceeds ``RESTART_K`` × their chunk's median try a polar
+   grid of normals (tilts ``GRID_TILTS_DEG`` × ``GRID_AZIMUTHS`` azimuths, and flat); the best
+   start is refined (Cauchy IRLS around the per-pixel LM);
+2. **propagation until settled**: each pixel tries its neighbours' normals at the
+   :data:`~torchmetal.fit.normals_refine.PROPAGATE` shifts across the whole image (not only
+   inside its chunk); the pixels that take one are refined; the next pass looks only at the
+   pixels next to one that moved, until none moves or after ``SETTLE_PASSES`` passes.
+
+On a smooth, well-lit surface no pixel's cost stands out and a neighbour's normal never costs
+less than the pixel's own minimum, so little changes there.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchmetal.fit.normals_refine import (
+    _active_blocks, CAUCHY_C, _irls, _model, _normals_of, PROPAGATE, _robust_cost, _robust_scale, _shifted, _Spec,
+    _subset, _theta_of, _work_dtype,
+)
+
+RESTART_K = 3.0  # a pixel costing more than this × its chunk's median robust cost gets the grid of starts
+GRID_TILTS_DEG = (5.0, 10.0, 15.0, 20.0, 30.0, 45.0)
+GRID_AZIMUTHS = 8
+SETTLE_PASSES = 6
+
+
+def _grid(dt: torch.dtype, device) -> Tensor:
+    """The restart's starts as surface gradients θ (2, G): flat, then tilts × azimuths."""
+    pts = [(0.0, 0.0)]
+    for t in GRID_TILTS_DEG:
+        g = math.tan(math.radians(t))
+        pts += [(g * math.cos(2 * math.pi * a / GRID_AZIMUTHS), g * math.sin(2 * math.pi * a / GRID_AZIMUTHS))
+                for a in range(GRID_AZIMUTHS)]
+    return torch.tensor(pts, dtype=dt, device=device).T
+
+
+def _best_of(sub, theta: Tensor, cost: Tensor, cands, spec, scale: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Per pixel the least robust cost among θ (2, P) and the candidates (each (2, P));
+    returns θ, its cost (P,) and whether a candidate won (P,)."""
+    won = torch.zeros_like(cost, dtype=torch.bool)
+    for t in cands:
+        c = _robust_cost(sub, t, spec, scale)
+        take = c < cost
+        theta, cost, won = torch.where(take, t, theta), torch.where(take, c, cost), won | take
+    return theta, cost, won
+
+
+def _refine_kept(sub, theta: Tensor, cost: Tensor, spec, scale: Tensor, iters: int) -> tuple[Tensor, Tensor]:
+    """θ (2, P) refined by IRLS-LM where that lowers the robust cost (P,)."""
+    t, _ = _irls(sub, theta, spec, scale, iters)
+    c = _robust_cost(sub, t, spec, scale)
+    better = c < cost
+    return torch.where(better, t, theta), torch.where(better, c, cost)
+
+
+def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: int = 12,
+                       active: Tensor | None = None) -> tuple[Tensor, dict]:
+    """Normals (3, H, W) after the restart of high-cost pixels and propagation until settled (see
+    the module docstring); ``active`` (H, W) the pixels that may change (default: the mask).
+
+    Returns:
+        normals (3, H, W) and a report: pixels restarted, restarts kept, propagation passes, moves.
+    """
+    dt = _work_dtype(capture)
+    h, w = capture.height, capture.width
+    s, alpha = s.to(dt).reshape(3), alpha.to(dt).reshape(3)
+    spec = _Spec(s, alpha) if bool((s > 0).any()) else None
+    act = capture.mask[0] if active is None else active
+    floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
+    theta = _theta_of(normals.to(dt).reshape(3, -1))  # (2, H·W)
+    cost = torch.zeros(h * w, dtype=dt, device=theta.device)
+    grid = _grid(dt, theta.device)
+    scales, tried, kept = [], 0, 0
+    for r0, r1, keep, sub in _active_blocks(capture, act, dt):  # 1. restart
+        idx = r0 * w + keep
+        th = theta[:, idx]
+        scale = CAUCHY_C * _robust_scale(_model(sub, th, spec, sub.ok.to(dt), jac=False).r, sub.ok, floor)
+        scales.append(scale)
+        c = _robust_cost(sub, th, spec, scale)
+        bad = (c > RESTART_K * c.median()).nonzero().squeeze(1)
+        if bad.numel():
+            part = _subset(sub, bad)
+            n_b = bad.numel()
+            t0, c0, _ = _best_of(part, th[:, bad], torch.full_like(c[bad], math.inf), [grid[:, g:g + 1].expand(2, n_b)
+                                                                                      for g in range(grid.shape[1])], spec, scale)
+            t1, c1 = _refine_kept(part, t0, c0, spec, scale, iters)
+            better = c1 < c[bad]
+            th[:, bad] = torch.where(better, t1, th[:, bad])
+            c[bad] = torch.where(better, c1, c[bad])
+            tried, kept = tried + n_b, kept + int(better.sum())
+        theta[:, idx], cost[idx] = th, c
+    act_flat = act.reshape(-1)
+    front = act_flat.clone()  # pixels whose normal is new to their neighbours
+    passes, moves = 0, 0
+    for passes in range(1, SETTLE_PASSES + 1):  # 2. propagation until settled
+        src = [(_shifted(theta, w, dy, dx), _shifted(front.view(1, -1), w, dy, dx)[0] & _shifted(act_flat.view(1, -1), w, dy, dx)[0])
+               for dy, dx in PROPAGATE]
+        moved = torch.zeros_like(front)
+        for (r0, r1, keep, sub), scale in zip(_active_blocks(capture, act, dt), scales):
+            idx = r0 * w + keep
+            look = torch.stack([f[idx] for _, f in src]).any(0).nonzero().squeeze(1)
+            if not look.numel():
+                continue
+            part, at = _subset(sub, look), idx[look]
+            cands = [torch.where(f[at].unsqueeze(0), t[:, at], theta[:, at]) for t, f in src]
+            th, c, won = _best_of(part, theta[:, at], cost[at], cands, spec, scale)
+            hit = won.nonzero().squeeze(1)
+            if hit.numel():
+                th[:, hit], c[hit] = _refine_kept(_subset(part, hit), th[:, hit], c[hit], spec, scale, iters)
+            theta[:, at], cost[at] = th, c
+            moved[at] = won
+        n_moved = int(moved.sum())
+        moves += n_moved
+        front = moved
+        if n_moved == 0:
+            break
+    n, _ = _normals_of(theta)
+    out = torch.where(act_flat.unsqueeze(0), n, normals.to(dt).reshape(3, -1)).reshape(3, h, w)
+    return out, {"restarted": tried, "restart_kept": kept, "passes": passes, "moves": moves}
