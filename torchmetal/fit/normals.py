@@ -24,7 +24,10 @@ l, v, E come from :mod:`torchmetal.geometry` (point and directional lights, any 
    normals under them, then tries the 4 neighbours' normals (local minima near highlights).
 4. **Joint refinement** of the normals with the global s, α
    (:func:`~torchmetal.fit.normals_joint.joint_refine`): the alternation alone has a biased fixed
-   point (normal errors broaden the lobe the Phong fit sees).
+   point (normal errors broaden the lobe the Phong fit sees). When the Phong fits saw no highlight
+   (s = 0), a weak, broad lobe is still tried from a small start
+   (:func:`~torchmetal.fit.normals_joint.try_weak_lobe`): Lambertian normals tilted towards the half
+   vectors absorb such a lobe, and then no residual shows it; kept when it explains the shots better.
 5. **Second chances** (:mod:`~torchmetal.fit.normals_restart`): pixels whose robust cost stands out
    try a grid of starts, then neighbours' normals propagate across the image until settled
    (patches caught in a wrong minimum near highlights, which one propagation pass does not reach).
@@ -127,8 +130,9 @@ def _check_capture(capture) -> None:
                          f"directions of rank < 3 (singular values {[round(float(x), 4) for x in sv]})")
 
 
-def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool = True, restart: bool = True,
-                     median_test: bool = True, flat_test: bool = True, fit_kwargs: dict | None = None) -> NormalsEstimate:
+def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool = True, weak_lobe: bool = True,
+                     restart: bool = True, median_test: bool = True, flat_test: bool = True,
+                     fit_kwargs: dict | None = None) -> NormalsEstimate:
     """Per-pixel normals from the photos and the known lights (see the module docstring).
 
     Args:
@@ -137,6 +141,9 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         iters: LM iterations per pixel and round.
         joint: finish with the joint refinement of the normals and s, α
             (:func:`~torchmetal.fit.normals_joint.joint_refine`).
+        weak_lobe: with ``joint``, when the Phong fits saw no highlight (s = 0), still try a weak, broad
+            lobe jointly with the normals, kept when it explains the shots better
+            (:func:`~torchmetal.fit.normals_joint.try_weak_lobe`).
         restart: give high-cost pixels a grid of starts, then propagate neighbours' normals until
             settled (:func:`~torchmetal.fit.normals_restart.restart_and_settle`: wrong minima near highlights).
         median_test: take the 5×5 neighbourhood's median normal where it explains a pixel as well
@@ -196,6 +203,14 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
         history.append({"round": k, "s": s.tolist(), "alpha": alpha.tolist(), "phong_rmse": float(fit.rmse), **rep,
                         "time": time.perf_counter() - t1})
+    if joint and not bool((s > 0).any()) and weak_lobe:  # no highlight seen: a weak, broad lobe may hide
+        from torchmetal.fit.normals_joint import try_weak_lobe
+
+        t1 = time.perf_counter()
+        inside = capture.mask[0]
+        tex = fit.texture.to(dt)[:, inside].mean(1) if bool(inside.any()) else torch.zeros(3, dtype=dt, device=normals.device)
+        normals, s, alpha, rep = try_weak_lobe(capture, normals, tex, iters=iters, active=solvable)
+        history.append({"round": "weak_lobe", **rep, "time": time.perf_counter() - t1})
     if joint and bool((s > 0).any()):
         from torchmetal.fit.normals_joint import joint_refine
 

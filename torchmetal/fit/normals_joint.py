@@ -23,7 +23,8 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _normals_of, _robust_scale, _Spec, _theta_of, _work_dtype,
+    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _normals_of, _robust_cost, _robust_scale, _Spec, _theta_of,
+    _work_dtype, refine_normals,
 )
 
 
@@ -112,3 +113,46 @@ def joint_refine(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: i
         out[:, r0:r1] = blk.reshape(3, r1 - r0, w)
     spec = spec_of(g)
     return out, spec.s, spec.alpha, {"iterations": it, "accepted": accepted, "log_scales": g.tolist()}
+
+
+WEAK_S = 0.1  # the weak lobe's start: s = WEAK_S × the texture's mean (per channel), α = WEAK_ALPHA
+WEAK_ALPHA = 10.0
+WEAK_ITERS = 30
+WEAK_GAIN = 0.01  # kept when it lowers the total robust cost by more than this fraction
+
+
+def try_weak_lobe(capture, normals: Tensor, texture_mean: Tensor, *, iters: int = 12,
+                  active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, dict]:
+    """When :func:`~torchmetal.fit.fit_phong` saw no highlight (s = 0): a weak, broad lobe (s ≈ 10 %
+    of the diffuse, α ≈ 10) hides in Lambertian normals tilted towards the half vectors, and then no
+    residual shows it. From the Lambertian normals (3, H, W), refine under a small lobe
+    (texture_mean (3,) × ``WEAK_S``, ``WEAK_ALPHA``), fit the normals and s, α jointly
+    (:func:`joint_refine`), and keep the result when its total robust cost, at the Lambertian
+    residual's scale, is lower by more than ``WEAK_GAIN``.
+
+    Returns:
+        normals (3, H, W), s (3,), α (3,) — the input and zeros when not kept — and a report.
+    """
+    dt = _work_dtype(capture)
+    s0 = (WEAK_S * texture_mean.to(dt).reshape(3)).clamp_min(0.0)
+    zero = torch.zeros(3, dtype=dt, device=normals.device)
+    if not bool((s0 > 0).any()):
+        return normals, zero, torch.ones_like(zero), {"kept": False, "reason": "zero texture"}
+    a0 = torch.full_like(s0, WEAK_ALPHA)
+    start, _ = refine_normals(capture, [(normals, s0, a0)], iters=iters, active=active, propagate=False)
+    out, s, alpha, rep = joint_refine(capture, start, s0, a0, iters=WEAK_ITERS, active=active)
+    act = capture.mask[0] if active is None else active
+    floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
+    spec = _Spec(s.to(dt), alpha.to(dt))
+    c_lam, c_lobe = 0.0, 0.0
+    for r0, r1, keep, sub in _active_blocks(capture, act, dt):
+        th0 = _theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
+        th1 = _theta_of(out[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
+        scale = CAUCHY_C * _robust_scale(_model(sub, th0, None, sub.ok.to(dt), jac=False).r, sub.ok, floor)
+        c_lam += float(_robust_cost(sub, th0, None, scale).double().sum())
+        c_lobe += float(_robust_cost(sub, th1, spec, scale).double().sum())
+    kept = c_lobe < (1.0 - WEAK_GAIN) * c_lam
+    rep = {"kept": kept, "cost_lambertian": c_lam, "cost_lobe": c_lobe, "s": s.tolist(), "alpha": alpha.tolist(), **rep}
+    if not kept:
+        return normals, zero, torch.ones_like(zero), rep
+    return out, s, alpha, rep
