@@ -184,15 +184,15 @@ def grid_distance2(target: Tensor, x: Tensor, y: Tensor) -> Tensor:
 
 def _light_dist2(d2: Tensor, w: Tensor) -> Tensor:
     """The squared distance d2 of a point target (w = 1), 1 for a direction (w = 0)."""
-    return torch.where(w > 0.5, d2, torch.ones_like(d2))
+    return torch.where(w > 0.5, d2, 1.0)
 
 
 def _grid_direction(target: Tensor, x: Tensor, y: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
     """Unit direction components from the plane points (x_j, y_i, 0) to homogeneous targets (B, 4),
     each (B, R, C), and the squared distance (B, R, C) (1 for directions)."""
     dx, dy, dz, d2, w = _grid_offsets(target, x, y)
-    norm = torch.sqrt(d2.clamp_min(_EPS * _EPS))
-    return (dx / norm, dy / norm, dz / norm), _light_dist2(d2, w)
+    inv = d2.clamp_min(_EPS * _EPS).rsqrt_()  # one reciprocal square root, three products
+    return (dx * inv, dy * inv, dz * inv), _light_dist2(d2, w)
 
 
 def grid_shading_terms(
@@ -223,5 +223,5 @@ def grid_shading_terms(
         nl = nx * lx + ny * ly + nz * lz
         k = 2.0 * nl
         ex, ey, ez = k * nx - lx - vx, k * ny - ly - vy, k * nz - lz - vz
-    spec_q = 0.5 * (ex * ex + ey * ey + ez * ez)
+    spec_q = (ex * ex).addcmul_(ey, ey).addcmul_(ez, ez).mul_(0.5)
     return nl, spec_q, dist2

@@ -8,7 +8,7 @@ The Phong fit is plain least squares by default (``robust="auto"``): on the scen
 (:mod:`torchmetal.synth.zoo`), Huber weights cost 0.1–0.3 dB against the clean truth on every
 flake-free scene. The flake stage first asks whether the detections are glints at all: misfit
 gives residuals of both signs, glints positive ones, so detections must exceed those of the
-mirrored residual (:func:`~torchmetal.flakes.stage.glint_excess`). Only then is the Phong fit
+mirrored residual (:func:`~torchmetal.flakes.null_test.glint_excess`). Only then is the Phong fit
 redone with Huber weights for the flake statistics (glints are outliers of the Phong model:
 without them the flake density came out up to 60 % high and the colour 30 % high), while the
 material's coating is refitted by least squares without the detected pixels (glints seen again
@@ -41,7 +41,7 @@ class PipelineResult:
 
     material: Material
     fit: object  # torchmetal.fit.FitResult
-    flakes: object | None  # torchmetal.flakes.stage.FlakeStageResult, None when the stage was off
+    flakes: object | None  # torchmetal.flakes.results.FlakeStageResult, None when the stage was off
     report: dict = field(default_factory=dict)
 
 
@@ -72,10 +72,8 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     A pixel screen (:func:`~torchmetal.flakes.prescreen.glint_screen`) goes first: when its
     residual outliers are as often negative as positive, the stage stops before any detection.
     Returns (stage result, the coating's fit, its texture)."""
-    from torchmetal.flakes.detect import Particles
     from torchmetal.flakes.prescreen import SCREEN_STRIDE, glint_screen, sampled_residual, sampled_valid
-    from torchmetal.flakes.stage import FlakeStageResult, detect_capture, flake_stage, glint_excess
-    from torchmetal.flakes.texture import texture_without_glints
+    from torchmetal.flakes.results import FlakeStageResult, Particles
 
     t0 = time.perf_counter()
     passed, screen = glint_screen(sampled_residual(fit, capture, SCREEN_STRIDE), sampled_valid(capture, SCREEN_STRIDE))
@@ -85,6 +83,10 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
                               f"{screen['pixels']} sampled pixels, above SNR {screen['snr']})"),
                   "screen": screen, "times": {"total": time.perf_counter() - t0}}
         return FlakeStageResult(None, Particles.empty(capture.images.device), report), fit, fit.texture
+    from torchmetal.flakes.null_test import glint_excess
+    from torchmetal.flakes.stage import detect_capture, flake_stage
+    from torchmetal.flakes.texture import texture_without_glints
+
     phong_images = render_shots(fit, capture)
     det = detect_capture(capture, phong_images)
     if len(det.particles) < CLEAN_MIN_PARTICLES:  # fewer particles than the statistics' minimum flake count

@@ -76,6 +76,31 @@ def test_auto_keeps_global_on_a_uniform_sample():
     assert any(s.startswith("gloss maps: not kept") for s in res.skipped), res.skipped
 
 
+def _choose(cap, force=False):
+    from torchmetal.fit.gloss import choose_maps
+    from torchmetal.fit.problem import Reference
+
+    glob = fit_phong(cap, specular="global")
+    base = Reference(glob.s.double().view(1, 3), glob.alpha.double().view(1, 3))
+    return choose_maps(cap, base, stride=1, hold=0, force=force, tol=1e-4, max_iters=100, dtype=torch.float64,
+                       chunk=1 << 20, weighting=None)
+
+
+def test_choose_maps_stops_early_when_the_maps_lose():
+    """Uniform gloss: the maps fit noise, the held-out shot says so after EARLY_ITERS iterations."""
+    sel = _choose(synth(size=32, shots=10, seed=1, noise=0.01).capture)
+    assert not sel.kept and "stopped early" in sel.reason, sel.reason
+    assert sel.mse["maps"] >= sel.mse["base"]
+    forced = _choose(synth(size=32, shots=10, seed=1, noise=0.01).capture, force=True)
+    assert forced.kept and "stopped early" not in forced.reason
+
+
+def test_choose_maps_keeps_maps_where_the_gloss_varies():
+    """Two materials, noisy: the trial is not stopped early and the maps win on the held-out shot."""
+    sel = _choose(synth(size=40, shots=12, seed=3, spec_clusters=2, noise=0.01).capture)
+    assert sel.kept and sel.mse["maps"] < 0.5 * sel.mse["base"], sel.reason
+
+
 def test_paper_scheme_rejects_maps():
     cap = synth(size=16, shots=4).capture
     with pytest.raises(InputError, match="maps"):

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from torchmetal.flakes.choice import _held_shots, _observed_without, choose_observed
-from torchmetal.flakes.detect import Particles
+from torchmetal.flakes.results import Particles
 from torchmetal.flakes.model import FlakeModel
 
 

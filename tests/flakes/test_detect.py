@@ -8,7 +8,9 @@ import torch
 
 from tests.flakes.scenes import residual_scene
 from torchmetal.errors import InputError
-from torchmetal.flakes.detect import Detection, Particles, box_mean, detect_flakes, tile_noise
+from torchmetal.flakes.detect import Detection, detect_flakes, tile_noise
+from torchmetal.flakes.filters import box_mean
+from torchmetal.flakes.results import Particles
 
 NOISE_LEVELS = (0.002, 0.01)
 

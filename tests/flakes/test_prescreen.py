@@ -81,8 +81,10 @@ def test_dtypes_give_the_same_decision(dtype):
 @pytest.mark.parametrize("lobe", ["phong", "blinn", "ggx"])
 @pytest.mark.parametrize("bumpy", [False, True])
 @pytest.mark.parametrize("maps", [False, True])
-def test_sampled_residual_is_the_strided_render_residual(lobe, bumpy, maps):
-    """The separable, channel-summed residual equals photo − fit.render on the strided pixels."""
+@pytest.mark.parametrize("dull", [False, True])
+def test_sampled_residual_is_the_strided_render_residual(lobe, bumpy, maps, dull):
+    """The separable, channel-summed residual equals photo − fit.render on the strided pixels
+    (``dull``: s = 0, the screen renders no lobe)."""
     from types import SimpleNamespace
 
     import torch.nn.functional as F
@@ -96,7 +98,7 @@ def test_sampled_residual_is_the_strided_render_residual(lobe, bumpy, maps):
     normals[2] = 1.0
     if bumpy:
         normals = F.normalize(normals + 0.2 * torch.randn(3, h, w, generator=g), dim=0)
-    s, alpha = torch.tensor([0.4, 0.5, 0.6]), torch.tensor([30.0, 60.0, 90.0])
+    s, alpha = torch.tensor([0.4, 0.5, 0.6]) * (not dull), torch.tensor([30.0, 60.0, 90.0])
     extra = {}
     if maps:
         extra = dict(gloss_s=s[:, None, None] * (0.5 + torch.rand(3, h, w, generator=g)),

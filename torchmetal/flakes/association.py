@@ -18,7 +18,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.flakes import regions
-from torchmetal.flakes.detect import Detection, Particles
+from torchmetal.flakes.detect import Detection
+from torchmetal.flakes.results import Particles
 from torchmetal.flakes.shot_geometry import Geometry
 
 

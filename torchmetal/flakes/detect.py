@@ -19,7 +19,7 @@ sRGB-encoded residual colour (computed on foreground pixels only).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -28,41 +28,11 @@ from torch import Tensor
 from torchmetal.checks import check_finite, check_float, check_shape
 from torchmetal.errors import InputError
 from torchmetal.flakes import regions
+from torchmetal.flakes.filters import box_mean
+from torchmetal.flakes.results import Particles
 from torchmetal.io.images import linear_to_srgb
 
 _CANDIDATE = 0.85  # hysteresis seeds at 0.85·k_hi on the box high-pass; the final cut is k_hi on the ring peak
-
-
-def _window_sum(v: Tensor, radius: int) -> Tensor:
-    """Sums over (2r+1)² windows (clipped at the border) by separable running sums."""
-    r = radius
-    c = F.pad(v, (r + 1, r)).cumsum(-1)
-    v = c[..., 2 * r + 1:] - c[..., : -2 * r - 1]
-    c = F.pad(v, (0, 0, r + 1, r)).cumsum(-2)
-    return c[..., 2 * r + 1:, :] - c[..., : -2 * r - 1, :]
-
-
-def box_mean(x: Tensor, radius: int, weight: Tensor | None = None) -> Tensor:
-    """Mean over a (2r+1)² window, by running sums (cost independent of r).
-
-    Args:
-        x: (B, C, H, W) values; weight: optional (B, 1|C, H, W) weights (e.g. a valid mask):
-            the result is then Σ w·x / Σ w over the window (0 where Σ w = 0).
-
-    Returns:
-        (B, C, H, W); windows are clipped at the border. Running sums are float32: the
-        absolute error is ~1e-7 × max|x| × W, far below the noise of 8/16-bit photos.
-    """
-    h, w = x.shape[-2:]
-    if weight is None:
-        ones_h = torch.ones(1, 1, h, 1, dtype=x.dtype, device=x.device)
-        ones_w = torch.ones(1, 1, 1, w, dtype=x.dtype, device=x.device)
-        den = _window_sum(ones_h, radius) * _window_sum(ones_w, radius)
-        return _window_sum(x, radius) / den
-    wt = weight.to(x.dtype)
-    den = _window_sum(wt, radius)
-    num = _window_sum(x * wt, radius)
-    return torch.where(den > 0.5, num / den.clamp_min(0.5), torch.zeros_like(num))
 
 
 def tile_noise(x: Tensor, valid: Tensor, tile: int = 32, *, floor: float = 1e-6) -> Tensor:
@@ -95,60 +65,6 @@ def tile_noise(x: Tensor, valid: Tensor, tile: int = 32, *, floor: float = 1e-6)
     med = F.avg_pool2d(F.pad(med, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
     full = F.interpolate(med, size=(th * tile, tw * tile), mode="bilinear", align_corners=False)
     return full[..., :h, :w].clamp_min(floor)
-
-
-@dataclass
-class Particles:
-    """Ragged table of detected particles of a capture; every field has P rows.
-
-    shot (P,) int64 shot index; area (P,) pixel count; cy, cx (P,) signal-weighted centroid
-    (pixel-centre coordinates, row/col); major, minor (P,) ellipse axis lengths (4·√λ);
-    angle (P,) radians from +col towards up; rgb (P, 3) mean normalised residual colour
-    (reflectance units); lab (P, 3) mean Lab of the clamped sRGB-encoded residual colour;
-    peak (P, 3) residual colour at the brightest pixel; amp (P,) peak of the channel-mean signal;
-    snr (P,) amp / local σ; flux (P,) signal summed over the region; sigma (P,) local σ.
-    """
-
-    shot: Tensor
-    area: Tensor
-    cy: Tensor
-    cx: Tensor
-    major: Tensor
-    minor: Tensor
-    angle: Tensor
-    rgb: Tensor
-    lab: Tensor
-    peak: Tensor
-    amp: Tensor
-    snr: Tensor
-    flux: Tensor
-    sigma: Tensor
-
-    def __len__(self) -> int:
-        return int(self.shot.numel())
-
-    def select(self, index: Tensor) -> "Particles":
-        """Rows ``index`` (bool mask or int64 indices) of every field."""
-        return Particles(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
-
-    def for_shot(self, k: int) -> "Particles":
-        """The particles of shot ``k``."""
-        return self.select(self.shot == k)
-
-    def to(self, *args, **kwargs) -> "Particles":
-        return Particles(**{f.name: getattr(self, f.name).to(*args, **kwargs) for f in fields(self)})
-
-    @staticmethod
-    def empty(device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> "Particles":
-        """A table with no rows (a stage that stopped before detecting)."""
-        widths = {"rgb": 3, "lab": 3, "peak": 3}
-        return Particles(**{f.name: torch.zeros((0, widths[f.name]) if f.name in widths else (0,),
-                                                dtype=torch.int64 if f.name == "shot" else dtype, device=device)
-                            for f in fields(Particles)})
-
-    @staticmethod
-    def cat(parts: list["Particles"]) -> "Particles":
-        return Particles(**{f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Particles)})
 
 
 @dataclass

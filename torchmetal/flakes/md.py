@@ -29,7 +29,7 @@ from torch import Tensor
 
 from torchmetal.checks import check_float
 from torchmetal.errors import InputError
-from torchmetal.flakes.detect import box_mean
+from torchmetal.flakes.filters import box_mean
 
 
 def _as_batch(x: Tensor, name: str) -> Tensor:

@@ -3,7 +3,7 @@
 The statistical field (:mod:`torchmetal.flakes.field`) draws flakes at random, so a held-out shot
 of the same sample shows its glints where the field has none, and the field glints where the
 photo does not: on the zoo's flake scenes that rendered 2–4 dB worse than no flakes at all. Here
-each associated flake of the flake stage (:class:`~torchmetal.flakes.stage.FlakeStageResult`
+each associated flake of the flake stage (:class:`~torchmetal.flakes.results.FlakeStageResult`
 ``flake_id``) is measured and kept (:class:`ObservedFlakes`):
 
 - position: the amplitude-weighted mean centroid of its detections (px, pixel i spans [i, i+1));
@@ -209,7 +209,7 @@ def observed_flakes(capture, particles, flake_id: Tensor, model: FlakeModel) -> 
 
     Args:
         capture: the fitted :class:`~torchmetal.io.capture.Capture` (normals, lights, cameras, size).
-        particles: the stage's :class:`~torchmetal.flakes.detect.Particles` (P rows).
+        particles: the stage's :class:`~torchmetal.flakes.results.Particles` (P rows).
         flake_id: (P,) associated flake of each particle, −1 for particles left out.
         model: the fitted :class:`FlakeModel` (its ``glint_sigma``).
 

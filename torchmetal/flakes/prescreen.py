@@ -1,6 +1,6 @@
 """A cheap first look for glints: is the flake stage worth running at all?
 
-The flake stage's own null test (:func:`torchmetal.flakes.stage.glint_excess`) detects particles in
+The flake stage's own null test (:func:`torchmetal.flakes.null_test.glint_excess`) detects particles in
 the residual and in its mirror and compares them location by location — two full detections.
 On a flake-free sample that is most of the stage's cost. This screen asks the same question on
 pixels, on a strided grid: noise and a Phong misfit give outliers of both signs, glints only
@@ -29,14 +29,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchmetal.flakes.detect import box_mean
-from torchmetal.flakes.stage import SNR_LADDER, MIN_EXCESS, glint_rule
+from torchmetal.flakes.filters import box_mean
+from torchmetal.flakes.null_test import MIN_EXCESS, SNR_LADDER, glint_rule
 
 SCREEN_STRIDE = 2  # the pipeline renders and screens every 2nd row and column
 TILE = 32
 BACKGROUND = 2
 MAD_TO_SIGMA = 1.4826
 SUB = 2  # tile statistics from every 2nd sampled row and column of the tile
+CHUNK_ELEMENTS = 1 << 20  # sampled pixel-shots per pass of the screen's render (4 MiB per float32 temporary)
 CLIP = 3.0  # the background box averages the residual clipped to med ± CLIP·σ of its tile
 
 
@@ -69,16 +70,16 @@ def _max3(x: Tensor) -> Tensor:
     return torch.maximum(torch.maximum(rows[:-2], rows[1:-1]), rows[2:])
 
 
-def _high_pass(r: Tensor, ok: Tensor, med: Tensor, sigma: Tensor, radius: int) -> Tensor:
-    """r minus its (2·radius+1)² box mean over valid pixels (:func:`~torchmetal.flakes.detect.box_mean`),
+def _high_pass(r: Tensor, ok: Tensor | None, med: Tensor, sigma: Tensor, radius: int) -> Tensor:
+    """r minus its (2·radius+1)² box mean over valid pixels (:func:`~torchmetal.flakes.filters.box_mean`),
     the box averaging r clipped to med ± CLIP·σ — a bright glint must not dig a negative halo
-    around itself: (N, h, w)."""
-    clipped = torch.minimum(torch.maximum(r, med - CLIP * sigma), med + CLIP * sigma)
-    weight = None if bool(ok.all()) else ok.unsqueeze(1)
-    return r - box_mean(clipped.unsqueeze(1), radius, weight)[:, 0]
+    around itself: (N, h, w). ``ok`` None: every pixel valid."""
+    spread = sigma * CLIP
+    clipped = torch.clamp(r, med - spread, spread.add_(med))
+    return r - box_mean(clipped.unsqueeze(1), radius, None if ok is None else ok.unsqueeze(1))[:, 0]
 
 
-def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int = 4) -> Tensor:
+def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | None = None) -> Tensor:
     """Channel-summed residual Σ_c (photo − render) of every shot on the pixels (i·stride, j·stride):
     (N, ⌈H/stride⌉, ⌈W/stride⌉) float32 (a noise-level decision needs no more; the fit's float64
     would cost 8× in the exponentials).
@@ -86,11 +87,13 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int = 
     The render is formed on the grid separably (:func:`~torchmetal.geometry.grid_shading_terms`,
     :func:`~torchmetal.lobes.grid_half_terms`: no per-pixel vectors) and summed over channels as it
     goes, Σ_c I_c (T_c·max(n·l, 0) + [n·l > 0]·s_c·lobe_c)/d² — the screen looks at nothing else.
-    Equal to ``(images − fit.render(...))[..., ::stride, ::stride].sum(1)`` to rounding.
+    Equal to ``(images − fit.render(...))[..., ::stride, ::stride].sum(1)`` to rounding. ``chunk``
+    shots at a time (default: up to :data:`CHUNK_ELEMENTS` sampled pixel-shots, at least one shot —
+    a small capture in one pass, not many small operations).
     """
     from torchmetal.geometry import grid_shading_terms, pixel_axes
     from torchmetal.lobes import ggx_lobe, grid_half_terms
-    from torchmetal.phong import exp_normal, log1p_exact
+    from torchmetal.phong import exp_normal
 
     dt = torch.float32
     h, w = fit.texture.shape[-2:]
@@ -101,36 +104,41 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int = 
     nrm = None if bool((normals[:2] == 0).all() and (normals[2] == 1).all()) else normals
     s, alpha = fit.specular_maps()
     s, alpha = ((x[grid] if x.dim() == 3 else x).to(dt) for x in (s, alpha))
+    chunk = max(1, CHUNK_ELEMENTS // (xs.numel() * ys.numel())) if chunk is None else chunk
+    shiny = bool((s != 0).any())  # no specular fitted (no highlight, an unidentifiable lobe): no lobe to render
     parts = []
     for k in range(0, capture.num_shots, chunk):
         light, cam = capture.lights[k : k + chunk].to(dt), capture.cameras[k : k + chunk].to(dt)
         inten = capture.intensities[k : k + chunk].to(dt)  # (B, 3)
         nl, q, d2 = grid_shading_terms(light, cam, xs, ys, nrm)  # (B, h, w) each
-        if fit.lobe == "ggx":
+        if not shiny:
+            spec = torch.zeros_like(nl)
+        elif fit.lobe == "ggx":
             hq, nv, vh = (t.unsqueeze(1) for t in grid_half_terms(light, cam, xs, ys, nrm))
             lobe = ggx_lobe(hq, nl.unsqueeze(1), nv, vh, alpha)
             spec = (inten[:, :, None, None] * (s.view(1, 3, 1, 1) if s.dim() == 1 else s) * lobe).sum(1)
+            spec.masked_fill_(nl <= 0, 0.0)
         else:  # Σ_c I_c s_c (1 − q)^α_c, q = 1 − r·v (phong) or 1 − n·h (blinn), one channel at a time
             if fit.lobe == "blinn":
                 q = grid_half_terms(light, cam, xs, ys, nrm)[0]
-            inside = q < 1.0
-            log_cos = log1p_exact(-torch.where(inside, q, torch.full_like(q, 0.5)))
+            dark = (q >= 1.0) | (nl <= 0)  # r·v ≤ 0 or unlit: no highlight
+            log_cos = q.clamp_max(1.0 - 2.0**-20).neg_().log1p_()  # finite where dark (masked below)
             spec = torch.zeros_like(q)
             for c in range(3):
-                spec.add_(exp_normal(log_cos * alpha[c]) * (s[c] * inten[:, c, None, None]))
-            spec = torch.where(inside, spec, torch.zeros_like(spec))
+                spec.addcmul_(exp_normal(log_cos * alpha[c]), s[c] * inten[:, c, None, None])
+            spec.masked_fill_(dark, 0.0)
         diffuse = torch.einsum("bc,chw->bhw", inten, tex)  # Σ_c I_c T_c
-        shade = torch.where(nl > 0, diffuse * nl + spec, torch.zeros_like(nl))
+        shade = spec.addcmul_(diffuse, nl.clamp_min(0.0)).div_(d2)
         img = capture.images[k : k + chunk, :, ::stride, ::stride].to(dt)  # a view for float32 photos
         photo = img[:, 0] + img[:, 1] + img[:, 2]  # cheaper than .sum(1) on a strided view
-        parts.append(photo - shade / d2)
+        parts.append(photo.sub_(shade))
     return torch.cat(parts)
 
 
 def sampled_valid(capture, stride: int = SCREEN_STRIDE) -> Tensor:
     """(N, ⌈H/stride⌉, ⌈W/stride⌉) bool: on the sample's mask and saturated in no channel."""
     mask = capture.mask[..., ::stride, ::stride]
-    if not bool(capture.saturated.any()):  # a contiguous scan is cheaper than the strided ORs
+    if not bool(capture.saturated.view(torch.uint8).amax()):  # 10× cheaper than Tensor.any; then no strided ORs
         return mask.expand(capture.num_shots, -1, -1)
     sat = capture.saturated[..., ::stride, ::stride]
     return mask & ~(sat[:, 0] | sat[:, 1] | sat[:, 2])
@@ -155,9 +163,9 @@ def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int 
     """
     r = residual[..., ::stride, ::stride]
     ok = valid[..., ::stride, ::stride]
-    every = bool(ok.all())
+    every = bool(ok.view(torch.uint8).amin())  # Tensor.all, cheaper
     r = r if every else torch.where(ok, r, torch.zeros_like(r))
-    hp = _high_pass(r, ok, *_tile_stats(r, ok, tile, sub=2 * SUB), background)  # clipping levels only
+    hp = _high_pass(r, None if every else ok, *_tile_stats(r, ok, tile, sub=2 * SUB), background)  # clipping levels
     med, sigma = _tile_stats(hp, ok, tile)
     z = (hp - med) / sigma
     z = z if every else torch.where(ok, z, torch.zeros_like(z))  # masked pixels count nowhere

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from torchmetal.checks import check_shape
 from torchmetal.errors import InputError
-from torchmetal.flakes.detect import Particles
+from torchmetal.flakes.results import Particles
 from torchmetal.io.images import linear_to_srgb
 
 

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.checks import check_shape
-from torchmetal.flakes.detect import box_mean
+from torchmetal.flakes.filters import box_mean
 from torchmetal.geometry import shading_geometry
 
 _FILL_RADII = (2, 4, 8, 16)  # neighbourhoods tried for pixels with no undetected shot
