@@ -288,15 +288,38 @@ class TestMaterial:
         assert not (tmp_path / "flat" / "normals.npy").exists()
 
 
-@pytest.mark.skipif(not SPHERE.is_dir(), reason="shared/data/uw_gray_sphere is absent (real data, not in CI)")
-def test_uw_gray_sphere():
+def _sphere_half():
     # directional lights and an orthographic camera: the geometry does not depend on the pixel
     # position, so every other pixel is an exact smaller capture
     cap = load_capture(SPHERE)
-    sub = replace(cap, images=cap.images[..., ::2, ::2], normals=cap.normals[:, ::2, ::2], mask=cap.mask[:, ::2, ::2],
-                  saturated=cap.saturated[..., ::2, ::2])
+    return replace(cap, images=cap.images[..., ::2, ::2], normals=cap.normals[:, ::2, ::2], mask=cap.mask[:, ::2, ::2],
+                   saturated=cap.saturated[..., ::2, ::2])
+
+
+@pytest.mark.skipif(not SPHERE.is_dir(), reason="shared/data/uw_gray_sphere is absent (real data, not in CI)")
+def test_uw_gray_sphere():
+    sub = _sphere_half()
     est = estimate_normals(sub, rounds=1)
     err = angular_error(est.normals, sub.normals, sub.mask[0])
-    # Lambertian least squares with all shots measures 5.6° mean here; the light calibration and the
-    # camera's response limit any Lambertian estimate (4.6° with lights re-fitted to the true normals)
-    assert float(err.mean()) < 5.2 and float(err.median()) < 4.2, (float(err.mean()), float(err.median()))
+    # 4.85° mean, 3.98° median here (full size 4.78°, 4.00°); Lambertian least squares 5.5°. The data
+    # limit it: the estimate explains the photos better than the analytic normals do on 99.7 % of the
+    # pixels; with each light's direction and intensity re-fitted to the true normals it is still
+    # 3.9° (the given directions are 1–7° off those); the lit rim (r > 0.95 R) is 13–15° off on the
+    # photos, 0.3° on the twin below
+    assert float(err.mean()) < 5.0 and float(err.median()) < 4.1, (float(err.mean()), float(err.median()))
+
+
+@pytest.mark.skipif(not SPHERE.is_dir(), reason="shared/data/uw_gray_sphere is absent (real data, not in CI)")
+def test_uw_gray_sphere_twin():
+    # the photos re-rendered from the capture's own normals and lights (Lambertian, 8-bit, noise 1/255):
+    # on data that fits the model the estimator is well under 1° on this geometry, so the 4.8° on
+    # the photos is the data's (light calibration, non-Lambertian shading, the rim), not the estimator's
+    sub = _sphere_half()
+    g = torch.Generator().manual_seed(0)
+    nl = torch.einsum("kc,chw->khw", sub.lights[:, :3], sub.normals).clamp_min(0).unsqueeze(1)
+    img = torch.tensor([0.75, 0.73, 0.7]).view(1, 3, 1, 1) * nl + torch.randn(nl.shape[0], 3, *nl.shape[2:], generator=g) / 255
+    img = torch.where(sub.mask.unsqueeze(0), img, torch.zeros_like(img)).clamp(0, 1).mul(255).round().div(255)
+    twin = replace(sub, images=img, saturated=img >= 1.0)
+    est = estimate_normals(twin, rounds=1)
+    err = angular_error(est.normals, twin.normals, twin.mask[0])
+    assert float(err.mean()) < 1.0 and float(err.median()) < 0.45, (float(err.mean()), float(err.median()))
