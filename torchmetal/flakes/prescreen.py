@@ -19,9 +19,12 @@ sampled; the pipeline renders only those pixels), the channel-summed residual lo
 bright highlight's noise does not hide a glint in the shade nor the reverse. Outliers are counted
 once per local peak.
 
-Cost, skipped flake stage / Phong fit (CPU seconds, one thread; :func:`sampled_residual` renders
-the strided grid separably in float32): 8.6 % at 1024² × 8 shots (zoo few_highlight), 5.4 % at
-512² × 16, 4.8 % at 384² × 12, 2.9 % for 72 shots of 150², ≤ 2.8 % on the zoo's 256² scenes.
+Cost, skipped flake stage / Phong fit (CPU seconds of a fresh process, one thread, 3 runs each;
+:func:`sampled_residual` renders the strided grid separably in float32, the tile statistics are
+applied per tile without full-size copies): 6.3–7.4 % at 1024² × 8 shots (zoo few_highlight),
+7.0–7.6 % at 512² × 16 (bumpy_lin16), 6.3–7.0 % at 384² × 12 (photo_srgb8), 6–11 % on the 256²
+scenes whose fit skips the specular (≈ 0.1 s of fit, 8–12 ms of screen, ~3 ms of it first-call
+imports).
 """
 
 from __future__ import annotations
@@ -42,10 +45,11 @@ CLIP = 3.0  # the background box averages the residual clipped to med ± CLIP·�
 
 
 def _tile_stats(x: Tensor, ok: Tensor, tile: int, sub: int = SUB) -> tuple[Tensor, Tensor]:
-    """Median and 1.4826·MAD of the valid values of each tile×tile tile, per pixel: (N, h, w) each.
+    """Median and 1.4826·MAD of the valid values of each tile×tile tile: (N, ⌈h/tile⌉, ⌈w/tile⌉) each
+    (0 and the smallest normal σ for a tile without valid values; :func:`_per_tile` applies them).
 
-    Taken over every ``sub``-th row and column of the tile ((tile/sub)² values: a sort of 64
-    values instead of 256 — σ to ≈ 15 % per tile, the same for both signs of the residual)."""
+    Taken over every ``sub``-th row and column of the tile ((tile/sub)² values; σ the same for both
+    signs of the residual)."""
     n, h, w = x.shape
     th, tw = -(-h // tile), -(-w // tile)
     xs = torch.where(ok[:, ::sub, ::sub], x[:, ::sub, ::sub], torch.nan)
@@ -55,11 +59,18 @@ def _tile_stats(x: Tensor, ok: Tensor, tile: int, sub: int = SUB) -> tuple[Tenso
     blocks = xp.reshape(n, th, t, tw, t).permute(0, 1, 3, 2, 4).reshape(n, th, tw, t * t)
     med = blocks.nanmedian(-1).values
     sigma = MAD_TO_SIGMA * (blocks - med[..., None]).abs().nanmedian(-1).values
+    return torch.nan_to_num(med, nan=0.0), torch.nan_to_num(sigma, nan=0.0).clamp_min(torch.finfo(x.dtype).tiny)
 
-    def expand(v: Tensor) -> Tensor:
-        return torch.nan_to_num(v, nan=0.0).repeat_interleave(tile, 1).repeat_interleave(tile, 2)[:, :h, :w]
 
-    return expand(med), expand(sigma).clamp_min(torch.finfo(x.dtype).tiny)
+def _per_tile(fn, x: Tensor, tile: int, *stats: Tensor) -> Tensor:
+    """``fn(x, *stats)`` with each (N, th, tw) tile statistic broadcast over its tile×tile pixels of
+    the (N, h, w) ``x`` — no full-size copies of the statistics: (N, h, w)."""
+    n, h, w = x.shape
+    th, tw = stats[0].shape[1:]
+    if h != th * tile or w != tw * tile:
+        x = torch.nn.functional.pad(x, (0, tw * tile - w, 0, th * tile - h))
+    out = fn(x.reshape(n, th, tile, tw, tile), *(v[:, :, None, :, None] for v in stats))
+    return out.reshape(n, th * tile, tw * tile)[:, :h, :w]
 
 
 def _max3(x: Tensor) -> Tensor:
@@ -70,12 +81,13 @@ def _max3(x: Tensor) -> Tensor:
     return torch.maximum(torch.maximum(rows[:-2], rows[1:-1]), rows[2:])
 
 
-def _high_pass(r: Tensor, ok: Tensor | None, med: Tensor, sigma: Tensor, radius: int) -> Tensor:
+def _high_pass(r: Tensor, ok: Tensor | None, med: Tensor, sigma: Tensor, radius: int, tile: int) -> Tensor:
     """r minus its (2·radius+1)² box mean over valid pixels (:func:`~torchmetal.flakes.filters.box_mean`),
-    the box averaging r clipped to med ± CLIP·σ — a bright glint must not dig a negative halo
-    around itself: (N, h, w). ``ok`` None: every pixel valid."""
+    the box averaging r clipped to med ± CLIP·σ of its tile (``med``, ``sigma``: (N, th, tw) from
+    :func:`_tile_stats`) — a bright glint must not dig a negative halo around itself: (N, h, w).
+    ``ok`` None: every pixel valid."""
     spread = sigma * CLIP
-    clipped = torch.clamp(r, med - spread, spread.add_(med))
+    clipped = _per_tile(torch.clamp, r, tile, med - spread, med + spread)
     return r - box_mean(clipped.unsqueeze(1), radius, None if ok is None else ok.unsqueeze(1))[:, 0]
 
 
@@ -165,9 +177,8 @@ def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int 
     ok = valid[..., ::stride, ::stride]
     every = bool(ok.view(torch.uint8).amin())  # Tensor.all, cheaper
     r = r if every else torch.where(ok, r, torch.zeros_like(r))
-    hp = _high_pass(r, None if every else ok, *_tile_stats(r, ok, tile, sub=2 * SUB), background)  # clipping levels
-    med, sigma = _tile_stats(hp, ok, tile)
-    z = (hp - med) / sigma
+    hp = _high_pass(r, None if every else ok, *_tile_stats(r, ok, tile, sub=2 * SUB), background, tile)
+    z = _per_tile(lambda x, med, sigma: (x - med) / sigma, hp, tile, *_tile_stats(hp, ok, tile))
     z = z if every else torch.where(ok, z, torch.zeros_like(z))  # masked pixels count nowhere
     hi, lo = z.amax(0), -z.amin(0)  # per sampled pixel, over the shots
     top, glint = torch.maximum(hi, lo), hi >= lo
@@ -176,4 +187,4 @@ def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int 
     pos = [int(((top > t) & glint).sum()) for t in ladder]
     neg = [int(((top > t) & ~glint).sum()) for t in ladder]
     passed = glint_rule(pos, neg, min_excess, ratio=1.0)
-    return passed, {"snr": list(ladder), "positive": pos, "negative": neg, "pixels": int(ok.sum())}
+    return passed, {"snr": list(ladder), "positive": pos, "negative": neg, "pixels": ok.numel() if every else int(ok.sum())}
