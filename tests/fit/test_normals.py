@@ -87,7 +87,7 @@ class TestRestart:
     def test_stuck_patches_get_a_second_chance(self, tmp_path):
         # the zoo's photo_bumpy_noise2 at 96²: dark photo texture, noise 0.02, a ring of point lights.
         # Without the restart, patches near highlights stay in a wrong minimum (20–50° off, the true
-        # normal costing a tenth of theirs): mean 2.17°; with it 1.25°
+        # normal costing a tenth of theirs): mean 2.17°, 740 pixels > 5°; with it 1.31°, 552
         from torchmetal.synth.zoo import SCENES, make_case as zoo_case
 
         case = zoo_case(SCENES["photo_bumpy_noise2"].with_(size=96), tmp_path / "pbn2")
@@ -98,7 +98,7 @@ class TestRestart:
         assert rep["restart_kept"] > 0 and rep["moves"] > 0, rep
         assert float(err.mean()) < 1.5 and float(err.median()) < 0.3, (float(err.mean()), float(err.median()))
         off = angular_error(estimate_normals(cap, restart=False).normals, _truth(case))
-        assert float(err.mean()) < 0.7 * float(off.mean()) and float((err > 5).sum()) < 0.8 * float((off > 5).sum())
+        assert float(err.mean()) < 0.7 * float(off.mean()) and float((err > 5).sum()) < 0.85 * float((off > 5).sum())
 
 
 def _sphere(size: int = 56, s: float = 0.1, alpha: float = 10.0, noise: float = 0.004, seed: int = 3):
@@ -150,6 +150,20 @@ class TestWeakLobe:
         assert float(est.s.abs().max()) == 0.0 and all(not r["kept"] for r in tried), (est.s, tried)
         err = angular_error(est.normals, cap.normals, cap.mask[0])
         assert float(err.mean()) < 0.5, float(err.mean())
+
+
+    def test_two_materials_not_worse(self, tmp_path):
+        # a flat sample with a sharper second material the global lobe cannot fit: the estimate tilts the
+        # disc's normals to explain its highlights (3° mean). Small cost gains there buy more tilt, so the
+        # restart's moves need a real gain (MOVE_GAIN): 2.9625° without the step, 2.9636° with it
+        # (3.13° when any gain was taken)
+        from torchmetal.synth.zoo import SCENES, make_case as zoo_case
+
+        case = zoo_case(SCENES["two_materials"].with_(size=128), tmp_path / "two")
+        cap = load_capture(case.capture_dir)
+        on = angular_error(estimate_normals(cap).normals, _truth(case))
+        off = angular_error(estimate_normals(cap, restart=False).normals, _truth(case))
+        assert float(on.mean()) < float(off.mean()) + 0.02, (float(on.mean()), float(off.mean()))
 
 
 class TestFlat:

@@ -29,8 +29,9 @@ l, v, E come from :mod:`torchmetal.geometry` (point and directional lights, any 
    (:func:`~torchmetal.fit.normals_joint.try_weak_lobe`): Lambertian normals tilted towards the half
    vectors absorb such a lobe, and then no residual shows it; kept when it explains the shots better.
 5. **Second chances** (:mod:`~torchmetal.fit.normals_restart`): pixels whose robust cost stands out
-   try a grid of starts, then neighbours' normals propagate across the image until settled
-   (patches caught in a wrong minimum near highlights, which one propagation pass does not reach).
+   try a grid of starts, then neighbours' normals propagate across the image until settled, each
+   move kept where it cuts the pixel's robust cost by 30 % (patches caught in a wrong minimum near
+   highlights, which one propagation pass does not reach).
 6. **The neighbourhood's normal where it explains a pixel as well** (:mod:`~torchmetal.fit.normals_median`,
    a truncated loss: a glint explained by a tilted normal), then
    **flat where the photos cannot tell** (:mod:`~torchmetal.fit.normals_flat`): a per-pixel
@@ -218,8 +219,8 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         normals, s, alpha, rep = joint_refine(capture, normals, s, alpha, active=solvable)
         history.append({"round": "joint", "s": s.tolist(), "alpha": alpha.tolist(), **rep,
                         "time": time.perf_counter() - t1})
-        t1 = time.perf_counter()  # the joint terms: refine (and propagate, unless the restart's passes will)
-        normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable, propagate=not restart)
+        t1 = time.perf_counter()  # the joint terms: refine and propagate once more
+        normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
         history.append({"round": "polish", **rep, "time": time.perf_counter() - t1})
     if restart:
         from torchmetal.fit.normals_restart import restart_and_settle
