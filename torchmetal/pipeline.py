@@ -27,6 +27,8 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchmetal.errors import InputError
+from torchmetal.flakes.prescreen import SCREEN_STRIDE, glint_screen, sampled_residual, sampled_valid
+from torchmetal.flakes.results import FlakeStageResult, Particles
 from torchmetal.material import Material
 
 FLAKE_MODES = ("auto", "on", "off")
@@ -72,9 +74,6 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     A pixel screen (:func:`~torchmetal.flakes.prescreen.glint_screen`) goes first: when its
     residual outliers are as often negative as positive, the stage stops before any detection.
     Returns (stage result, the coating's fit, its texture)."""
-    from torchmetal.flakes.prescreen import SCREEN_STRIDE, glint_screen, sampled_residual, sampled_valid
-    from torchmetal.flakes.results import FlakeStageResult, Particles
-
     t0 = time.perf_counter()
     passed, screen = glint_screen(sampled_residual(fit, capture, SCREEN_STRIDE), sampled_valid(capture, SCREEN_STRIDE))
     if not passed:

@@ -22,9 +22,9 @@ once per local peak.
 Cost, skipped flake stage / Phong fit (CPU seconds of a fresh process, one thread, 3 runs each;
 :func:`sampled_residual` renders the strided grid separably in float32, the tile statistics are
 applied per tile without full-size copies): 6.3–7.4 % at 1024² × 8 shots (zoo few_highlight),
-7.0–7.6 % at 512² × 16 (bumpy_lin16), 6.3–7.0 % at 384² × 12 (photo_srgb8), 6–11 % on the 256²
-scenes whose fit skips the specular (≈ 0.1 s of fit, 8–12 ms of screen, ~3 ms of it first-call
-imports).
+7.0–7.6 % at 512² × 16 (bumpy_lin16), 6.3–7.0 % at 384² × 12 (photo_srgb8), 5.5–7.1 % on the 256²
+scenes whose fit skips the specular (≈ 0.1 s of fit, 7–8 ms of screen; the pipeline imports this
+module with itself).
 """
 
 from __future__ import annotations
