@@ -163,6 +163,7 @@ def test_zoo_markdown_rows_and_verdict():
     assert a[1] == "8² × 3" and a[2] == "50.00" and a[3] == "50.15 (as rendered 49.00)" and a[4] == "51.00"
     assert a[-1] == "yes |" and b[-1] == "no |" and "no (MISSED)" in b
     assert "init 0.10, refine 0.20, flakes 0.30" in a and "lm_evaluations" not in md
+    assert "100.0%" in a  # the flake stage over the Phong stages (0.3 s / 0.1 + 0.2 s)
     assert "error: RuntimeError: x" in lines[2]
     assert "on 1 of 2 scenes" in md
 

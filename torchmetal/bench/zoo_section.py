@@ -67,6 +67,16 @@ def _stages_cell(row: dict) -> str:
     return ", ".join(parts) or "–"
 
 
+def _skip_share_cell(row: dict) -> str:
+    """The flake stage's seconds over the Phong fit's (issue 12: ≤ 10 % where the stage is skipped)."""
+    st = row.get("stage_times") or {}
+    fit = sum(_f(v) for k, v in st.items() if k.startswith("phong."))
+    if "flakes" not in st or not fit > 0:
+        return "–"
+    share = f"{_f(st['flakes']) / fit:.1%}"
+    return share if not row.get("flake_model") else f"{share} (stage ran)"
+
+
 def verdict(r: dict) -> bool | None:
     """default coat PSNR ≥ paper coat PSNR − :data:`VERDICT_DB`; None without both numbers."""
     d, p = _f(r.get("default", {}).get("psnr_coat")), _f(r.get("paper", {}).get("psnr_coat"))
@@ -78,7 +88,7 @@ def verdict(r: dict) -> bool | None:
 def zoo_markdown(names: list[str], results: list[dict], sizes: dict[str, str]) -> str:
     """One row per scene (a failed scene: its reason), then the verdict count."""
     head = ["scene", "size × shots", "default dB", "paper dB", "oracle dB", "default s / α err", "paper s / α err",
-            "flake model (default)", "default stage times s", "time default / paper s",
+            "flake model (default)", "default stage times s", "flake stage / fit", "time default / paper s",
             f"default ≥ paper − {VERDICT_DB} dB"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     ok = total = 0
@@ -94,7 +104,7 @@ def zoo_markdown(names: list[str], results: list[dict], sizes: dict[str, str]) -
             total += 1
             ok += bool(v)
         cells = [name, sizes.get(name, ""), _coat_cell(d), _coat_cell(p), _db(r.get("oracle")), _err_cell(d),
-                 _err_cell(p), _flake_cell(d, r.get("truth", {})), _stages_cell(d),
+                 _err_cell(p), _flake_cell(d, r.get("truth", {})), _stages_cell(d), _skip_share_cell(d),
                  f"{_f(d.get('time')):.2f} / {_f(p.get('time')):.2f}", "–" if v is None else ("yes" if v else "no")]
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
@@ -103,7 +113,8 @@ def zoo_markdown(names: list[str], results: list[dict], sizes: dict[str, str]) -
                  "[0, 1], peak 1), coating only (no sparkle; on flake scenes away from the true flakes); "
                  "*as rendered*: sparkles included. *oracle*: the true specular and flakes with the texture solved "
                  "from the same shots. s / α err: relative error of the mean s and the geometric-mean α "
-                 "(– where the truth is not one global Phong lobe).")
+                 "(– where the truth is not one global Phong lobe). *flake stage / fit*: wall seconds of the flake "
+                 "stage over the Phong fit's stages, in the child process (a loaded machine makes it noisy).")
     return "\n".join(lines)
 
 
