@@ -209,7 +209,7 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
 
         t1 = time.perf_counter()
         inside = capture.mask[0]
-        tex = fit.texture.to(dt)[:, inside].mean(1) if bool(inside.any()) else torch.zeros(3, dtype=dt, device=normals.device)
+        tex = fit.texture.to(dt)[:, inside].mean(1) if bool(inside.any()) else torch.zeros_like(zero)
         normals, s, alpha, rep = try_weak_lobe(capture, normals, tex, iters=iters, active=solvable)
         history.append({"round": "weak_lobe", **rep, "time": time.perf_counter() - t1})
     if joint and bool((s > 0).any()):

@@ -268,6 +268,28 @@ def _irls(ch: _Chunk, theta: Tensor, spec: _Spec | None, scale: Tensor, iters: i
     return theta, total
 
 
+def _best_of(sub: _Chunk, theta: Tensor, cost: Tensor, cands: list, spec: _Spec | None, scale: Tensor,
+             gain: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
+    """Per pixel the least robust cost among θ (2, P) at ``cost`` (P,) and the candidates (each
+    (2, P)), a candidate winning only below (1 − gain) × the cost to beat; returns θ, its cost and
+    whether a candidate won (P,)."""
+    won = torch.zeros_like(cost, dtype=torch.bool)
+    for t in cands:
+        c = _robust_cost(sub, t, spec, scale)
+        take = c < (1.0 - gain) * cost
+        theta, cost, won = torch.where(take, t, theta), torch.where(take, c, cost), won | take
+    return theta, cost, won
+
+
+def _refine_kept(sub: _Chunk, theta: Tensor, cost: Tensor, spec: _Spec | None, scale: Tensor,
+                 iters: int) -> tuple[Tensor, Tensor, int]:
+    """θ (2, P) refined by :func:`_irls` where that lowers the robust cost (P,); and the LM iterations run."""
+    t, it = _irls(sub, theta, spec, scale, iters)
+    c = _robust_cost(sub, t, spec, scale)
+    better = c < cost
+    return torch.where(better, t, theta), torch.where(better, c, cost), it
+
+
 def _shifted(x: Tensor, width: int, dy: int, dx: int) -> Tensor:
     """A (2, R·W) map moved by (dy, dx) pixels within the chunk (edges repeat)."""
     m = x.reshape(x.shape[0], -1, width)
@@ -310,21 +332,12 @@ def _solve_chunk(ch: _Chunk, width: int, active: Tensor, candidates: list, iters
     if propagate:
         full = candidates[0][0].clone()
         full[:, keep] = theta
-        moved = torch.zeros_like(cost, dtype=torch.bool)
-        for dy, dx in PROPAGATE:
-            trial = _shifted(full, width, dy, dx)[:, keep]
-            c = _robust_cost(sub, trial, spec, scale)
-            take = c < cost
-            theta, cost, moved = torch.where(take, trial, theta), torch.where(take, c, cost), moved | take
+        theta, cost, moved = _best_of(sub, theta, cost, [_shifted(full, width, dy, dx)[:, keep] for dy, dx in PROPAGATE],
+                                      spec, scale)
         idx = moved.nonzero().squeeze(1)
         if idx.numel():
-            part = _subset(sub, idx)
-            t, it = _irls(part, theta[:, idx], spec, scale, iters)
+            theta[:, idx], cost[idx], it = _refine_kept(_subset(sub, idx), theta[:, idx], cost[idx], spec, scale, iters)
             total += it
-            c = _robust_cost(part, t, spec, scale)
-            better = c < cost[idx]
-            theta[:, idx] = torch.where(better, t, theta[:, idx])
-            cost[idx] = torch.where(better, c, cost[idx])
     out_t = candidates[0][0].clone()
     out_t[:, keep] = theta
     c_full = torch.zeros(out_t.shape[1], dtype=cost.dtype, device=cost.device)

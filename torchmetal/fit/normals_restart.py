@@ -32,8 +32,8 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    _active_blocks, CAUCHY_C, _irls, _model, _normals_of, PROPAGATE, _robust_cost, _robust_scale, _shifted, _Spec,
-    _subset, _theta_of, _work_dtype,
+    _active_blocks, _best_of, CAUCHY_C, _model, _normals_of, PROPAGATE, _refine_kept, _robust_cost, _robust_scale,
+    _shifted, _Spec, _subset, _theta_of, _work_dtype,
 )
 
 RESTART_K = 3.0  # a pixel costing more than this × its chunk's median robust cost gets the grid of starts
@@ -51,25 +51,6 @@ def _grid(dt: torch.dtype, device) -> Tensor:
         pts += [(g * math.cos(2 * math.pi * a / GRID_AZIMUTHS), g * math.sin(2 * math.pi * a / GRID_AZIMUTHS))
                 for a in range(GRID_AZIMUTHS)]
     return torch.tensor(pts, dtype=dt, device=device).T
-
-
-def _best_of(sub, theta: Tensor, cost: Tensor, cands, spec, scale: Tensor, gain: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
-    """Per pixel the least robust cost among θ (2, P) and the candidates (each (2, P)), a candidate
-    winning only below (1 − gain) × the cost to beat; returns θ, its cost (P,) and whether a candidate won (P,)."""
-    won = torch.zeros_like(cost, dtype=torch.bool)
-    for t in cands:
-        c = _robust_cost(sub, t, spec, scale)
-        take = c < (1.0 - gain) * cost
-        theta, cost, won = torch.where(take, t, theta), torch.where(take, c, cost), won | take
-    return theta, cost, won
-
-
-def _refine_kept(sub, theta: Tensor, cost: Tensor, spec, scale: Tensor, iters: int) -> tuple[Tensor, Tensor]:
-    """θ (2, P) refined by IRLS-LM where that lowers the robust cost (P,)."""
-    t, _ = _irls(sub, theta, spec, scale, iters)
-    c = _robust_cost(sub, t, spec, scale)
-    better = c < cost
-    return torch.where(better, t, theta), torch.where(better, c, cost)
 
 
 def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: int = 12,
@@ -100,9 +81,9 @@ def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, it
         if bad.numel():
             part = _subset(sub, bad)
             n_b = bad.numel()
-            t0, c0, _ = _best_of(part, th[:, bad], torch.full_like(c[bad], math.inf), [grid[:, g:g + 1].expand(2, n_b)
-                                                                                      for g in range(grid.shape[1])], spec, scale)
-            t1, c1 = _refine_kept(part, t0, c0, spec, scale, iters)
+            starts = [grid[:, g:g + 1].expand(2, n_b) for g in range(grid.shape[1])]
+            t0, c0, _ = _best_of(part, th[:, bad], torch.full_like(c[bad], math.inf), starts, spec, scale)
+            t1, c1, _ = _refine_kept(part, t0, c0, spec, scale, iters)
             better = c1 < (1.0 - MOVE_GAIN) * c[bad]
             th[:, bad] = torch.where(better, t1, th[:, bad])
             c[bad] = torch.where(better, c1, c[bad])
@@ -112,8 +93,8 @@ def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, it
     front = act_flat.clone()  # pixels whose normal is new to their neighbours
     passes, moves = 0, 0
     for passes in range(1, SETTLE_PASSES + 1):  # 2. propagation until settled
-        src = [(_shifted(theta, w, dy, dx), _shifted(front.view(1, -1), w, dy, dx)[0] & _shifted(act_flat.view(1, -1), w, dy, dx)[0])
-               for dy, dx in PROPAGATE]
+        new = (front & act_flat).view(1, -1)  # a neighbour's normal is a candidate where it is new
+        src = [(_shifted(theta, w, dy, dx), _shifted(new, w, dy, dx)[0]) for dy, dx in PROPAGATE]
         moved = torch.zeros_like(front)
         for (r0, r1, keep, sub), scale in zip(_active_blocks(capture, act, dt), scales):
             idx = r0 * w + keep
@@ -125,7 +106,7 @@ def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, it
             th, c, won = _best_of(part, theta[:, at], cost[at], cands, spec, scale, MOVE_GAIN)
             hit = won.nonzero().squeeze(1)
             if hit.numel():
-                th[:, hit], c[hit] = _refine_kept(_subset(part, hit), th[:, hit], c[hit], spec, scale, iters)
+                th[:, hit], c[hit], _ = _refine_kept(_subset(part, hit), th[:, hit], c[hit], spec, scale, iters)
             theta[:, at], cost[at] = th, c
             moved[at] = won
         n_moved = int(moved.sum())
