@@ -25,7 +25,7 @@ from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
 from torchmetal.fit.clusters import (
-    Labeler, Selection, choose_specular, evidence, fit_clustered, heldout_evidence, heldout_mse,
+    Labeler, Selection, choose_specular, evidence, fit_clustered, heldout_evidence, heldout_mse, relabel_pixels,
 )
 from torchmetal.fit.gloss import choose_maps, fit_gloss_maps
 from torchmetal.fit.lobe_choice import LOBE_GRID, choose_lobe
@@ -476,13 +476,19 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
         fit = fit_specular(full, torch.log(spec.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix,
                            on_iter=run.logger("refine", full.num_pixels), first=full.first_stats)
         full.first_stats = None
+    if labeler is not None and sel is not None and sel.relabel:
+        with run.stage("relabel"):
+            fit, moved = relabel_pixels(full, fit, lambda obs, f: fit_specular(
+                obs, torch.log(f.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix))
+            run.log("relabel", 1, math.sqrt(float(fit.cost.sum()) / max(1.0, float(full.n.double().sum()))), 1.0, moved)
     if use_maps:
         return _finish_maps(capture, run, full, fit, k, tol=tol, max_iters=max_iters, sel_info=sel, maps_info=maps_info)
     with run.stage("texture"):
         tex = _finish_texture(texture_map(full, fit.s, fit.eb), full, capture, run)
     _check_finite("fit_phong(scheme='refine')", tex, fit.s, fit.alpha, fit.cost)
     rmse = _rmse(fit, full)
-    sel_info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason}
+    sel_info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason,
+                                         "relabel": sel.relabel}
     if k == 1:
         return _result(capture, run, tex, fit.s[0], fit.alpha[0], status=fit.status, rmse=rmse, scheme="refine",
                        specular="global", selection=sel_info, maps_selection=maps_info)

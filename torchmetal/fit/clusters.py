@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -213,6 +214,73 @@ def fit_clustered(obs: Observations, labeler: Labeler, glob: SpecFit, *, tol: fl
     return fit
 
 
+RELABEL_GAIN = 25.0  # a pixel changes cluster when that lowers its cost by > 25 median per-observation costs (5 σ)
+RELABEL_ROUNDS = 2
+
+
+def pixel_costs(obs: Observations, s: Tensor, alpha: Tensor) -> Tensor:
+    """(K, P) float64: each pixel's least-squares cost (texture in closed form, channels summed)
+    under each element's s, α (K, 3) — the variable-projection cost A − 2·s·B + s²·C."""
+    labels, obs.labels = obs.labels, None  # every pixel at the one α asked for
+    try:
+        out = []
+        for k in range(int(s.shape[0])):
+            st = spec_sums(obs, alpha[k].view(1, 3), per_pixel=True)[0]  # (6, 3, P)
+            sk = s[k].to(torch.float64).view(3, 1)
+            out.append((obs.A.double() - 2.0 * sk * st[0].double() + sk * sk * st[1].double()).sum(0))
+    finally:
+        obs.labels = labels
+    return torch.stack(out)
+
+
+def relabel(obs: Observations, s: Tensor, alpha: Tensor, per_obs: float) -> tuple[Tensor, int]:
+    """New labels (P,) of ``obs``'s pixels and how many moved: a pixel moves to the element of s, α
+    (K, 3) that explains it best (:func:`pixel_costs`) when that lowers its cost by more than
+    :data:`RELABEL_GAIN` × ``per_obs`` (the fit's mean cost per observation). Per pixel: the same
+    labels whichever tiles or chunks the pixels come in."""
+    cost = pixel_costs(obs, s, alpha)
+    current = cost.gather(0, obs.labels.view(1, -1))[0]
+    best, arg = cost.min(0)
+    change = (current - best) > RELABEL_GAIN * per_obs
+    return torch.where(change, arg, obs.labels), int(change.sum())
+
+
+def relabel_pixels(obs: Observations, fit: SpecFit, refit) -> tuple[SpecFit, int]:
+    """Move pixels to the cluster whose s, α explain them best, where that is significant, and refit.
+
+    The labeler draws clusters from T_min colour and specular features on a subsample; at a
+    material edge (a foil disc on paper) pixels of one material land in the other's cluster and
+    their highlight is rendered with the wrong lobe (zoo two_materials: 232 foil pixels in paper
+    clusters, 55 % of the held-out error, 3.4 dB below the truth-parameter render; after: 1, and
+    within 0.01 dB). See :func:`relabel`: pixels whose shots never see a highlight gain nothing
+    and keep their label. ``refit(obs with the new labels, fit)`` → the new :class:`SpecFit`; up
+    to :data:`RELABEL_ROUNDS` rounds. Returns (fit, pixels moved).
+    """
+    moved = 0
+    n_obs = max(1.0, float(obs.n.double().sum()))
+    for _ in range(RELABEL_ROUNDS):
+        labels, n = relabel(obs, fit.s, fit.alpha, float(fit.cost.sum()) / n_obs)
+        if n == 0:
+            break
+        obs.labels = labels
+        moved += n
+        fit = refit(obs, fit)
+    return fit, moved
+
+
+class LabelMap:
+    """A labeler (:func:`~torchmetal.fit.problem.build_observations`) that reads each pixel's label
+    from an (H, W) int64 ``.npy`` file — the tiled fit's labels after :func:`relabel`. Picklable."""
+
+    def __init__(self, path: str, k: int) -> None:
+        self.path, self.k = str(path), int(k)
+
+    def __call__(self, tmin: Tensor, ij: Tensor) -> Tensor:
+        lab = np.load(self.path, mmap_mode="r")
+        idx = ij.long().cpu().numpy()
+        return torch.from_numpy(np.ascontiguousarray(lab[idx[0], idx[1]])).to(tmin.device)
+
+
 def mean_square(hold: Observations) -> float:
     """Mean of y² over the valid held-out observations."""
     return float(hold.Y.double().sum()) / max(1.0, float(hold.n.double().sum()))
@@ -250,6 +318,26 @@ class Selection:
     hold: int  # -1: no held-out shot
     mse: dict = field(default_factory=dict)  # "global" / "K=2" … → held-out MSE
     reason: str = ""
+    relabel: bool = False  # the full-resolution fit moves pixels between clusters (relabel_pixels)
+
+
+def _relabel_helps(obs: Observations, ho: Observations, labeler: Labeler, glob: SpecFit, ij: Tensor, best_mse: float,
+                   mse: dict, *, tol: float, max_iters: int, min_gain: float) -> bool:
+    """Does :func:`relabel_pixels` lower the held-out shot's MSE of the chosen clusters by more than
+    ``min_gain``? (Zoo two_materials: yes — its misassigned edge pixels; the real card: no — its
+    clusters are not materials, and moving pixels by their in-sample cost lost 0.15 dB held out.)
+    Records "relabel" in ``mse``."""
+    obs.labels = labeler(obs.tmin, ij)
+    try:
+        fit = fit_clustered(obs, labeler, glob, tol=tol, max_iters=max_iters)
+        fit, moved = relabel_pixels(obs, fit, lambda o, f: fit_specular(o, torch.log(f.alpha), tol=tol,
+                                                                           max_iters=max_iters))
+        if moved == 0:
+            return False
+        mse["relabel"] = heldout_mse(ho, texture_map(obs, fit.s, fit.eb), fit.s, fit.alpha, obs.labels)
+        return mse["relabel"] < (1.0 - min_gain) * best_mse
+    finally:
+        obs.labels = None
 
 
 def choose_specular(
@@ -315,6 +403,9 @@ def choose_specular(
     if ho is None:
         return Selection(best_k, best_lab, -1, mse, f"{name}: lowest in-sample error (no shot to hold out)")
     if force or best_mse < (1.0 - min_gain) * mse["global"] - MIN_GAIN_ABS * mean_square(ho):
-        return Selection(best_k, best_lab, hold, mse, f"{name} lowers held-out MSE {mse['global']:.4g} → {best_mse:.4g}")
+        relabel_kept = _relabel_helps(obs, ho, best_lab, g, ij, best_mse, mse, tol=tol, max_iters=max_iters,
+                                      min_gain=min_gain)
+        return Selection(best_k, best_lab, hold, mse, f"{name} lowers held-out MSE {mse['global']:.4g} → {best_mse:.4g}"
+                         + ("; pixels relabelled" if relabel_kept else ""), relabel=relabel_kept)
     return Selection(1, None, hold, mse, f"held-out shot {hold}: global MSE {mse['global']:.4g} vs best clustered "
                      f"{best_mse:.4g} ({name}), gain below {min_gain:.1%}")

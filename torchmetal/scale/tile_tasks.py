@@ -12,6 +12,8 @@ Tasks (``payload["kind"]``):
   evaluation's statistics, Σw·a² statistics (:class:`~torchmetal.scale.tiled_texture.SeenStats`),
   whether the normals are flat, cluster areas.
 - ``"stats"``: the projected sums (6, K, 3) at α (:func:`~torchmetal.fit.refine.spec_sums`).
+- ``"relabel"``: each pixel's cluster after the LM (:func:`~torchmetal.fit.clusters.relabel`), written
+  into the labels memmap; returns how many moved.
 - ``"low_bits"``: the radix median's second histogram.
 - ``"texture"``: the tile's texture and unobserved texels, written into the memmaps.
 """
@@ -21,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from torchmetal.fit.clusters import relabel
 from torchmetal.fit.problem import build_observations
 from torchmetal.fit.refine import spec_sums, texture_map
 from torchmetal.scale.tiled_texture import SeenStats, unobserved_tile
@@ -60,6 +63,12 @@ def tile_task(p: dict):
                 "area": torch.bincount(obs.labels, minlength=k).double() if labeler is not None else None}
     if kind == "stats":
         return spec_sums(obs, p["alpha"])[0]
+    if kind == "relabel":  # each pixel to the element that explains it best (fit.clusters.relabel), into labels_file
+        labels, moved = relabel(obs, p["s"], p["alpha"], p["per_obs"])
+        lab = np.load(p["labels_file"], mmap_mode="r+")
+        lab[rows, cols] = labels.reshape(obs.height, obs.width).numpy()
+        lab.flush()
+        return moved
     if kind == "low_bits":
         return SeenStats.low_bits(obs.saa, p["bucket"])
     if kind == "texture":

@@ -33,6 +33,7 @@ from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
 from torchmetal.fit.api import FitRun, subsample_decisions
+from torchmetal.fit.clusters import RELABEL_ROUNDS, LabelMap
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Reference, compute_dtype
 from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms
@@ -170,9 +171,29 @@ def _subsample_decisions(cap, run: FitRun, *, specular, tol, max_iters, clusters
         raise FitError("fit --tile: gloss maps win on the held-out shot, and the tiled fit does not fit them (their "
                        "smoothness prior couples all pixels); fit this capture in memory or with --specular global")
     sel = d.sel
-    info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason}
+    info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason,
+                                     "relabel": sel.relabel}
     run.maps_info = d.maps_info
     return d.spec, d.labeler, d.s_fixed, info
+
+
+def _sums(passes: TilePasses, k: int, with_spec: bool, with_labels: bool) -> tuple:
+    """The "sums" pass reduced in tile order: element sums A (K, 3), the first LM evaluation's stats
+    (6, K, 3), the observation count, Σw·a² statistics, whether the normals are flat, cluster areas (K,)."""
+    A = torch.zeros(k, 3, dtype=torch.float64)
+    first = torch.zeros(6, k, 3, dtype=torch.float64)
+    n_total, seen_stats, flat = 0.0, SeenStats(), True
+    area = torch.zeros(k, dtype=torch.float64)
+    for part in passes.map("sums"):  # in tile order
+        A += part["A"]
+        n_total += part["n"]
+        if with_spec:
+            first += part["first"]
+        seen_stats.merge(part["seen"])
+        flat = flat and part["flat"]
+        if with_labels:
+            area += part["area"]
+    return A, first, n_total, seen_stats, flat, area
 
 
 def _memmap(path: Path, shape: tuple[int, ...], dtype) -> np.memmap:
@@ -195,22 +216,8 @@ def _fit(cap: TiledCapture, run: FitRun, bar, *, tile, specular, tol, max_iters,
     passes = TilePasses(tiles, base, engine, workers, bar)
 
     # pass 1: per-pixel constants → element sums, the first LM evaluation, what the texture step needs
-    A = torch.zeros(k, 3, dtype=torch.float64)
-    first = torch.zeros(6, k, 3, dtype=torch.float64)
-    n_total = 0.0
-    seen_stats = SeenStats()
-    flat = True
-    area = torch.zeros(k, dtype=torch.float64)
     with run.stage("geometry"):
-        for part in passes.map("sums"):  # in tile order
-            A += part["A"]
-            n_total += part["n"]
-            if spec is not None:
-                first += part["first"]
-            seen_stats.merge(part["seen"])
-            flat = flat and part["flat"]
-            if labeler is not None:
-                area += part["area"]
+        A, first, n_total, seen_stats, flat, area = _sums(passes, k, spec is not None, labeler is not None)
     if seen_stats.needs_median():  # the exact median of Σw·a² (one more pass); else any value below it works
         med = seen_stats.median(lambda bucket: passes.map("low_bits", bucket=bucket))
     else:
@@ -235,6 +242,25 @@ def _fit(cap: TiledCapture, run: FitRun, bar, *, tile, specular, tol, max_iters,
         with run.stage("refine"):
             s, alpha, cost, res = _solve_specular(passes, dt, torch.log(spec.alpha), first, A, tol=tol,
                                                   max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix, on_iter=log)
+        if labeler is not None and sel_info["relabel"]:  # fit.clusters.relabel_pixels, a pass over the tiles per round
+            with run.stage("relabel"):
+                moved = 0
+                lab_path = scratch / "relabelled.npy"
+                _memmap(lab_path, (h, w), np.int64).flush()
+                for _ in range(RELABEL_ROUNDS):
+                    n = sum(passes.map("relabel", s=s, alpha=alpha, per_obs=float(cost.sum()) / max(1.0, n_total),
+                                       labels_file=str(lab_path)))
+                    if n == 0:
+                        break
+                    moved += n
+                    passes.base["labeler"] = LabelMap(str(lab_path), k)
+                    passes.base["ref"] = Reference(s, alpha)  # the first LM evaluation at the current α
+                    A, first, _, _, _, area = _sums(passes, k, True, True)
+                    passes.base["ref"] = ref  # the texture pass's fallback stays the subsample's, as in memory
+                    s, alpha, cost, res = _solve_specular(passes, dt, torch.log(alpha), first, A, tol=tol,
+                                                          max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix,
+                                                          on_iter=lambda it, ev: None)
+                run.log("relabel", 1, math.sqrt(float(cost.sum()) / max(1.0, n_total)), 1.0, moved)
         status = res.status
 
     # last pass: the texture of each tile in closed form, into a memory-mapped file
