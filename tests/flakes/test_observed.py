@@ -14,20 +14,21 @@ import pytest
 import torch
 
 from torchmetal.errors import MaterialError
+from torchmetal.flakes.choice import HELD
 from torchmetal.flakes.model import FlakeModel
 from torchmetal.flakes.observed import ObservedFlakes, material_flake_field, observed_field
 from torchmetal.material import Material, load_material, save_material
 from torchmetal.renderer import MaterialRenderer
 
 
-def _obs(h=32, w=32, density=None) -> ObservedFlakes:
+def _obs(h=32, w=32, density=None, detect_amp=None) -> ObservedFlakes:
     pos = torch.tensor([[8.5, 8.5], [20.2, 14.7], [10.0, 25.0]])
     n = torch.nn.functional.normalize(torch.tensor([[0.1, 0.0, 1.0], [0.0, -0.2, 1.0], [0.05, 0.05, 1.0]]), dim=1)
     lights = torch.tensor([[0.0, 0.0, 2.0, 1.0], [0.5, 0.2, 2.0, 1.0]])
     return ObservedFlakes(position=pos, axes=torch.tensor([[1.5, 1.0], [1.2, 1.2], [2.0, 0.8]]),
                           angle=torch.tensor([0.0, 0.5, 1.0]), normal=n, color=torch.tensor([[0.8, 0.7, 0.5]] * 3),
                           probe_lights=lights, probe_cameras=torch.tensor([[0.0, 0.0, 3.0, 1.0]] * 2), shape=(h, w),
-                          density=density)
+                          density=density, detect_amp=detect_amp)
 
 
 def _material(obs, h=32, w=32, density=0.01) -> Material:
@@ -71,6 +72,47 @@ def test_fill_skips_observed_pixels_and_probed_normals():
     # and the statistical field had flakes there that were dropped for it
     dropped = (stat.weight[0] > 0) & (f.weight[0] == 0)
     assert float(torch.exp(-((stat.normal.unsqueeze(0) - half) ** 2).sum(1) / (2 * 0.05**2)).amax(0)[dropped].max()) >= PROBED_GLINT
+
+
+def test_fill_drops_flakes_a_fit_shot_would_have_detected():
+    """The cause of flakes_b's excess sparkles (count ratio 1.28): fill flakes glinting in a fit shot at a
+    factor below 1/2 but far above the detector's floor were kept, doubling the flakes the fit shots
+    saw off their glint peak. With ``detect_amp`` no kept fill flake would have been detected."""
+    from torchmetal.flakes.field import flake_field
+    from torchmetal.flakes.observed import PROBED_GLINT
+    from torchmetal.geometry import shading_geometry
+
+    obs = _obs(detect_amp=0.02)
+    n = torch.zeros(3, 32, 32)
+    n[2] = 1
+    m = FlakeModel(density=0.1, glint_sigma=0.05, tilt_sigma=0.3)
+    stat = flake_field(m, 32, 32, n)
+    f = material_flake_field(m, obs, 32, 32, n, (1.0, 1.0))
+    own = observed_field(obs, 32, 32, n, 0.05)
+    fill = (f.weight[0] > 0) & (own.weight[0] == 0)
+    half = shading_geometry(n, obs.probe_lights, torch.ones(2, 3), obs.probe_cameras, (1.0, 1.0)).half
+    glint = lambda fld: torch.exp(-((fld.normal.unsqueeze(0) - half) ** 2).sum(1) / (2 * 0.05**2)).amax(0)  # noqa: E731
+    amp = lambda fld: fld.weight[0] * fld.color.mean(0) * glint(fld)  # noqa: E731
+    assert bool(fill.any()) and float(amp(f)[fill].max()) < obs.detect_amp
+    dropped = (stat.weight[0] > 0) & (f.weight[0] == 0) & (own.weight[0] == 0)
+    faint = dropped & (glint(stat) < PROBED_GLINT)  # what the fixed glint-factor cut kept
+    assert bool(faint.any()) and float(amp(stat)[faint].max()) >= obs.detect_amp
+
+
+def test_detect_amp_from_detections_and_saved(tmp_path):
+    from torchmetal.flakes.observed import _detect_amp
+    from torchmetal.flakes.results import Particles
+
+    one = torch.ones(3)
+    p = Particles(shot=torch.tensor([0, 1, 2]), area=2 * one, cy=one, cx=one, major=4 * one, minor=4 * one, angle=0 * one,
+                  rgb=torch.full((3, 3), 0.5), lab=torch.zeros(3, 3), peak=torch.full((3, 3), 0.5),
+                  amp=torch.tensor([0.1, 0.2, 0.3]), snr=torch.tensor([5.0, 10.0, 30.0]), flux=one,
+                  sigma=torch.tensor([0.02, 0.02, 0.01]))
+    assert _detect_amp(p) == pytest.approx(5.0 * 0.02)  # the detector's threshold × the median σ
+    back = load_material(save_material(_material(_obs(detect_amp=0.1)), tmp_path / "mat")).observed_flakes
+    assert back.detect_amp == pytest.approx(0.1)
+    with pytest.raises(MaterialError, match="detect_amp"):
+        _obs(detect_amp=-1.0)
 
 
 def test_render_glint_where_the_flake_is_and_continuous():
@@ -150,13 +192,13 @@ def test_zoo_flakes_b_observed_beats_none_and_statistical(flakes_b):
     case, res = flakes_b
     m = res.material
     choice = res.report["flakes"]["observed_choice"]
-    assert choice["kept"] and len(choice["held"]) == 2, choice  # the left-out shots chose them
+    assert choice["kept"] and len(choice["held"]) == HELD, choice  # the left-out shots chose them
     assert m.observed_flakes is not None and len(m.observed_flakes) > 50
     sc = score_observed(case, m)
     assert sc["observed"]["psnr"] >= sc["none"]["psnr"] + 1.0, sc
     assert sc["observed"]["psnr"] >= sc["statistical"]["psnr"] + 2.0, sc
     assert sc["observed"]["within_2px"] >= 0.5, sc
-    assert 0.7 <= sc["observed"]["count_ratio"] <= 1.3, sc
+    assert 0.8 <= sc["observed"]["count_ratio"] <= 1.25, sc  # the issue's bound (fill thinned by detect_amp)
     assert sc["statistical"]["within_2px"] <= 0.1, sc  # random places: what the observed flakes fix
 
 

@@ -22,7 +22,7 @@ from dataclasses import replace
 
 import torch
 
-HELD = 2  # left-out shots (the ones with the most associated detections)
+HELD = 4  # left-out shots (the ones with the most associated detections)
 
 
 def _held_shots(particles, flake_id: torch.Tensor, num_shots: int, count: int) -> list[int]:
