@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _robust_scale, _Spec, _theta_of, _work_dtype,
+    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _pass_setup, _robust_scale, _theta_of,
 )
 
 FLAT_P = 1e-3  # the test's false-alarm rate on a flat pixel
@@ -34,12 +34,8 @@ FLAT_TILT_MAX = 0.0875  # tan 5°: steeper estimates are kept whatever the test 
 def flat_where_unresolved(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
                           active: Tensor | None = None) -> tuple[Tensor, int]:
     """Normals (3, H, W) with (0, 0, 1) where the test above keeps flat; returns them and the count."""
-    dt = _work_dtype(capture)
+    dt, spec, act, floor = _pass_setup(capture, s, alpha, active)
     w = capture.width
-    s, alpha = s.to(dt).reshape(3), alpha.to(dt).reshape(3)
-    spec = _Spec(s, alpha) if bool((s > 0).any()) else None
-    act = capture.mask[0] if active is None else active
-    floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
     out = normals.clone()
     count = 0
     for r0, r1, keep, sub in _active_blocks(capture, act, dt):

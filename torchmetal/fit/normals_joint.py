@@ -44,7 +44,7 @@ def joint_refine(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: i
         normals (3, H, W), s (3,), α (3,) and a report (iterations, accepted steps, the scales).
     """
     dt = _work_dtype(capture)
-    h, w = capture.height, capture.width
+    w = capture.width
     s0, a0 = s.to(dt).reshape(3), alpha.to(dt).reshape(3)
     if not bool((s0 > 0).any()):
         return normals, s, alpha, {"skipped": "no specular (s = 0)"}

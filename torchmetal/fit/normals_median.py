@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _normals_of, _robust_scale, _Spec, _theta_of, _work_dtype,
+    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _normals_of, _pass_setup, _robust_scale, _theta_of,
 )
 
 WINDOW = 5
@@ -48,12 +48,8 @@ def _truncated_cost(sub, th: Tensor, spec, sigma: Tensor) -> Tensor:
 def median_where_as_good(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
                          active: Tensor | None = None) -> tuple[Tensor, int]:
     """Normals (3, H, W) with the neighbourhood median taken where it costs no more; and the count."""
-    dt = _work_dtype(capture)
+    dt, spec, act, floor = _pass_setup(capture, s, alpha, active)
     h, w = capture.height, capture.width
-    s, alpha = s.to(dt).reshape(3), alpha.to(dt).reshape(3)
-    spec = _Spec(s, alpha) if bool((s > 0).any()) else None
-    act = capture.mask[0] if active is None else active
-    floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
     theta = _theta_of(normals.to(dt).reshape(3, -1)).view(2, h, w)
     med = _median_theta(theta, act)
     out = normals.clone()

@@ -143,6 +143,18 @@ class _Spec:
         return torch.where(inside, spec, zero), torch.where(inside, dspec, zero)
 
 
+def _pass_setup(capture, s: Tensor, alpha: Tensor, active: Tensor | None):
+    """The common start of a per-pixel pass over the normals: the work dtype, the specular terms
+    (None when s = 0 everywhere), the pixels that may change (H, W) (default the mask) and the
+    cost floor (1e-6 of the brightest value)."""
+    dt = _work_dtype(capture)
+    s, alpha = s.to(dt).reshape(3), alpha.to(dt).reshape(3)
+    spec = _Spec(s, alpha) if bool((s > 0).any()) else None
+    act = capture.mask[0] if active is None else active
+    floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
+    return dt, spec, act, floor
+
+
 def _model(ch: _Chunk, theta: Tensor, spec: _Spec | None, w: Tensor, jac: bool = True,
            glob: bool = False) -> _State:
     """Residuals, the closed-form texture (weighted least squares with the weights w (N, 1, P)),
@@ -364,7 +376,7 @@ def refine_normals(
         normals (3, H, W) and a report (LM iterations, mean robust cost per pixel).
     """
     dt = _work_dtype(capture)
-    h, w = capture.height, capture.width
+    w = capture.width
     cands = []
     for nrm, s, al in candidates:
         s = torch.as_tensor(s).to(device=nrm.device, dtype=dt).reshape(3)

@@ -33,7 +33,7 @@ from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
     _active_blocks, _best_of, CAUCHY_C, _model, _normals_of, PROPAGATE, _refine_kept, _robust_cost, _robust_scale,
-    _shifted, _Spec, _subset, _theta_of, _work_dtype,
+    _pass_setup, _shifted, _subset, _theta_of,
 )
 
 RESTART_K = 3.0  # a pixel costing more than this × its chunk's median robust cost gets the grid of starts
@@ -61,12 +61,8 @@ def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, it
     Returns:
         normals (3, H, W) and a report: pixels restarted, restarts kept, propagation passes, moves.
     """
-    dt = _work_dtype(capture)
+    dt, spec, act, floor = _pass_setup(capture, s, alpha, active)
     h, w = capture.height, capture.width
-    s, alpha = s.to(dt).reshape(3), alpha.to(dt).reshape(3)
-    spec = _Spec(s, alpha) if bool((s > 0).any()) else None
-    act = capture.mask[0] if active is None else active
-    floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
     theta = _theta_of(normals.to(dt).reshape(3, -1))  # (2, H·W)
     cost = torch.zeros(h * w, dtype=dt, device=theta.device)
     grid = _grid(dt, theta.device)
