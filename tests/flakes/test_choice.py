@@ -29,7 +29,8 @@ def _capture(n: int = 4, h: int = 24, w: int = 24):
     normals[2] = 1.0
     lights = torch.tensor([[0.1 * k, 0.0, 1.0, 1.0] for k in range(n)])
     return SimpleNamespace(images=torch.zeros(n, 3, h, w), normals=normals, size=(1.0, 1.0), lights=lights,
-                           intensities=torch.ones(n, 3), cameras=torch.tensor([[0.0, 0.0, 2.0, 1.0]] * n), num_shots=n)
+                           intensities=torch.ones(n, 3), cameras=torch.tensor([[0.0, 0.0, 2.0, 1.0]] * n), num_shots=n,
+                           mask=torch.ones(1, h, w, dtype=torch.bool), saturated=torch.zeros(n, 3, h, w, dtype=torch.bool))
 
 
 def test_held_shots_are_those_with_most_associated_detections():

@@ -9,7 +9,9 @@ each associated flake of the flake stage (:class:`~torchmetal.flakes.results.Fla
 - position: the amplitude-weighted mean centroid of its detections (px, pixel i spans [i, i+1));
 - footprint: an ellipse of the brightest detection's flux/peak area, aspect and angle, drawn with
   the statistical field's anti-aliased ramp (Σ weight = area);
-- normal: the amplitude-weighted mean of the unit half vectors of the shots where it glints;
+- normal: the amplitude-weighted mean of the unit half vectors of the shots where it glints, refined
+  by their amplitude ratios, then placed by the flakes' known brightness and the shots that missed it
+  (:func:`~torchmetal.flakes.placement.place_normals`: a faint glint is a flake seen at its tail);
 - colour: the least-squares glint reflectance c of the detections' peak colours, given the
   footprint's peak weight and each shot's glint factor exp(−|m − h|² / 2σ_g²).
 
@@ -39,6 +41,7 @@ from torch import Tensor
 from torchmetal.errors import MaterialError
 from torchmetal.flakes.field import FlakeField, cell_size, flake_field, hash_uniform
 from torchmetal.flakes.model import MAX_COLOR, FlakeModel
+from torchmetal.flakes.placement import MIN_AMP_STD, place_normals
 from torchmetal.geometry import normalize, shading_geometry
 
 __all__ = ["ObservedFlakes", "observed_flakes", "observed_field", "material_flake_field", "PROBED_GLINT",
@@ -265,6 +268,17 @@ def observed_flakes(capture, particles, flake_id: Tensor, model: FlakeModel) -> 
     normal = normalize(torch.zeros(j, 3, dtype=dt).index_add_(0, fid, amp.unsqueeze(1) * hk), dim=1)
     sig = float(model.glint_sigma)
     normal = _refine_normals(normal, hk, fid, amp, p.snr.to(dt), sig)
+    detect_amp = _detect_amp(particles)
+    prior = (model.extra.get("log_amp_mean"), model.extra.get("log_amp_std"))
+    if detect_amp is not None and None not in prior:  # the flakes' brightness places tail-seen ones
+        n_shot = half.shape[0]
+        flat = p.shot * j + fid  # a flake detected twice in a shot: its brightest detection
+        det = torch.zeros(n_shot * j, dtype=torch.bool).index_fill_(0, flat, True).view(n_shot, j)
+        log_a = torch.full((n_shot * j,), -50.0, dtype=dt).scatter_reduce(0, flat, torch.log(amp), "amax").view(n_shot, j)
+        wt = torch.zeros(n_shot * j, dtype=dt).scatter_reduce(0, flat, p.snr.to(dt).clamp(1.0, 100.0) ** 2, "amax")
+        valid = capture.mask[0, row, col].cpu().unsqueeze(0) & ~capture.saturated[:, :, row, col].any(1).cpu()
+        normal = place_normals(normal, half, det, valid, log_a, wt.view(n_shot, j), sig, float(prior[0]),
+                               float(prior[1]), detect_amp)
     # colour: peak colour = c · w_peak · g_k  →  least squares over the detections
     g = torch.exp(-((normal[fid] - hk) ** 2).sum(1) / (2.0 * sig * sig))  # (P,)
     flake, _, wt = _footprints(torch.stack([cy, cx], 1), axes, b.angle.to(dt), h, w)
@@ -273,15 +287,21 @@ def observed_flakes(capture, particles, flake_id: Tensor, model: FlakeModel) -> 
     den = torch.zeros(j, dtype=dt).index_add_(0, fid, g * g).clamp_min(1e-12)
     color = num / (den * w_peak).unsqueeze(1)
     # a glint factor ≥ 1/2 at the brightest detection: c ≤ 2·peak/w_peak (a normal placed far off
-    # the detections' half vectors must not turn a faint detection into a bright flake)
+    # the detections' half vectors must not turn a faint detection into a bright flake), or, with the
+    # flakes' brightness known, up to its mean + 2 spreads (a flake placed by it)
     top = torch.zeros(j, 3, dtype=dt).scatter_reduce_(0, fid.view(-1, 1).expand(-1, 3), p.peak.to(dt).clamp_min(0.0), "amax")
-    color = torch.minimum(color, 2.0 * top / w_peak.unsqueeze(1)).clamp(0.0, MAX_COLOR)
+    scale = torch.full((j,), 2.0, dtype=dt)
+    if detect_amp is not None and None not in prior:
+        a_top = torch.zeros(j, dtype=dt).scatter_reduce(0, fid, amp, "amax")
+        bright = math.exp(float(prior[0]) + 2.0 * max(float(prior[1]), MIN_AMP_STD))
+        scale = torch.maximum(scale, bright / a_top)
+    color = torch.minimum(color, scale.unsqueeze(1) * top / w_peak.unsqueeze(1)).clamp(0.0, MAX_COLOR)
     f32 = torch.float32
     position = torch.stack([cy, cx], 1)
     return ObservedFlakes(
         position=position.to(f32), axes=axes.to(f32), angle=b.angle.to(f32), normal=normal.to(f32),
         color=color.to(f32), probe_lights=capture.lights.to(f32).cpu(), probe_cameras=capture.cameras.to(f32).cpu(),
-        shape=(h, w), density=_density_map(position, h, w), detect_amp=_detect_amp(particles),
+        shape=(h, w), density=_density_map(position, h, w), detect_amp=detect_amp,
     )
 
 
