@@ -25,6 +25,7 @@ from dataclasses import dataclass, field, fields, replace
 import torch
 from torch import Tensor
 
+from torchmetal import lbfgs
 from torchmetal.errors import InputError
 from torchmetal.flakes.association import FlakeObservations, _particle_pixels, associate, measurable, observe
 from torchmetal.flakes.detect import Detection
@@ -170,22 +171,21 @@ def fit_glints(
     # point (fresh curvature memory) until a run gains less than 0.05 in the loss
     for _ in range(restarts + 1):
         start_loss, start = best[0], best[1]
-        z = torch.zeros(4, dtype=torch.float64, device=dev, requires_grad=True)
-        opt = torch.optim.LBFGS([z], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=1e-5, tolerance_change=tol)
 
-        def closure():
-            opt.zero_grad()
-            theta = start + z
-            loss, expected = _objective(grid, sub, theta, prior, nodes)
+        def loss_grad(z: Tensor) -> tuple[float, Tensor]:
+            theta = (start + z).requires_grad_(True)
+            with torch.enable_grad():
+                loss, expected = _objective(grid, sub, theta, prior, nodes)
+                g = torch.autograd.grad(loss, theta)[0].masked_fill(~free, 0.0)
             evals[0] += 1
-            loss.backward()
-            z.grad.masked_fill_(~free, 0.0)
-            if float(loss.detach()) < best[0]:  # keep the best point visited (line searches may end off it)
-                best[:] = [float(loss.detach()), theta.detach().clone(), float(expected.detach()), z.grad.detach().clone()]
-            return loss
+            value = float(loss.detach())
+            if value < best[0]:  # keep the best point visited (line searches may end off it)
+                best[:] = [value, theta.detach().clone(), float(expected.detach()), g.clone()]
+            return value, g
 
-        opt.step(closure)
-        iters += int(opt.state[opt._params[0]].get("n_iter", 0))
+        _, n = lbfgs.minimize(loss_grad, torch.zeros(4, dtype=torch.float64, device=dev), max_iter=max_iter,
+                              tolerance_grad=1e-5, tolerance_change=tol)
+        iters += n
         if start_loss - best[0] < 0.05:
             break
     loss, th, expected, grad = best
