@@ -18,6 +18,7 @@ def test_every_kind_builds_what_it_says():
         assert ("observed" in name) == (getattr(m, "observed_flakes", None) is not None), name
         assert ("gloss" in name) == (getattr(m, "gloss_s", None) is not None), name
         assert m.lobe == ("blinn" if "blinn" in name else "ggx" if "ggx" in name else "phong")
+        assert ("one α" in name) == bool((m.alpha == m.alpha[0]).all()), name
 
 
 def test_run_kind_times_and_profiles(monkeypatch):

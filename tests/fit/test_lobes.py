@@ -71,6 +71,24 @@ def test_fit_recovers_its_lobe(lobe, alpha):
                                                                                               cap.cameras))
 
 
+def test_ggx_shares_alpha_only_where_the_channels_agree():
+    """One true GGX roughness (noisy photos): one α for the three channels, which the renderer draws
+    as one fraction; three different α: kept per channel (the χ² test of share_alpha)."""
+    from torchmetal.renderer import MaterialRenderer
+
+    cap, _, _, _ = lobe_capture("ggx", alpha=(100.0, 100.0, 100.0))
+    noisy = replace(cap, images=cap.images * (1 + 0.01 * torch.randn(cap.images.shape, generator=torch.Generator().manual_seed(2),
+                                                                        dtype=cap.images.dtype)))
+    fit = fit_phong(noisy, lobe="ggx", specular="global")
+    assert bool((fit.alpha == fit.alpha[0]).all()) and abs(float(fit.alpha[0]) / 100.0 - 1.0) < 0.02, fit.alpha
+    assert any("per-channel α not kept" in x for x in fit.skipped)
+    assert MaterialRenderer(fit.to_material()).alpha_uniform
+    cap3, _, _, a_t = lobe_capture("ggx", alpha=(60.0, 100.0, 140.0))
+    fit3 = fit_phong(cap3, lobe="ggx", specular="global")
+    assert float(((fit3.alpha.double() - a_t) / a_t).abs().max()) < 1e-3
+    assert not any("per-channel α not kept" in x for x in fit3.skipped)
+
+
 def test_bad_lobe_arguments():
     cap, _, _, _ = lobe_capture("phong", size=8, shots=3)
     with pytest.raises(InputError, match="lobe: expected one of"):

@@ -37,6 +37,7 @@ KINDS: dict[str, tuple[str, str, bool, str]] = {
     "bumpy · clustered · flakes": ("bumpy", "clustered", True, "phong"),
     "flat · global · blinn": ("flat", "global", False, "blinn"),
     "flat · global · ggx": ("flat", "global", False, "ggx"),
+    "flat · global · ggx · one α": ("flat", "global", False, "ggx"),  # what the fit keeps where the channels agree
 }
 
 
@@ -100,7 +101,8 @@ def make_material(kind: str, size: int):
         yy = torch.arange(size).reshape(-1, 1).expand(size, size)
         kw = dict(spec_labels=(yy * 3 // size).long(), cluster_s=torch.tensor([[0.5] * 3, [0.2] * 3, [0.9] * 3]),
                   cluster_alpha=torch.tensor([[80.0] * 3, [20.0] * 3, [300.0] * 3]))
-    return Material(texture=texture, s=torch.tensor([0.5, 0.45, 0.4]), alpha=torch.tensor([80.0, 100.0, 120.0]),
+    alpha = torch.tensor([100.0] * 3 if kind.endswith("one α") else [80.0, 100.0, 120.0])
+    return Material(texture=texture, s=torch.tensor([0.5, 0.45, 0.4]), alpha=alpha,
                     size=(0.1, 0.1), normals=normals, flakes=FlakeModel(density=0.003) if flakes else None,
                     lobe=lobe, **kw)
 
