@@ -50,23 +50,29 @@ def test_footprint_area_and_place():
     assert float(w[0, 0]) == 0.0 and torch.equal(f.normal[:, 0, 0], n[:, 0, 0])
 
 
-def test_fill_skips_observed_pixels_and_probed_normals():
-    obs = _obs()
+def _fill_fields(obs):
+    """The statistical field alone, the material's field, the observed flakes' own field, the fill
+    pixels (material field, not observed) and the fit shots' half vectors (2, 3, H, W), on 32² flat."""
+    from torchmetal.flakes.field import flake_field
+    from torchmetal.geometry import shading_geometry
+
     n = torch.zeros(3, 32, 32)
     n[2] = 1
     m = FlakeModel(density=0.1, glint_sigma=0.05, tilt_sigma=0.3)
-    from torchmetal.flakes.field import flake_field
-
     stat = flake_field(m, 32, 32, n)
     f = material_flake_field(m, obs, 32, 32, n, (1.0, 1.0))
     own = observed_field(obs, 32, 32, n, 0.05)
     fill = (f.weight[0] > 0) & (own.weight[0] == 0)
+    half = shading_geometry(n, obs.probe_lights, torch.ones(2, 3), obs.probe_cameras, (1.0, 1.0)).half
+    return stat, f, own, fill, half
+
+
+def test_fill_skips_observed_pixels_and_probed_normals():
+    from torchmetal.flakes.observed import PROBED_GLINT
+
+    stat, f, own, fill, half = _fill_fields(_obs())
     assert bool(fill.any()) and int(fill.sum()) < int((stat.weight[0] > 0).sum())
     # no fill pixel's normal is within the glint width of a fit shot's half vector there
-    from torchmetal.flakes.observed import PROBED_GLINT
-    from torchmetal.geometry import shading_geometry
-
-    half = shading_geometry(n, obs.probe_lights, torch.ones(2, 3), obs.probe_cameras, (1.0, 1.0)).half  # (2, 3, H, W)
     g = torch.exp(-((f.normal.unsqueeze(0) - half) ** 2).sum(1) / (2 * 0.05**2)).amax(0)
     assert float(g[fill].max()) < PROBED_GLINT
     # and the statistical field had flakes there that were dropped for it
@@ -78,19 +84,10 @@ def test_fill_drops_flakes_a_fit_shot_would_have_detected():
     """The cause of flakes_b's excess sparkles (count ratio 1.28): fill flakes glinting in a fit shot at a
     factor below 1/2 but far above the detector's floor were kept, doubling the flakes the fit shots
     saw off their glint peak. With ``detect_amp`` no kept fill flake would have been detected."""
-    from torchmetal.flakes.field import flake_field
     from torchmetal.flakes.observed import PROBED_GLINT
-    from torchmetal.geometry import shading_geometry
 
     obs = _obs(detect_amp=0.02)
-    n = torch.zeros(3, 32, 32)
-    n[2] = 1
-    m = FlakeModel(density=0.1, glint_sigma=0.05, tilt_sigma=0.3)
-    stat = flake_field(m, 32, 32, n)
-    f = material_flake_field(m, obs, 32, 32, n, (1.0, 1.0))
-    own = observed_field(obs, 32, 32, n, 0.05)
-    fill = (f.weight[0] > 0) & (own.weight[0] == 0)
-    half = shading_geometry(n, obs.probe_lights, torch.ones(2, 3), obs.probe_cameras, (1.0, 1.0)).half
+    stat, f, own, fill, half = _fill_fields(obs)
     glint = lambda fld: torch.exp(-((fld.normal.unsqueeze(0) - half) ** 2).sum(1) / (2 * 0.05**2)).amax(0)  # noqa: E731
     amp = lambda fld: fld.weight[0] * fld.color.mean(0) * glint(fld)  # noqa: E731
     assert bool(fill.any()) and float(amp(f)[fill].max()) < obs.detect_amp
