@@ -214,7 +214,7 @@ def fit_clustered(obs: Observations, labeler: Labeler, glob: SpecFit, *, tol: fl
     return fit
 
 
-RELABEL_GAIN = 25.0  # a pixel changes cluster when that lowers its cost by > 25 median per-observation costs (5 σ)
+RELABEL_GAIN = 25.0  # a pixel changes cluster when that lowers its cost by > 25 mean per-observation costs (5 σ)
 RELABEL_ROUNDS = 2
 
 
@@ -330,8 +330,12 @@ def _relabel_helps(obs: Observations, ho: Observations, labeler: Labeler, glob: 
     obs.labels = labeler(obs.tmin, ij)
     try:
         fit = fit_clustered(obs, labeler, glob, tol=tol, max_iters=max_iters)
-        fit, moved = relabel_pixels(obs, fit, lambda o, f: fit_specular(o, torch.log(f.alpha), tol=tol,
-                                                                           max_iters=max_iters))
+        s_fix = b_fix = None
+        if fit.pinned is not None:  # clusters without evidence keep the global terms, as in the full fit
+            nan = torch.full_like(fit.s, math.nan)
+            s_fix, b_fix = torch.where(fit.pinned, fit.s, nan), torch.where(fit.pinned, torch.log(fit.alpha), nan)
+        fit, moved = relabel_pixels(obs, fit, lambda o, f: fit_specular(o, torch.log(f.alpha), tol=tol, max_iters=max_iters,
+                                                                           s_fixed=s_fix, beta_fixed=b_fix))
         if moved == 0:
             return False
         mse["relabel"] = heldout_mse(ho, texture_map(obs, fit.s, fit.eb), fit.s, fit.alpha, obs.labels)
