@@ -481,7 +481,7 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
             fit, moved = relabel_pixels(full, fit, lambda obs, f: fit_specular(
                 obs, torch.log(f.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix))
             run.log("relabel", 1, math.sqrt(float(fit.cost.sum()) / max(1.0, float(full.n.double().sum()))), 1.0, moved)
-    if lobe == "ggx" and not use_maps:  # one roughness for the three channels, where the data allow it
+    if lobe == "ggx" and not use_maps and s_fix is None:  # one roughness for the three channels, where the data allow it
         with run.stage("refine"):
             fit, shared = share_alpha(full, fit)
         if shared["shared"]:
