@@ -47,9 +47,11 @@ def minimize(value_grad: Callable[[Tensor], tuple[float, Tensor]], x0: Tensor, *
             s = d * t
             ys = y.dot(s)
             if ys > 1e-10:
-                if len(dirs) == history_size:
-                    dirs.pop(0), steps.pop(0), ro.pop(0)
-                dirs.append(y), steps.append(s), ro.append(1.0 / ys)
+                if len(dirs) == history_size:  # limited memory: drop the oldest pair
+                    del dirs[0], steps[0], ro[0]
+                dirs.append(y)
+                steps.append(s)
+                ro.append(1.0 / ys)
                 h_diag = ys / y.dot(y)
             q = grad.neg()
             al = [None] * len(dirs)
