@@ -36,7 +36,7 @@ from torchmetal.fit.problem import (
 )
 from torchmetal.fit.refine import (
     ALPHA_MIN, SpecFit, evaluate_specular, fill_unobserved, fit_specular, grid_beta, pixel_map, residual_scale, texture_map,
-    share_alpha, unobserved,
+    pinned_terms, share_alpha, unobserved,
 )
 from torchmetal.fit.result import FitResult, IterationCounts
 from torchmetal.lobes import LOBES, check_lobe
@@ -466,11 +466,8 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
     with run.stage("refine"):
         k = spec.k
         s_fix, b_fix = None, None
-        if labeler is not None:
-            pinned = spec.pinned  # clusters without evidence keep the global terms
-            if pinned is not None and bool(pinned.any()):
-                s_fix = torch.where(pinned, spec.s, torch.full_like(spec.s, math.nan))
-                b_fix = torch.where(pinned, torch.log(spec.alpha), torch.full_like(spec.s, math.nan))
+        if labeler is not None:  # clusters without evidence keep the global terms
+            s_fix, b_fix = pinned_terms(spec.pinned, spec.s, spec.alpha)
         elif s_fixed is not None:
             s_fix = s_fixed
         fit = fit_specular(full, torch.log(spec.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix,

@@ -24,7 +24,7 @@ from torch import Tensor
 from torchmetal.fit.lm import solve_2x2
 from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, weighted
-from torchmetal.fit.refine import SpecFit, fit_specular, pixel_map, spec_sums, texture_map
+from torchmetal.fit.refine import SpecFit, fit_specular, pinned_terms, pixel_map, spec_sums, texture_map
 
 EVIDENCE_REL = 1e-3  # the specular term must explain this fraction of the diffuse-only residual…
 EVIDENCE_ABS = 1e-6  # …and this fraction of Σ w·y²
@@ -206,8 +206,7 @@ def fit_clustered(obs: Observations, labeler: Labeler, glob: SpecFit, *, tol: fl
     ok = evidence(fit)
     if bool(ok.all()):
         return fit
-    s_fix = torch.where(ok, torch.full_like(fit.s, math.nan), glob.s.expand(k, 3))
-    b_fix = torch.where(ok, torch.full_like(fit.s, math.nan), torch.log(glob.alpha).expand(k, 3))
+    s_fix, b_fix = pinned_terms(~ok, glob.s.expand(k, 3), glob.alpha.expand(k, 3))
     fit = fit_specular(obs, torch.where(ok, torch.log(fit.alpha), b_fix), tol=tol, max_iters=max_iters,
                        s_fixed=s_fix, beta_fixed=b_fix)
     fit.pinned = ~ok
@@ -330,10 +329,7 @@ def _relabel_helps(obs: Observations, ho: Observations, labeler: Labeler, glob: 
     obs.labels = labeler(obs.tmin, ij)
     try:
         fit = fit_clustered(obs, labeler, glob, tol=tol, max_iters=max_iters)
-        s_fix = b_fix = None
-        if fit.pinned is not None:  # clusters without evidence keep the global terms, as in the full fit
-            nan = torch.full_like(fit.s, math.nan)
-            s_fix, b_fix = torch.where(fit.pinned, fit.s, nan), torch.where(fit.pinned, torch.log(fit.alpha), nan)
+        s_fix, b_fix = pinned_terms(fit.pinned, fit.s, fit.alpha)  # clusters without evidence: global terms
         fit, moved = relabel_pixels(obs, fit, lambda o, f: fit_specular(o, torch.log(f.alpha), tol=tol, max_iters=max_iters,
                                                                            s_fixed=s_fix, beta_fixed=b_fix))
         if moved == 0:

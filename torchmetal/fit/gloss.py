@@ -38,7 +38,7 @@ from torchmetal.fit.clusters import MIN_GAIN, MIN_GAIN_ABS, colour_features, hel
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations
 from torchmetal.fit.refine import (
-    ALPHA_MAX, ALPHA_MIN, BETA_MAX, BETA_MIN, SpecFit, fit_specular, pixel_map, spec_sums, texture_map,
+    ALPHA_MAX, ALPHA_MIN, BETA_MAX, BETA_MIN, SpecFit, fit_specular, pinned_terms, pixel_map, spec_sums, texture_map,
 )
 
 __all__ = ["GlossMaps", "fit_gloss_maps", "choose_maps", "MapsSelection", "RADIUS", "PRIOR", "SIGMA_GUIDE"]
@@ -247,10 +247,7 @@ def choose_maps(
                              ref=base, weighting=weighting, want_tmin=True, labeler=labeler, lobe=lobe)
     ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk, lobe=lobe)
     k = base.k
-    s_fix = b_fix = None
-    if pinned is not None and bool(pinned.any()):  # clusters without evidence keep the global terms
-        nan = torch.full_like(base.s, math.nan)
-        s_fix, b_fix = torch.where(pinned, base.s, nan), torch.where(pinned, torch.log(base.alpha), nan)
+    s_fix, b_fix = pinned_terms(pinned, base.s, base.alpha)  # clusters without evidence keep the global terms
     g: SpecFit = fit_specular(obs, torch.log(base.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix)
     lab = obs.labels if k > 1 else None
     mse = {"base": heldout_mse(ho, texture_map(obs, g.s, g.eb), g.s, g.alpha, lab)}

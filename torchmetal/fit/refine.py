@@ -208,6 +208,15 @@ def fit_specular(
     )
 
 
+def pinned_terms(pinned: Tensor | None, s: Tensor, alpha: Tensor) -> tuple[Tensor | None, Tensor | None]:
+    """``s_fixed``, ``beta_fixed`` (K, 3) of :func:`fit_specular` holding the ``pinned`` (K, 3) elements
+    at s and log α (K, 3), NaN (free) elsewhere; (None, None) when nothing is pinned."""
+    if pinned is None or not bool(pinned.any()):
+        return None, None
+    nan = torch.full_like(s, math.nan)
+    return torch.where(pinned, s, nan), torch.where(pinned, torch.log(alpha), nan)
+
+
 def evaluate_specular(obs: Observations, s: Tensor | None, alpha: Tensor) -> SpecFit:
     """Cost and e_b at fixed α (K, 3); s optimal per element, or fixed where ``s`` is given."""
     k = int(alpha.shape[0])

@@ -36,7 +36,7 @@ from torchmetal.fit.api import FitRun, subsample_decisions
 from torchmetal.fit.clusters import RELABEL_ROUNDS, LabelMap
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Reference, compute_dtype
-from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms
+from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms, pinned_terms
 from torchmetal.fit.result import FitResult
 from torchmetal.scale.tile_tasks import _OPEN, TilePasses
 from torchmetal.scale.tiled_texture import SeenStats, fill_tiles
@@ -228,11 +228,8 @@ def _fit(cap: TiledCapture, run: FitRun, bar, *, tile, specular, tol, max_iters,
     status, cost, s, alpha = "converged", None, None, None
     if spec is not None:
         s_fix = b_fix = None
-        if labeler is not None:
-            pinned = spec.pinned
-            if pinned is not None and bool(pinned.any()):
-                s_fix = torch.where(pinned, spec.s, torch.full_like(spec.s, math.nan))
-                b_fix = torch.where(pinned, torch.log(spec.alpha), torch.full_like(spec.s, math.nan))
+        if labeler is not None:  # clusters without evidence keep the global terms
+            s_fix, b_fix = pinned_terms(spec.pinned, spec.s, spec.alpha)
         elif s_fixed is not None:
             s_fix = s_fixed
 
