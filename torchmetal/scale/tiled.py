@@ -32,12 +32,13 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
-from torchmetal.fit.api import FitRun, subsample_decisions
 from torchmetal.fit.clusters import RELABEL_ROUNDS, LabelMap
+from torchmetal.fit.decisions import subsample_decisions
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Reference, compute_dtype
 from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms, pinned_terms
 from torchmetal.fit.result import FitResult
+from torchmetal.fit.run import FitRun
 from torchmetal.scale.tile_tasks import _OPEN, TilePasses
 from torchmetal.scale.tiled_texture import SeenStats, fill_tiles
 from torchmetal.scale.tiles import TiledCapture
@@ -163,7 +164,7 @@ def fit_tiled(
 
 def _subsample_decisions(cap, run: FitRun, *, specular, tol, max_iters, clusters, chunk, sub_pixels, select_pixels, seed):
     """Steps 1–4b of ``fit_phong``'s refine scheme (least squares, Phong) on the strided subsamples, by
-    :func:`~torchmetal.fit.api.subsample_decisions` itself: returns (spec fit or None, labeler or None,
+    :func:`~torchmetal.fit.decisions.subsample_decisions` itself: returns (spec fit or None, labeler or None,
     s_fixed or None, selection info or None). Gloss maps that win are refused (one line)."""
     d = subsample_decisions(cap, run, specular=specular, tol=tol, max_iters=max_iters, robust=None, outliers=None,
                             clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed)

@@ -1,0 +1,207 @@
+"""Steps 1–4b of ``fit_phong``'s refine scheme (:mod:`torchmetal.fit.api`), on strided pixel subsamples:
+the paper's scheme as init, the subsample fit with its weights, the highlight evidence, global vs
+clustered specular and gloss maps — everything decided before the full-resolution solve, shared by
+the in-memory fit and the tiled one (:mod:`torchmetal.scale.tiled`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchmetal.fit.clusters import Labeler, Selection, choose_specular, evidence, fit_clustered, heldout_evidence
+from torchmetal.fit.gloss import choose_maps
+from torchmetal.fit.lobe_choice import LOBE_GRID
+from torchmetal.fit.lobes import lobe_factor
+from torchmetal.fit.paper import paper_scheme
+from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, compute_dtype, grid_stride
+from torchmetal.fit.refine import SpecFit, evaluate_specular, fit_specular, grid_beta, residual_scale
+from torchmetal.fit.run import FitRun
+
+SIGMA_FLOOR = 1e-5  # residual scale floor, relative to the largest pixel value
+INIT_TOL = 1e-3  # the paper's scheme as init: |ΔErr| ≤ 1e-3·Err …
+INIT_ITERS = 10  # … or 10 iterations
+OUTLIER_SKIP = 1e-5  # fewer outliers than this on the subsample: none are looked for at full resolution
+
+
+def _sigma(obs: Observations, fit: SpecFit, capture) -> Tensor:
+    sig = residual_scale(obs, fit.s, fit.alpha, fit.eb)
+    floor = SIGMA_FLOOR * float(capture.images.detach().abs().amax().clamp_min(1e-30))
+    return sig.clamp_min(floor)
+
+
+def _hold_shot(obs: Observations, fit: SpecFit) -> int:
+    """The shot whose observations carry the most specular energy (the most telling to hold out)."""
+    alpha = fit.alpha
+    energy = torch.zeros(obs.num_shots, dtype=torch.float64, device=alpha.device)
+    s3, a3 = fit.s[0].to(obs.dtype).view(1, 3, 1), alpha[0].to(obs.dtype).view(1, 3, 1)
+    for j in range(len(obs.chunks)):
+        y, g, u, L, w, inten = obs.chunk(j)
+        b = s3 * inten * u * lobe_factor(L, a3, obs.geo_chunk(j), obs.lobe)
+        energy += (w * b * b).sum((1, 2)).double()
+    return int(energy.argmax())
+
+
+@dataclass
+class SubsampleDecisions:
+    """What the refine scheme decides on strided subsamples (steps 1–4b), before the full-resolution solve."""
+
+    spec: SpecFit | None  # the global or clustered fit on the subsample (None: no specular term)
+    labeler: Labeler | None  # the kept clusters' pixel labeler (None: global or maps)
+    s_fixed: Tensor | None  # (1, 3): NaN where s is fitted, 0 in channels without highlight evidence
+    sel: Selection | None  # global vs clustered (None when not tried)
+    use_maps: bool  # the full-resolution fit gets gloss maps
+    maps_info: dict | None
+    weighting: Weighting | None  # robust weights / outlier masks for the full-resolution observations
+
+
+def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robust, outliers, clusters, chunk,
+                        sub_pixels, select_pixels, seed, lobe="phong") -> SubsampleDecisions:
+    """Steps 1–4b of the refine scheme (module docstring) on strided pixel subsamples of ``capture``
+    (any object with ``images`` (N, 3, H, W) readable by :func:`~torchmetal.fit.problem.build_observations`,
+    such as the tiled fit's memory-mapped capture): the same values bit for bit for the same pixels."""
+    imgs = capture.images
+    dt = compute_dtype(imgs)
+    n_shots, _, h, w = imgs.shape
+    stride = grid_stride(h, w, sub_pixels)
+    sub_tol = max(tol, 1e-4)
+    weigh = outliers is not None or robust is not None
+
+    # 1. init on a small subsample: the paper's scheme (loose tolerance) + a coarse α grid
+    with run.stage("init"):
+        sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk)
+        sel_stride = grid_stride(h, w, select_pixels)
+        coarse = sub if sel_stride == stride else build_observations(capture, lobe=lobe, stride=sel_stride, dtype=dt, chunk=chunk)
+    if specular == "none":
+        glob = None
+        run.skipped.append("specular: disabled by the caller (specular='none')")
+    else:
+        if lobe == "phong":
+            with run.stage("paper"):
+                pf = paper_scheme(coarse, tol=max(tol, INIT_TOL), max_iters=min(max_iters, INIT_ITERS),
+                                  on_iter=lambda st, it, r, a: run.log(st, it, r, a, coarse.num_pixels))
+        with run.stage("init"):  # other lobes: no paper scheme (its control points are Phong's), a finer α grid
+            beta0 = grid_beta(coarse, 1, extra=pf.alpha.view(1, 3)) if lobe == "phong" else grid_beta(coarse, 1, grid=LOBE_GRID)
+            del coarse
+        # 2. variable projection on the subsample, then weights and a refit
+        with run.stage("refine"):
+            glob = fit_specular(sub, beta0, tol=sub_tol, max_iters=max_iters, on_iter=run.logger("refine.sub", sub.num_pixels))
+    weighting = None
+    if weigh:
+        with run.stage("refine"):
+            if glob is None:
+                glob0 = evaluate_specular(sub, torch.zeros(1, 3, dtype=torch.float64, device=imgs.device),
+                                          torch.ones(1, 3, dtype=torch.float64, device=imgs.device))
+            else:
+                glob0 = glob
+            sigma = _sigma(sub, glob0, capture)
+            weighting = Weighting(sigma=sigma, robust=robust, outlier_k=outliers)
+            n_base = float(sub.n.double().sum())
+            for _ in range(2 if robust is not None else 1):
+                sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob0.s, glob0.alpha),
+                                         weighting=weighting)
+                if glob is None:
+                    break
+                glob = fit_specular(sub, torch.log(glob.alpha), tol=sub_tol, max_iters=max_iters,
+                                    on_iter=run.logger("refine.sub", sub.num_pixels))
+                glob0 = glob
+
+        if robust is None and weighting is not None:
+            frac = 1.0 - float(sub.n.double().sum()) / max(n_base, 1.0)
+            if frac < OUTLIER_SKIP:
+                run.skipped.append(f"outliers: {frac:.1e} of the subsample's observations beyond {outliers:g}·σ; "
+                                   "full-resolution outlier masking skipped")
+                weighting = None
+
+    # 3. highlight evidence: in sample, then on a held-out shot (a sharp lobe can fit noise)
+    s_fixed = None
+    if glob is not None:
+        ev = evidence(glob)[0]
+        reason = None
+        if not bool(ev.any()):
+            one = " (one shot cannot separate diffuse and specular)" if n_shots == 1 else ""
+            frac = float(((glob.A - glob.cost) / glob.Y.clamp_min(1e-300)).max().clamp_min(0.0))
+            reason = (f"no highlight evidence{one}: the best specular term explains {frac:.1e} of the image energy "
+                      f"({float(glob.explained().max()):.1%} of the diffuse-only residual)")
+        elif n_shots >= 3:
+            with run.stage("select"):
+                kept, mse_s, mse_d = heldout_evidence(capture, glob, stride=sel_stride, hold=_hold_shot(sub, glob),
+                                                      tol=sub_tol, max_iters=max_iters, dtype=dt, chunk=chunk,
+                                                      weighting=weighting)
+            if not kept:
+                reason = (f"no highlight evidence on a held-out shot (MSE {mse_s:.4g} with the specular term vs "
+                          f"{mse_d:.4g} diffuse only)")
+        if reason is not None:
+            run.skipped.append(f"specular: {reason}; s = 0")
+            glob = None
+        elif not bool(ev.all()):
+            chans = [c for c, e in zip("RGB", ev.tolist()) if not e]
+            run.skipped.append(f"specular: no highlight evidence in channel(s) {', '.join(chans)}; s = 0 there")
+            s_fixed = torch.where(ev, torch.full_like(glob.s[0], math.nan), torch.zeros_like(glob.s[0])).view(1, 3)
+
+    # 4. global vs clustered
+    sel: Selection | None = None
+    if glob is not None and specular in ("auto", "clustered"):
+        if n_shots < 3 and specular == "auto":
+            run.skipped.append(f"specular clusters: a held-out test needs >= 3 shots, found {n_shots}")
+        elif s_fixed is not None and specular == "auto":
+            run.skipped.append("specular clusters: not tried (some channels show no highlight)")
+        else:
+            with run.stage("select"):
+                hold = _hold_shot(sub, glob) if n_shots >= 3 else None
+                sel = choose_specular(capture, glob, candidates=clusters, stride=sel_stride, hold=hold,
+                                      force=specular == "clustered", tol=sub_tol, max_iters=max_iters, dtype=dt,
+                                      chunk=chunk, weighting=weighting, seed=seed)
+            if sel.k == 1:
+                run.skipped.append(f"specular clusters: not kept ({sel.reason})")
+    labeler: Labeler | None = sel.labeler if sel is not None and sel.k > 1 else None
+    # 4b. gloss maps (from the global fit): forced, or kept when they beat global/clustered on the held-out shot
+    use_maps, maps_info = _maps_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, sub=sub,
+                                         sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
+                                         weighting=weighting, lobe=lobe)
+    if use_maps:
+        labeler = None
+    if labeler is not None:
+        with run.stage("refine"):
+            sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
+                                     weighting=weighting, labeler=labeler, want_tmin=True)
+            spec = fit_clustered(sub, labeler, glob, tol=sub_tol, max_iters=max_iters)
+    else:
+        spec = glob
+    return SubsampleDecisions(spec, labeler, s_fixed, sel, use_maps, maps_info, weighting)
+
+
+def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, sub, sel_stride, tol, max_iters, dt, chunk,
+                   weighting, lobe) -> tuple[bool, dict | None]:
+    """Whether the full-resolution fit gets gloss maps (and the held-out evidence behind it).
+
+    The maps start from the global fit (they carry the spatial variation themselves). With
+    specular="auto" they are tried only when clusters were not kept, and must beat global on the
+    selection's held-out shot."""
+    n_shots = int(capture.images.shape[0])
+    if glob is None or specular not in ("auto", "maps"):
+        return False, None
+    if n_shots < 3:
+        if specular == "auto":
+            run.skipped.append(f"gloss maps: a held-out test needs >= 3 shots, found {n_shots}")
+            return False, None
+        return True, {"kept": True, "hold": -1, "mse": {}, "reason": "forced (specular='maps'); no shot to hold out"}
+    if s_fixed is not None and specular == "auto":
+        run.skipped.append("gloss maps: not tried (some channels show no highlight)")
+        return False, None
+    if specular == "auto" and sel is not None and sel.k > 1:  # a kept clustered result stays as it was
+        run.skipped.append("gloss maps: not tried (clustered specular kept)")
+        return False, None
+    have_sel = sel is not None and sel.hold >= 0 and sel.mse
+    hold = sel.hold if have_sel else _hold_shot(sub, glob)
+    base_mse = min(sel.mse.values()) if have_sel and sel.k > 1 else (sel.mse.get("global") if have_sel else None)
+    with run.stage("select"):
+        ms = choose_maps(capture, Reference(glob.s, glob.alpha), stride=sel_stride, hold=hold, force=specular == "maps",
+                         tol=tol, max_iters=max_iters, dtype=dt, chunk=chunk, weighting=weighting, lobe=lobe,
+                         base_mse=base_mse)
+    if not ms.kept:
+        run.skipped.append(f"gloss maps: not kept ({ms.reason})")
+    return ms.kept, ms.to_dict()
