@@ -27,7 +27,8 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchmetal.errors import InputError
-from torchmetal.flakes.prescreen import SCREEN_STRIDE, glint_screen, sampled_residual, sampled_valid
+from torchmetal.flakes.prescreen import screen_fit
+from torchmetal.memory import release_free_memory
 from torchmetal.flakes.results import FlakeStageResult, Particles
 from torchmetal.material import Material
 
@@ -71,11 +72,11 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     ``coat_fit``, the coating is ``coat_fit(capture without the detected pixels)`` — glints must
     not steer the specular (a held-out shot shows the same flakes glinting, so a "glinty" specular
     cluster wins there) — and its texture is re-solved under the detections.
-    A pixel screen (:func:`~torchmetal.flakes.prescreen.glint_screen`) goes first: when its
+    A pixel screen (:func:`~torchmetal.flakes.prescreen.screen_fit`) goes first: when its
     residual outliers are as often negative as positive, the stage stops before any detection.
     Returns (stage result, the coating's fit, its texture)."""
     t0 = time.perf_counter()
-    passed, screen = glint_screen(sampled_residual(fit, capture, SCREEN_STRIDE), sampled_valid(capture, SCREEN_STRIDE))
+    passed, screen = screen_fit(fit, capture)
     if not passed:
         report = {"skipped": ("residual outliers consistent with noise and misfit: no SNR at which positive pixels "
                               f"exceed negative ones ({screen['positive']} vs {screen['negative']} of "
@@ -185,6 +186,7 @@ def fit_material(
         stage_times["flakes"] = 0.0
     else:
         t = time.perf_counter()
+        release_free_memory()  # the fit's full-resolution observations are gone: the screen must not sit on them
         two_fits = auto and scheme == "refine"
         refit = (lambda: fit_phong(capture, robust=ROBUST_GLINTS, **kw)) if two_fits else None
         coat_fit = (lambda cap: fit_phong(cap, robust=None, **kw)) if two_fits else None

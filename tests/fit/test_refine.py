@@ -36,7 +36,7 @@ def test_skipped_stats_equal_dense_stats(tmp_path):
     # dense reference: every shot of every pixel, no skipping
     y, g, u, L, w, inten = obs.y.double(), obs.g, obs.u, obs.L, obs.w(slice(None)), obs.inten
     a, b, t = lobe_terms(g, u, L, inten, alpha[0].view(1, 3, 1))
-    eb_ref, _, st_ref = chunk_stats(y, a, b, t, w, obs.isaa)
+    eb_ref, _, st_ref = chunk_stats(y, a, b, t, w, obs.isaa())
     ref = st_ref.double().sum(-1).unsqueeze(1)  # (6, 1, 3)
     assert torch.allclose(st, ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
     assert torch.allclose(eb, eb_ref, rtol=1e-9, atol=1e-15)

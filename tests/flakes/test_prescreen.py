@@ -137,3 +137,29 @@ def test_sampled_valid_is_mask_and_no_saturated_channel(clipped):
     cap = SimpleNamespace(mask=mask, saturated=sat, num_shots=5)
     want = (mask & ~sat.any(1))[..., ::2, ::2]
     assert torch.equal(sampled_valid(cap, 2), want.expand(5, -1, -1))
+
+
+@pytest.mark.parametrize("group", [1, 3, None])
+def test_screen_in_shot_groups_equals_the_whole_screen(group):
+    """screen_fit works a few shots at a time (bounded memory); every statistic is per shot, so the
+    counts equal those of one pass over all shots rendered in the same groups (the render's rounding
+    depends on its batch: ~2e-7)."""
+    from tests.fit.helpers import replace, synth
+    from torchmetal.fit.result import FitResult
+    from torchmetal.flakes.prescreen import SCREEN_STRIDE, sampled_residual, sampled_valid, screen_fit
+
+    r = synth(size=64, shots=7, seed=2)
+    t = r.truth
+    fit = FitResult(texture=t["texture"], s=t["s"], alpha=t["alpha"], normals=r.capture.normals, size=r.capture.size)
+    g = torch.Generator().manual_seed(5)
+    img = r.capture.images.clone()
+    for _ in range(60):  # glints
+        k, i, j = int(torch.randint(7, (1,), generator=g)), *(int(v) for v in torch.randint(2, 60, (2,), generator=g))
+        img[k, :, i : i + 2, j : j + 2] += 0.5
+    mask = torch.ones_like(r.capture.mask)
+    mask[:, :5] = False
+    cap = replace(r.capture, images=img, mask=mask)
+    want = glint_screen(sampled_residual(fit, cap, SCREEN_STRIDE, chunk=group), sampled_valid(cap, SCREEN_STRIDE))
+    got = screen_fit(fit, cap, shots_per_pass=group)
+    assert got == want
+    assert want[0] and max(want[1]["positive"]) > 0

@@ -19,10 +19,12 @@ fit; the run's timers and history in :mod:`torchmetal.fit.run`.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 from torch import Tensor
 
+from torchmetal.checks import check_finite
 from torchmetal.errors import FitError, InputError
 from torchmetal.fit.clusters import heldout_mse, relabel_pixels
 from torchmetal.fit.decisions import subsample_decisions
@@ -36,6 +38,7 @@ from torchmetal.fit.refine import (
 from torchmetal.fit.result import FitResult
 from torchmetal.fit.run import FitRun
 from torchmetal.lobes import LOBES, check_lobe
+from torchmetal.memory import release_free_memory
 
 SCHEMES = ("paper", "refine")
 SPECULARS = ("auto", "global", "clustered", "maps", "none")
@@ -67,9 +70,7 @@ def _check_args(capture, scheme, specular, tol, max_iters, robust, outliers, clu
         if not isinstance(t, Tensor) or not t.is_floating_point():
             found = t.dtype if isinstance(t, Tensor) else type(t).__name__
             raise FitError(f"capture.{name}: expected a floating-point tensor, found {found}")
-        bad = ~torch.isfinite(t)
-        if bool(bad.any()):
-            raise FitError(f"capture.{name}: expected finite values, found {int(bad.sum())} non-finite of {t.numel()}")
+        check_finite(t, f"capture.{name}", FitError)  # one reduction unless something is not finite
     x = capture.images
     if x.dim() != 4 or x.shape[1] != 3 or x.shape[0] < 1:
         raise FitError(f"capture.images: expected shape (N, 3, H, W), found {tuple(x.shape)}")
@@ -85,7 +86,20 @@ def _check_finite(name: str, *xs: Tensor) -> None:
 
 
 def _rmse(fit: SpecFit, obs: Observations) -> float:
-    return math.sqrt(float(fit.cost.sum()) / max(1.0, float(obs.n.double().sum())))
+    return math.sqrt(float(fit.cost.sum()) / max(1.0, float(obs.n.sum())))
+
+
+#: above this many bytes of stored per-observation geometry (g, u, L: 12 bytes per pixel and shot, 24
+#: for GGX, + 3 of validity — more than the float32 capture itself), the full-resolution pass streams
+#: it (:class:`~torchmetal.fit.grid_terms.GridSource`). Streaming costs one geometry evaluation per
+#: pass over the pixels (measured, 1024² × 8 shots: +0.14 s on a 0.16 s pass, −0.05 s on the build);
+#: below this size the memory saved is too small to pay for that.
+STREAM_BYTES = 64 << 20
+
+
+def _stream(capture, lobe: str) -> bool:
+    n, _, h, w = capture.images.shape
+    return n * h * w * (15 + 12 * (lobe == "ggx")) > STREAM_BYTES
 
 
 def _grid_maps(x: Tensor, h: int, w: int) -> Tensor:
@@ -200,7 +214,7 @@ def _finish_texture(tex: Tensor, obs: Observations, capture, run: FitRun) -> Ten
         run.skipped.append(f"texture: {n_bad} mask pixel(s) never observed usefully (grazing, shadowed or saturated in "
                            "every shot) are inpainted from their neighbours")
         tex = fill_unobserved(tex, _grid_maps(bad, h, w))
-    return tex.clamp_min(0.0)
+    return tex.clamp_min_(0.0)  # tex is this function's own (3, H, W)
 
 
 def _fit_paper(capture, run: FitRun, *, specular: str, tol: float, max_iters: int, chunk: int, robust: str | None) -> FitResult:
@@ -208,8 +222,8 @@ def _fit_paper(capture, run: FitRun, *, specular: str, tol: float, max_iters: in
     h, w = capture.images.shape[-2:]
     with run.stage("geometry"):
         obs = build_observations(capture, dtype=dt, chunk=chunk)
-    n_obs = max(1.0, float(obs.n.double().sum()))
-    A = float(obs.A.double().sum())
+    n_obs = max(1.0, float(obs.n.sum()))
+    A = float(obs.A.sum(dtype=torch.float64))
     if specular == "none":
         run.skipped.append("specular: disabled by the caller (specular='none')")
         with run.stage("texture"):
@@ -229,7 +243,7 @@ def _fit_paper(capture, run: FitRun, *, specular: str, tol: float, max_iters: in
     tex, s, alpha, err, status = pf.texture, pf.s, pf.alpha, pf.err, pf.status
     if not math.isfinite(err):
         raise FitError(f"fit_phong(scheme='paper'): expected finite residuals, found Err = {err}")
-    if A <= 0 or (A - err) <= max(1e-3 * A, 1e-6 * float(obs.Y.double().sum())):
+    if A <= 0 or (A - err) <= max(1e-3 * A, 1e-6 * float(obs.energy().sum())):
         explained = max(0.0, (A - err) / max(A, 1e-300))
         run.skipped.append(f"specular: no highlight evidence (the paper's fit explains {explained:.1%} "
                            "of the diffuse-only residual); s = 0")
@@ -260,12 +274,12 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
             ref = Reference(torch.zeros(1, 3, dtype=torch.float64, device=imgs.device),
                             torch.ones(1, 3, dtype=torch.float64, device=imgs.device))
         full = build_observations(capture, lobe=lobe, dtype=dt, chunk=chunk, ref=ref, weighting=weighting, labeler=labeler,
-                                  with_stats=spec is not None, want_tmin=use_maps)
-    n_obs = max(1.0, float(full.n.double().sum()))
+                                  with_stats=spec is not None, want_tmin=use_maps, stream=_stream(capture, lobe))
+    n_obs = max(1.0, float(full.n.sum()))
     if spec is None:
         with run.stage("texture"):
             tex = _finish_texture(_no_specular_texture(full), full, capture, run)
-        rmse = math.sqrt(float(full.A.double().sum()) / n_obs)
+        rmse = math.sqrt(float(full.A.sum(dtype=torch.float64)) / n_obs)
         run.log("texture", 0, rmse, 1.0, full.num_pixels)
         z = torch.zeros(3, dtype=dt, device=imgs.device)
         return _result(capture, run, tex, z, torch.full_like(z, ALPHA_MIN),
@@ -277,14 +291,17 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
             s_fix, b_fix = pinned_terms(spec.pinned, spec.s, spec.alpha)
         elif s_fixed is not None:
             s_fix = s_fixed
+        first, full.first_stats = full.first_stats, None  # its e_b lives only as long as the LM needs it
         fit = fit_specular(full, torch.log(spec.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix,
-                           on_iter=run.logger("refine", full.num_pixels), first=full.first_stats)
-        full.first_stats = None
+                           on_iter=run.logger("refine", full.num_pixels), first=first)
+        del first
     if labeler is not None and sel is not None and sel.relabel:
         with run.stage("relabel"):
             fit, moved = relabel_pixels(full, fit, lambda obs, f: fit_specular(
                 obs, torch.log(f.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix))
-            run.log("relabel", 1, math.sqrt(float(fit.cost.sum()) / max(1.0, float(full.n.double().sum()))), 1.0, moved)
+            run.log("relabel", 1, math.sqrt(float(fit.cost.sum()) / max(1.0, float(full.n.sum()))), 1.0, moved)
+    if full.source is not None:  # a large capture: the LM's freed temporaries go back before the texture's
+        release_free_memory()
     if lobe == "ggx" and not use_maps and s_fix is None:  # one roughness for the three channels, where the data allow it
         with run.stage("refine"):
             fit, shared = share_alpha(full, fit)
@@ -294,7 +311,9 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
     if use_maps:
         return _finish_maps(capture, run, full, fit, k, tol=tol, max_iters=max_iters, sel_info=sel, maps_info=maps_info)
     with run.stage("texture"):
-        tex = _finish_texture(texture_map(full, fit.s, fit.eb), full, capture, run)
+        tex = texture_map(full, fit.s, fit.eb)
+        fit = replace(fit, eb=None)  # e_b (3, P) is spent: the texture's peak need not hold it
+        tex = _finish_texture(tex, full, capture, run)
     _check_finite("fit_phong(scheme='refine')", tex, fit.s, fit.alpha, fit.cost)
     rmse = _rmse(fit, full)
     sel_info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason,

@@ -99,7 +99,7 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
                 glob0 = glob
             sigma = _sigma(sub, glob0, capture)
             weighting = Weighting(sigma=sigma, robust=robust, outlier_k=outliers)
-            n_base = float(sub.n.double().sum())
+            n_base = float(sub.n.sum())
             for _ in range(2 if robust is not None else 1):
                 sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob0.s, glob0.alpha),
                                          weighting=weighting)
@@ -110,7 +110,7 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
                 glob0 = glob
 
         if robust is None and weighting is not None:
-            frac = 1.0 - float(sub.n.double().sum()) / max(n_base, 1.0)
+            frac = 1.0 - float(sub.n.sum()) / max(n_base, 1.0)
             if frac < OUTLIER_SKIP:
                 run.skipped.append(f"outliers: {frac:.1e} of the subsample's observations beyond {outliers:g}·σ; "
                                    "full-resolution outlier masking skipped")

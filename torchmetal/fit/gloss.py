@@ -142,7 +142,7 @@ def fit_gloss_maps(
     The ridge prior stays centred on the base.
     """
     p, h, w = obs.num_pixels, obs.height, obs.width
-    dev = obs.g.device
+    dev = obs.device
     f64 = torch.float64
     s0 = s0.to(f64).expand(3, p).contiguous()
     b0 = torch.log(alpha0.to(f64).clamp(ALPHA_MIN, ALPHA_MAX)).expand(3, p).contiguous()

@@ -62,7 +62,7 @@ def fit_lobe(obs: Observations, *, tol: float, max_iters: int, grid: tuple[float
 def specular_energy(obs: Observations, fit: SpecFit) -> Tensor:
     """(N,) float64 Σ w·(s·b)² per shot: how much of each shot the specular term predicts."""
     s3, a3 = fit.s[0].to(obs.dtype).view(1, 3, 1), fit.alpha[0].to(obs.dtype).view(1, 3, 1)
-    energy = torch.zeros(obs.num_shots, dtype=torch.float64, device=obs.g.device)
+    energy = torch.zeros(obs.num_shots, dtype=torch.float64, device=obs.device)
     for j in range(len(obs.chunks)):
         y, g, u, L, w, inten = obs.chunk(j)
         b = s3 * inten * u * lobe_factor(L, a3, obs.geo_chunk(j), obs.lobe)

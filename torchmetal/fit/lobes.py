@@ -26,7 +26,7 @@ from torchmetal.lobes import LOBES, check_lobe, fresnel_ratio, ggx_k, ggx_log_co
 __all__ = ["LOBES", "FIT_LOBES", "observation_lobe_terms", "lobe_terms", "lobe_factor", "geo_channels"]
 
 FIT_LOBES = LOBES
-LOG_OFF = -1.0e4  # = torchmetal.fit.problem.LOG_OFF (that module imports this one)
+LOG_OFF = -1.0e4  # L where the lobe is off (r·v ≤ 0, n·v ≤ 0): exp(α·L) = 0 for every α ≥ 1
 
 
 def geo_channels(lobe: str) -> int:
@@ -45,7 +45,7 @@ def observation_lobe_terms(
         half_q (1 − n·h), n_dot_v, v_dot_h: from :func:`~torchmetal.lobes.grid_half_terms`
             (None for phong);
         log_cos: the L of Phong computed from ``spec_q`` (phong) or ``half_q`` (blinn) by
-            :func:`~torchmetal.fit.problem.observation_geometry`; unused for GGX.
+            :func:`~torchmetal.fit.grid_terms.observation_geometry`; unused for GGX.
 
     Returns:
         L (S) and, for GGX, geo (3, *S) = (1 − n·h, n·l, n·v) with safe placeholders; else None.

@@ -208,9 +208,9 @@ def _ok(w: Tensor, g: Tensor, u: Tensor) -> Tensor:
 def bins_of(obs: Observations, n_bins: int = N_BINS) -> Tensor:
     """(N, 1, P) uint8/int16 control-point bins of every observation (computed once per fit)."""
     dt = torch.uint8 if n_bins + 2 <= 256 else torch.int16
-    out = torch.empty(obs.L.shape, dtype=dt, device=obs.L.device)
-    for p0, p1 in obs.chunks:
-        out[:, :, p0:p1] = bin_index(obs.L[:, :, p0:p1], n_bins).to(dt)
+    out = torch.empty(obs.num_shots, 1, obs.num_pixels, dtype=dt, device=obs.device)
+    for j, (p0, p1) in enumerate(obs.chunks):
+        out[:, :, p0:p1] = bin_index(obs.L[:, :, p0:p1] if obs.source is None else obs.chunk(j)[3], n_bins).to(dt)
     return out
 
 
@@ -227,7 +227,7 @@ def tmin_control_points(
         control points (use, c̄, L̄, z̄, L̄*) each (3, nb); T_min, L* and (n·l)* (3, P) (the
         log r·v and n·l of the shot of the minimum).
     """
-    dev = obs.g.device
+    dev = obs.device
     p = obs.num_pixels
     tmin = torch.empty(3, p, dtype=obs.dtype, device=dev)
     lstar = torch.empty(3, p, dtype=obs.dtype, device=dev)
@@ -290,7 +290,7 @@ def paper_pass(
 
     Returns (texture (3, P), Err, control-point sums, fraction of pixels processed).
     """
-    dev = obs.g.device
+    dev = obs.device
     if texture is not None:
         cache = None  # a given texture is not the iteration's own: nothing to cache
     tex = (texture if texture is not None else prev if prev is not None else obs.fallback).clone()
@@ -360,7 +360,7 @@ def paper_scheme(
 
     ``on_iter(stage, iteration, rmse, active)`` reports "init" once, then "paper" per iteration.
     """
-    n_obs = float(obs.n.double().sum().clamp_min(1.0))
+    n_obs = max(1.0, float(obs.n.sum()))
     bidx = bins_of(obs, n_bins)
     t0, s, beta = initial_approximation(obs, bidx, n_bins=n_bins)
     alpha = torch.exp(beta)
@@ -371,7 +371,7 @@ def paper_scheme(
         on_iter("init", 0, history[-1]["rmse"], frac)
     status, it = "max_iters", 0
     best = (tex, s, beta, err)
-    energy = float(obs.Y.double().sum())
+    energy = float(obs.energy().sum())
     for it in range(1, max_iters + 1):
         s, beta = fit_control_points(bins.control_points(), s, beta)
         alpha = torch.exp(beta)

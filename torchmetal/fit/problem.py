@@ -5,20 +5,26 @@ For shot k, pixel p, channel c (DESIGN 2.2), with intensity i_kc, n·l, q = 1 �
     I_kcp = a_kcp·d_cp + s_c·b_kcp(α_c),   a = i·g,   b = i·u·exp(α·L)
     g_kp = max(n·l, 0)/dist²,   u_kp = [n·l > 0]/dist²,   L_kp = log max(r·v, 0) = log1p(−q)
 
-The fit never needs more geometry than (g, u, L): three (N, 1, P) tensors, computed once with
-:func:`torchmetal.geometry.grid_shading_terms` (the renderer's formulas, built separably on the
-plane's pixel grid) and :func:`torchmetal.phong.log1p_exact`, and reused by every iteration.
+The fit never needs more geometry than (g, u, L): three (N, 1, P) tensors
+(:mod:`torchmetal.fit.grid_terms`: the renderer's formulas, built separably on the plane's pixel
+grid). A subsample stores them, computed once and reused by every iteration; the full-resolution
+pass (``stream=True``) stores none of them nor ``valid``, and recomputes a chunk's terms each time
+it visits the chunk (:class:`~torchmetal.fit.grid_terms.GridSource`): its memory is the capture
+plus a few per-pixel maps, not the capture again.
 Pixels are flattened to P = h·w on a (possibly strided) grid and processed in chunks of
 ``chunk`` pixels, so temporaries stay (N, 3, chunk) whatever the image size. Per chunk and
 shot, ``lmax`` keeps the largest L: when α·lmax < −40 the lobe is below e⁻⁴⁰ on every pixel of
 the chunk, and passes skip that work.
 
 Weights: ``valid`` (N, 3, P) uint8 0/1 = inside the mask, not saturated, n·l > 0, not an
-outlier; ``weight`` (N, 3, P) holds robust IRLS weights when a robust loss is on (else None).
+outlier (None when streamed without robust weights or outlier masks: recomputed per chunk);
+``weight`` (N, 3, P) holds robust IRLS weights when a robust loss is on (else None).
 Chunks see weights as floats (multiplying by a 0/1 float mask is ~6× cheaper than ``where``
 on a bool mask on CPU, and uint8 → float ~4× cheaper than bool → float). Per-pixel
 constants for the current weights: Σ w·a² (``saa``), the diffuse-only solution ``d0``, its exact
-residual energy ``A`` = Σ w·(y − a·d0)², Σ w·y² (``Y``) and the observation count ``n``.
+residual energy ``A`` = Σ w·(y − a·d0)² (one (3, 3, P) block), the observation count ``n``
+(int16); Σ w·y² follows from them, = A + saa·d0² (d0 is the weighted least-squares solution:
+:meth:`Observations.energy`).
 """
 
 from __future__ import annotations
@@ -30,14 +36,12 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from torchmetal.fit.lobes import geo_channels, lobe_terms, observation_lobe_terms
+from torchmetal.fit.grid_terms import GridSource, base_validity, grid_axes, grid_geometry
+from torchmetal.fit.lobes import LOG_OFF, geo_channels, lobe_terms
 from torchmetal.fit.projected_sums import chunk_stats, reduce_stats
-from torchmetal.geometry import grid_shading_terms, pixel_axes
-from torchmetal.lobes import grid_half_terms
-from torchmetal.phong import log1p_exact
 
-LOG_OFF = -1.0e4  # L where r·v ≤ 0: exp(α·L) = 0 for every α ≥ 1
 ACTIVE_LOG = -40.0  # a lobe below e^-40 counts as zero
+SUM_BLOCK = 1 << 16  # pixels per block of the per-element sums
 ROBUST = ("huber", "cauchy")
 HUBER_C = 1.345
 CAUCHY_C = 2.385
@@ -106,20 +110,19 @@ class Observations:
     """Flattened per-observation terms of a fit on an h×w pixel grid (see module docstring)."""
 
     y: Tensor  # (N, 3, P) images, any float dtype (cast per chunk)
-    g: Tensor  # (N, 1, P)
-    u: Tensor  # (N, 1, P)
-    L: Tensor  # (N, 1, P)
+    g: Tensor | None  # (N, 1, P); None when streamed (``source``)
+    u: Tensor | None  # (N, 1, P)
+    L: Tensor | None  # (N, 1, P)
     inten: Tensor  # (N, 3, 1)
-    valid: Tensor  # (N, 3, P) uint8 0/1
+    valid: Tensor | None  # (N, 3, P) uint8 0/1; None when streamed without weights
     weight: Tensor | None  # (N, 3, P) robust weights (0 where invalid) or None
     chunks: list[tuple[int, int]]
     lmax: Tensor  # (N, n_chunks)
     saa: Tensor  # (3, P)
     d0: Tensor  # (3, P)
     A: Tensor  # (3, P)
-    Y: Tensor  # (3, P)
-    n: Tensor  # (3, P) count of weighted observations
-    fallback: Tensor  # (3, P) texture for pixels without any valid observation
+    n: Tensor  # (3, P) int16 count of observations with a weight > 0
+    fallback: Tensor  # (3, P) texture where no observation is valid (expanded zeros when there is none)
     labels: Tensor | None  # (P,) int64 from the labeler
     tmin: Tensor | None  # (3, P) T_min = min_k y/a (4.1.6), when asked for
     height: int
@@ -127,20 +130,32 @@ class Observations:
     dtype: torch.dtype
     first_stats: tuple[Tensor, Tensor] | None = None  # VP stats at the reference α (with_stats)
     lobe: str = "phong"  # the specular lobe L (and geo) describe (torchmetal.fit.lobes)
-    geo: Tensor | None = None  # (N, 3, P) GGX geometry (1 − n·h, n·l, n·v), None for phong/blinn
+    geo: Tensor | None = None  # (N, 3, P) GGX geometry (1 − n·h, n·l, n·v); None for phong/blinn or streamed
+    source: GridSource | None = None  # recomputes g, u, L, geo and validity per chunk (the full-resolution pass)
 
     @property
     def num_shots(self) -> int:
-        return int(self.g.shape[0])
+        return int(self.y.shape[0])
 
     @property
     def num_pixels(self) -> int:
-        return int(self.g.shape[-1])
+        return int(self.y.shape[-1])
 
     @property
-    def isaa(self) -> Tensor:
-        ok = self.saa > 0
-        return torch.where(ok, 1.0 / torch.where(ok, self.saa, torch.ones_like(self.saa)), torch.zeros_like(self.saa))
+    def device(self) -> torch.device:
+        return self.y.device
+
+    def energy(self, k: int = 1) -> Tensor:
+        """Per-element (K, 3) float64 sums of Σ w·y² = A + saa·d0² (an energy scale for relative
+        thresholds; by ``labels`` if K > 1), pixel block by pixel block (no full-size temporaries)."""
+        return self.element_sum(lambda sl: torch.addcmul(self.A[:, sl].double(), self.saa[:, sl].double(),
+                                                         self.d0[:, sl].double() ** 2), k)
+
+    def isaa(self, p0: int = 0, p1: int | None = None) -> Tensor:
+        """1/Σ w·a² (0 where no valid observation) of pixels [p0, p1): (3, c) — per chunk, no full-size temporaries."""
+        saa = self.saa[:, p0:p1]
+        ok = saa > 0
+        return torch.where(ok, 1.0 / torch.where(ok, saa, torch.ones_like(saa)), torch.zeros_like(saa))
 
     def w(self, sl: slice, shots: Tensor | None = None) -> Tensor:
         """Float weights of a chunk (n, 3, c): 0/1 validity or robust IRLS weights."""
@@ -152,31 +167,53 @@ class Observations:
         """(y, g, u, L, w, inten) of chunk j, restricted to ``shots`` (index tensor) if given."""
         p0, p1 = self.chunks[j]
         sl = slice(p0, p1)
-        y, g, u, L = self.y[:, :, sl], self.g[:, :, sl], self.u[:, :, sl], self.L[:, :, sl]
-        inten = self.inten
+        y, inten = self.y[:, :, sl], self.inten
         if shots is not None:
-            y, g, u, L, inten = (t.index_select(0, shots) for t in (y, g, u, L, inten))
+            y, inten = y.index_select(0, shots), inten.index_select(0, shots)
+        if self.source is not None:
+            g, u, L, _, base = self.source.terms(p0, p1, shots)
+            w = as_float(base, self.dtype) if self.valid is None and self.weight is None else self.w(sl, shots)
+            return y.to(self.dtype), g, u, L, w, inten
+        g, u, L = self.g[:, :, sl], self.u[:, :, sl], self.L[:, :, sl]
+        if shots is not None:
+            g, u, L = (t.index_select(0, shots) for t in (g, u, L))
         return y.to(self.dtype), g, u, L, self.w(sl, shots), inten
 
     def geo_chunk(self, j: int, shots: Tensor | None = None) -> Tensor | None:
         """The lobe geometry (n, 3, c) of chunk j (restricted to ``shots``), None for phong/blinn."""
+        p0, p1 = self.chunks[j]
+        if self.source is not None:
+            return self.source.terms(p0, p1, shots)[3]
         if self.geo is None:
             return None
-        p0, p1 = self.chunks[j]
         geo = self.geo[:, :, p0:p1]
         return geo if shots is None else geo.index_select(0, shots)
+
+    def dense(self) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+        """(g, u, L) (N, 1, P) and geo (N, 3, P) or None, whole — for small problems (tests, diagnostics)."""
+        if self.source is None:
+            return self.g, self.u, self.L, self.geo
+        parts = [self.source.terms(p0, p1)[:4] for p0, p1 in self.chunks]
+        geo = None if parts[0][3] is None else torch.cat([q[3] for q in parts], -1)
+        return (*(torch.cat([q[i] for q in parts], -1) for i in range(3)), geo)
 
     def active_shots(self, alpha_lo: float) -> Tensor:
         """(N, n_chunks) bool: the lobe can exceed e^-40 somewhere in the chunk for α ≥ alpha_lo."""
         return alpha_lo * self.lmax > ACTIVE_LOG
 
-    def element_sum(self, x: Tensor, k: int) -> Tensor:
-        """Per-pixel (3, P) → per-element (K, 3) float64 sums over pixels (by ``labels`` if K > 1)."""
-        x = x.double()
-        if k == 1:
-            return x.sum(-1).unsqueeze(0)
-        out = torch.zeros(3, k, dtype=torch.float64, device=x.device)
-        out.index_add_(1, self.labels, x)
+    def element_sum(self, x: Tensor | Callable[[slice], Tensor], k: int) -> Tensor:
+        """Per-pixel (3, P) → per-element (K, 3) float64 sums over pixels (by ``labels`` if K > 1), in
+        blocks of :data:`SUM_BLOCK` pixels (no float64 copy of the whole map). ``x`` may be a function
+        of a pixel slice returning that block."""
+        block = x if callable(x) else (lambda sl: x[:, sl].double())
+        out = torch.zeros(3, k, dtype=torch.float64, device=self.device)
+        p = self.num_pixels
+        for p0 in range(0, p, SUM_BLOCK):
+            sl = slice(p0, min(p, p0 + SUM_BLOCK))
+            if k == 1:
+                out[:, 0] += block(sl).sum(-1)
+            else:
+                out.index_add_(1, self.labels[sl], block(sl))
         return out.T.contiguous()
 
 
@@ -232,51 +269,6 @@ def _irls_chunk(target: Tensor, a: Tensor, base: Tensor, weighting: Weighting) -
     return w
 
 
-def observation_geometry(n_dot_l: Tensor, spec_q: Tensor, dist2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(g, u, L) of the module docstring from n·l, q = 1 − r·v and the squared light distance.
-
-    g = max(n·l, 0)/dist², u = [n·l > 0]/dist², L = log1p(−q) (``LOG_OFF`` where r·v ≤ 0); any
-    shapes that broadcast, e.g. (n, R, C).
-    """
-    u = torch.where(n_dot_l > 0, 1.0 / dist2, 0.0)
-    inside = spec_q < 1.0
-    L = torch.where(inside, log1p_exact(-torch.where(inside, spec_q, 0.5)), LOG_OFF)
-    return n_dot_l * u, u, L
-
-
-def grid_geometry(
-    capture, rows: slice, cols: slice, lights: Tensor, cams: Tensor, dtype: torch.dtype, block_rows: int,
-    *, out: tuple[Tensor, Tensor, Tensor], lobe: str = "phong", geo_out: Tensor | None = None,
-) -> None:
-    """Fill ``out`` = (g, u, L), each (n, 1, R·C), for the pixel grid ``rows`` × ``cols``.
-
-    lights, cams (n, 4) in ``dtype``. Works in blocks of ``block_rows`` grid rows (memory only:
-    every term is per pixel, so the values do not depend on it). Flat normals (0, 0, 1) take the
-    cheaper path of :func:`~torchmetal.geometry.grid_shading_terms`. For ``lobe`` "blinn" L is
-    log n·h, for "ggx" L and ``geo_out`` (n, 3, R·C) are :mod:`torchmetal.fit.lobes`'s.
-    """
-    big_h, big_w = int(capture.images.shape[-2]), int(capture.images.shape[-1])
-    xs, ys = pixel_axes(big_h, big_w, capture.size, rows=rows, cols=cols, dtype=dtype, device=lights.device)
-    normals = capture.normals[:, rows, cols]
-    flat = bool((normals[:2] == 0).all() and (normals[2] == 1).all())
-    n, h, w = int(lights.shape[0]), int(ys.shape[0]), int(xs.shape[0])
-    for r0 in range(0, h, block_rows):
-        r1 = min(h, r0 + block_rows)
-        nrm = None if flat else normals[:, r0:r1].to(dtype)
-        nl, q, d2 = grid_shading_terms(lights, cams, xs, ys[r0:r1], nrm)
-        if lobe == "phong":
-            terms = observation_geometry(nl, q, d2)
-        else:
-            hq, nv, vh = grid_half_terms(lights, cams, xs, ys[r0:r1], nrm)
-            g, u, log_cos = observation_geometry(nl, hq, d2)
-            L, geo = observation_lobe_terms(lobe, nl, q, hq, nv, vh, log_cos)
-            terms = (g, u, L)
-            if geo is not None:
-                geo_out[:, :, r0 * w : r1 * w] = geo.reshape(3, n, (r1 - r0) * w).transpose(0, 1)
-        for dst, src in zip(out, terms):
-            dst[:, 0, r0 * w : r1 * w] = src.reshape(n, (r1 - r0) * w)
-
-
 def build_observations(
     capture,
     *,
@@ -291,6 +283,7 @@ def build_observations(
     with_stats: bool = False,
     lobe: str = "phong",
     window: tuple[slice, slice] | None = None,
+    stream: bool = False,
 ) -> Observations:
     """Precompute the observations of ``capture`` on a pixel grid of the given stride.
 
@@ -312,6 +305,9 @@ def build_observations(
         lobe: the specular lobe, one of :data:`torchmetal.lobes.LOBES` (L and geo follow it).
         window: (rows, cols) slices of full-resolution pixels to use instead of the stride grid
             (a tile of a tiled fit: the same values as those pixels of the whole grid).
+        stream: store no per-observation geometry (nor ``valid`` without weights): chunks recompute
+            it (:class:`~torchmetal.fit.grid_terms.GridSource`) — the same values, for a
+            full-resolution pass whose stored geometry would weigh as much as the capture.
 
     Returns:
         :class:`Observations`.
@@ -336,6 +332,10 @@ def build_observations(
     y = y4.reshape(n_shots, 3, p)
     sat = grid(capture.saturated).reshape(n_shots, 3, p) if capture.saturated is not None else None
     mask = capture.mask[..., rows, cols].reshape(1, 1, p).bool() if capture.mask is not None else None
+    if sat is not None and not bool(sat.view(torch.uint8).amax()):  # nothing clipped (uint8 amax: 10× cheaper than any)
+        sat = None
+    if mask is not None and bool(mask.view(torch.uint8).amin()):  # every pixel inside
+        mask = None
     lights = capture.lights.to(dt)
     cams = capture.cameras.to(dt)
     inten = capture.intensities.to(dt)
@@ -348,12 +348,13 @@ def build_observations(
 
     chunks = chunk_ranges(p, chunk)
     new = lambda *shape, dtype=dt: torch.empty(*shape, dtype=dtype, device=dev)  # noqa: E731
-    g_all, u_all, l_all = new(n_shots, 1, p), new(n_shots, 1, p), new(n_shots, 1, p)
-    valid_all = new(n_shots, 3, p, dtype=torch.uint8)
     robust = weighting is not None and weighting.robust is not None
+    valid_all = new(n_shots, 3, p, dtype=torch.uint8) if not stream or weighting is not None else None
     wstore = torch.float16 if dt == torch.float32 else torch.float32
     weight_all = new(n_shots, 3, p, dtype=wstore) if robust else None
-    saa, d0, A, Y, cnt, fb = (new(3, p) for _ in range(6))
+    saa, d0, A = new(3, 3, p).unbind(0)
+    cnt = new(3, p, dtype=torch.int16 if n_shots < 2**15 else torch.int32)  # a count per pixel and channel
+    fb = None  # (3, P), allocated at the first pixel without a valid observation
     lmax = new(n_shots, len(chunks))
     labels = torch.zeros(p, dtype=torch.long, device=dev) if labeler is not None else None
     tmin_all = new(3, p) if want_tmin else None
@@ -362,21 +363,28 @@ def build_observations(
     if with_stats and ref is not None:
         stats_acc = torch.zeros(6, 3, ref.k, dtype=torch.float64, device=dev)
         eb_all = new(3, p)
-    geo_all = new(n_shots, 3, p) if geo_channels(lobe) else None
-    grid_geometry(capture, rows, cols, lights, cams, dt, max(1, chunk // w), out=(g_all, u_all, l_all), lobe=lobe,
-                  geo_out=geo_all)
+    source = g_all = u_all = l_all = geo_all = None
+    if stream:
+        xs, ys, normals = grid_axes(capture, rows, cols, dt)
+        source = GridSource(lights, cams, xs, ys, None if normals is None else normals.to(dt), lobe, inten_pos, mask, sat,
+                            dt)
+    else:
+        g_all, u_all, l_all = new(n_shots, 1, p), new(n_shots, 1, p), new(n_shots, 1, p)
+        geo_all = new(n_shots, 3, p) if geo_channels(lobe) else None
+        grid_geometry(capture, rows, cols, lights, cams, dt, max(1, chunk // w), out=(g_all, u_all, l_all), lobe=lobe,
+                      geo_out=geo_all)
 
     for j, (p0, p1) in enumerate(chunks):
         sl = slice(p0, p1)
-        g, u, L = g_all[:, :, sl], u_all[:, :, sl], l_all[:, :, sl]
+        if source is not None:
+            g, u, L, geo, base_b = source.terms(p0, p1)
+        else:
+            g, u, L = g_all[:, :, sl], u_all[:, :, sl], l_all[:, :, sl]
+            geo = None if geo_all is None else geo_all[:, :, sl]
+            base_b = base_validity(g, None if mask is None else mask[:, :, sl], inten_pos,
+                                   None if sat is None else sat[:, :, sl])
         yc = y[:, :, sl].to(dt)
         a = inten * g
-        lit_b = g > 0  # (n, 1, c); with a non-zero intensity: a > 0
-        if mask is not None:
-            lit_b = lit_b & mask[:, :, sl]
-        base_b = lit_b & inten_pos
-        if sat is not None:
-            base_b = base_b & ~sat[:, :, sl]
         base = as_float(base_b, dt)
         t_c = tmin_chunk(yc, a, base)[0] if (want_tmin or labeler is not None) else None
         lab = None
@@ -389,7 +397,7 @@ def build_observations(
         b = t = s_c = None
         if ref is not None:
             s_c, al_c = ref_dt.maps(lab, p1 - p0)
-            _, b, t = lobe_terms(g, u, L, inten, al_c.unsqueeze(0), None if geo_all is None else geo_all[:, :, sl], lobe)
+            _, b, t = lobe_terms(g, u, L, inten, al_c.unsqueeze(0), geo, lobe)
         wts = base
         wa = a * wts
         s_aa = (wa * a).sum(0)
@@ -411,21 +419,21 @@ def build_observations(
             if wts is not base:
                 wa = a * wts
                 s_aa = (wa * a).sum(0)
-        valid_all[:, :, sl] = (base_b if wts is base else wts > 0).view(torch.uint8)
+        if valid_all is not None:
+            valid_all[:, :, sl] = (base_b if wts is base else wts > 0).view(torch.uint8)
         ok = s_aa > 0
         isaa_c = torch.where(ok, 1.0 / torch.where(ok, s_aa, torch.ones_like(s_aa)), zero)
         dd = (wa * yc).sum(0) * isaa_c
         r0 = torch.addcmul(yc, a, dd, value=-1.0)  # y − a·d0
         wr0 = wts * r0
         A[:, sl] = (wr0 * (wr0 if wts is base else r0)).sum(0)  # w² = w for 0/1 weights
-        Y[:, sl] = (wts * yc * yc).sum(0)
-        cnt[:, sl] = (wts > 0).sum(0).to(dt) if robust else wts.sum(0)
+        cnt[:, sl] = (wts > 0).sum(0)
         saa[:, sl], d0[:, sl] = s_aa, dd
-        fb[:, sl] = 0.0
         if not bool(ok.all()):  # texture where no observation is valid: all lit ones, saturated included
             la = torch.where(a > 0, a, zero)
             den = (la * a).sum(0)
             tgt = yc if b is None else torch.addcmul(yc, s_c.unsqueeze(0), b, value=-1.0)
+            fb = torch.zeros(3, p, dtype=dt, device=dev) if fb is None else fb
             fb[:, sl] = torch.where(den > 0, (la * tgt).sum(0) / torch.where(den > 0, den, torch.ones_like(den)), zero)
         lmax[:, j] = torch.where(u > 0, L, LOG_OFF).amax(-1)[:, 0]  # u > 0 ⇔ lit
         if stats_acc is not None:
@@ -434,7 +442,8 @@ def build_observations(
             reduce_stats(st, lab, ref.k, stats_acc)
     return Observations(
         y=y, g=g_all, u=u_all, L=l_all, inten=inten, valid=valid_all, weight=weight_all, chunks=chunks, lmax=lmax,
-        saa=saa, d0=d0, A=A, Y=Y, n=cnt, fallback=fb, labels=labels, tmin=tmin_all, height=h, width=w, dtype=dt,
+        saa=saa, d0=d0, A=A, n=cnt, fallback=torch.zeros(3, 1, dtype=dt, device=dev).expand(3, p) if fb is None else fb,
+        labels=labels, tmin=tmin_all, height=h, width=w, dtype=dt,
         first_stats=None if stats_acc is None else (stats_acc.permute(0, 2, 1).contiguous(), eb_all),
-        lobe=lobe, geo=geo_all,
+        lobe=lobe, geo=geo_all, source=source,
     )

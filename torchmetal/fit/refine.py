@@ -91,7 +91,6 @@ def spec_sums(obs: Observations, alpha: Tensor, *, per_pixel: bool = False) -> t
     eb = torch.zeros(3, p, dtype=obs.dtype, device=alpha.device)
     acc = torch.zeros(6, 3, k, dtype=torch.float64, device=alpha.device)
     pix = torch.zeros(6, 3, p, dtype=obs.dtype, device=alpha.device) if per_pixel else None
-    isaa = obs.isaa
     active = obs.active_shots(float(alpha.min()))
     done = 0
     a_glob = alpha[0].to(obs.dtype).view(1, 3, 1)
@@ -106,7 +105,7 @@ def spec_sums(obs: Observations, alpha: Tensor, *, per_pixel: bool = False) -> t
         al = a_glob if lab is None else alpha[lab].T.to(obs.dtype).unsqueeze(0)
         a, b, t = lobe_terms(g, u, L, inten, al, obs.geo_chunk(j, shots), obs.lobe)
         wa = w * a
-        e, ec, st = chunk_stats(y, a, b, t, w, isaa[:, p0:p1], wa=wa)
+        e, ec, st = chunk_stats(y, a, b, t, w, obs.isaa(p0, p1), wa=wa)
         if shots is not None:  # the left-out shots still couple through the texture
             st = add_skipped_shots(st, e, ec, y, a, wa, obs.saa[:, p0:p1], obs.d0[:, p0:p1])
         eb[:, p0:p1] = e
@@ -164,8 +163,8 @@ def fit_specular(
     """
     k = int(beta0.shape[0])
     A = obs.element_sum(obs.A, k)
-    Y = obs.element_sum(obs.Y, k)
-    n_total = float(obs.n.double().sum().clamp_min(1.0))
+    Y = obs.energy(k)
+    n_total = max(1.0, float(obs.n.sum()))
     labels = obs.labels if k > 1 else None
     state = {"active": 1.0}
     floor = (0.01 * torch.finfo(obs.dtype).eps * A).reshape(-1)  # cost resolution of the working dtype
@@ -180,6 +179,10 @@ def fit_specular(
         return evaluate(stats, eb)
 
     def merge(new, old, accepted: Tensor):
+        if bool(accepted.all()):  # no full-size copy when every element moves (or none does)
+            return new
+        if not bool(accepted.any()):
+            return old
         acc_pix = pixel_map(accepted.view(k, 3).to(torch.uint8), labels).bool()
         return torch.where(acc_pix, new[0], old[0]), torch.where(accepted, new[1], old[1])
 
@@ -223,7 +226,7 @@ def evaluate_specular(obs: Observations, s: Tensor | None, alpha: Tensor) -> Spe
     A = obs.element_sum(obs.A, k)
     stats, eb, frac = spec_sums(obs, alpha.to(torch.float64))
     s_opt, cost, _, _ = element_terms(stats, A, s_fixed=s)
-    return SpecFit(s=s_opt, alpha=alpha.to(torch.float64), eb=eb, cost=cost, A=A, Y=obs.element_sum(obs.Y, k), active=frac,
+    return SpecFit(s=s_opt, alpha=alpha.to(torch.float64), eb=eb, cost=cost, A=A, Y=obs.energy(k), active=frac,
                    lobe=obs.lobe)
 
 
@@ -251,7 +254,7 @@ def share_alpha(obs: Observations, fit: SpecFit) -> tuple[SpecFit, dict]:
         trial = evaluate_specular(obs, None, torch.exp(cand).expand(k, 3).contiguous())
         if best is None or float(trial.cost.sum()) < float(best.cost.sum()):
             best = trial
-    n_obs = float(obs.n.double().sum().clamp_min(1.0))
+    n_obs = max(1.0, float(obs.n.sum()))
     nu = 2.0 * k
     chi2 = nu * (1.0 - 2.0 / (9.0 * nu) + SHARED_ALPHA_P * math.sqrt(2.0 / (9.0 * nu))) ** 3
     rise = float(best.cost.sum() - fit.cost.sum())
@@ -266,7 +269,7 @@ def grid_beta(
     obs: Observations, k: int, extra: Tensor | None = None, grid: tuple[float, ...] = (1, 4, 16, 64, 256, 1024, 4096)
 ) -> Tensor:
     """Best β per element (K, 3) over a coarse α grid (plus ``extra`` (K, 3) α candidates)."""
-    dev = obs.g.device
+    dev = obs.device
     cands = [torch.full((k, 3), float(a), dtype=torch.float64, device=dev) for a in grid]
     if extra is not None:
         cands.append(extra.to(torch.float64).clamp(ALPHA_MIN, ALPHA_MAX))
@@ -282,8 +285,11 @@ def grid_beta(
 
 def texture_map(obs: Observations, s: Tensor, eb: Tensor) -> Tensor:
     """Texture (3, P): d0 − s·e_b, and the fallback where a pixel has no valid observation."""
-    d = obs.d0 - pixel_map(s.to(obs.dtype), obs.labels if s.shape[0] > 1 else None) * eb
-    return torch.where(obs.saa > 0, d, obs.fallback)
+    d = torch.addcmul(obs.d0, pixel_map(s.to(obs.dtype), obs.labels if s.shape[0] > 1 else None), eb, value=-1.0)
+    unseen = obs.saa <= 0
+    if bool(unseen.view(torch.uint8).amax()):
+        d[unseen] = obs.fallback.expand_as(d)[unseen]
+    return d
 
 
 def residual_scale(obs: Observations, s: Tensor, alpha: Tensor, eb: Tensor, max_samples: int = 1 << 20) -> Tensor:
@@ -320,12 +326,13 @@ def model_terms(obs: Observations, alpha: Tensor, labels: Tensor | None = None) 
     For small problems (tests, diagnostics); α (K, 3) with ``labels`` (P,) when K > 1.
     """
     a_pix = pixel_map(alpha.to(obs.dtype), labels if alpha.shape[0] > 1 else None).unsqueeze(0)
+    g, u, L, geo = obs.dense()
     if obs.lobe != "phong":
-        a, b, t = lobe_terms(obs.g, obs.u, obs.L, obs.inten, a_pix, obs.geo, obs.lobe)
+        a, b, t = lobe_terms(g, u, L, obs.inten, a_pix, geo, obs.lobe)
         return a, b, t * b
-    t = a_pix * obs.L
-    a = obs.inten * obs.g
-    b = obs.inten * obs.u * torch.exp(t)
+    t = a_pix * L
+    a = obs.inten * g
+    b = obs.inten * u * torch.exp(t)
     return a, b, t * b
 
 

@@ -40,7 +40,7 @@ TILE = 32
 BACKGROUND = 2
 MAD_TO_SIGMA = 1.4826
 SUB = 2  # tile statistics from every 2nd sampled row and column of the tile
-CHUNK_ELEMENTS = 1 << 20  # sampled pixel-shots per pass of the screen's render (4 MiB per float32 temporary)
+CHUNK_ELEMENTS = 1 << 19  # sampled pixel-shots per pass of the screen (2 MiB per float32 temporary, ~12 of them)
 CLIP = 3.0  # the background box averages the residual clipped to med ± CLIP·σ of its tile
 
 
@@ -91,10 +91,11 @@ def _high_pass(r: Tensor, ok: Tensor | None, med: Tensor, sigma: Tensor, radius:
     return r - box_mean(clipped.unsqueeze(1), radius, None if ok is None else ok.unsqueeze(1))[:, 0]
 
 
-def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | None = None) -> Tensor:
-    """Channel-summed residual Σ_c (photo − render) of every shot on the pixels (i·stride, j·stride):
-    (N, ⌈H/stride⌉, ⌈W/stride⌉) float32 (a noise-level decision needs no more; the fit's float64
-    would cost 8× in the exponentials).
+def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | None = None,
+                     shots: range | None = None) -> Tensor:
+    """Channel-summed residual Σ_c (photo − render) of every shot (or of ``shots``) on the pixels
+    (i·stride, j·stride): (N, ⌈H/stride⌉, ⌈W/stride⌉) float32 (a noise-level decision needs no
+    more; the fit's float64 would cost 8× in the exponentials).
 
     The render is formed on the grid separably (:func:`~torchmetal.geometry.grid_shading_terms`,
     :func:`~torchmetal.lobes.grid_half_terms`: no per-pixel vectors) and summed over channels as it
@@ -118,10 +119,12 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | 
     s, alpha = ((x[grid] if x.dim() == 3 else x).to(dt) for x in (s, alpha))
     chunk = max(1, CHUNK_ELEMENTS // (xs.numel() * ys.numel())) if chunk is None else chunk
     shiny = bool((s != 0).any())  # no specular fitted (no highlight, an unidentifiable lobe): no lobe to render
+    shots = range(capture.num_shots) if shots is None else shots
     parts = []
-    for k in range(0, capture.num_shots, chunk):
-        light, cam = capture.lights[k : k + chunk].to(dt), capture.cameras[k : k + chunk].to(dt)
-        inten = capture.intensities[k : k + chunk].to(dt)  # (B, 3)
+    for k in range(shots.start, shots.stop, chunk):
+        k1 = min(k + chunk, shots.stop)
+        light, cam = capture.lights[k:k1].to(dt), capture.cameras[k:k1].to(dt)
+        inten = capture.intensities[k:k1].to(dt)  # (B, 3)
         nl, q, d2 = grid_shading_terms(light, cam, xs, ys, nrm)  # (B, h, w) each
         if not shiny:
             spec = torch.zeros_like(nl)
@@ -141,10 +144,10 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | 
             spec.masked_fill_(dark, 0.0)
         diffuse = torch.einsum("bc,chw->bhw", inten, tex)  # Σ_c I_c T_c
         shade = spec.addcmul_(diffuse, nl.clamp_min(0.0)).div_(d2)
-        img = capture.images[k : k + chunk, :, ::stride, ::stride].to(dt)  # a view for float32 photos
+        img = capture.images[k:k1, :, ::stride, ::stride].to(dt)  # a view for float32 photos
         photo = img[:, 0] + img[:, 1] + img[:, 2]  # cheaper than .sum(1) on a strided view
         parts.append(photo.sub_(shade))
-    return torch.cat(parts)
+    return parts[0] if len(parts) == 1 else torch.cat(parts)
 
 
 def sampled_valid(capture, stride: int = SCREEN_STRIDE) -> Tensor:
@@ -156,6 +159,28 @@ def sampled_valid(capture, stride: int = SCREEN_STRIDE) -> Tensor:
     return mask & ~(sat[:, 0] | sat[:, 1] | sat[:, 2])
 
 
+def _extremes(r: Tensor, ok: Tensor, tile: int, background: int) -> tuple[Tensor, Tensor, int]:
+    """Largest z and largest −z over the shots of (n, h, w) residuals ``r`` (valid where ``ok``):
+    (h, w) each, and the number of valid pixel-shots. Every statistic is per shot, so shot groups
+    combine by maxima."""
+    every = bool(ok.view(torch.uint8).amin())  # Tensor.all, cheaper
+    r = r if every else torch.where(ok, r, torch.zeros_like(r))
+    hp = _high_pass(r, None if every else ok, *_tile_stats(r, ok, tile, sub=2 * SUB), background, tile)
+    z = _per_tile(lambda x, med, sigma: (x - med) / sigma, hp, tile, *_tile_stats(hp, ok, tile))
+    z = z if every else torch.where(ok, z, torch.zeros_like(z))  # masked pixels count nowhere
+    return z.amax(0), -z.amin(0), ok.numel() if every else int(ok.sum())
+
+
+def _counts(hi: Tensor, lo: Tensor, pixels: int, ladder: tuple[float, ...], min_excess: int) -> tuple[bool, dict]:
+    top, glint = torch.maximum(hi, lo), hi >= lo
+    peak = _max3(top) == top
+    top = torch.where(peak, top, torch.zeros_like(top))  # one count per local peak: a blob is one outlier
+    pos = [int(((top > t) & glint).sum()) for t in ladder]
+    neg = [int(((top > t) & ~glint).sum()) for t in ladder]
+    passed = glint_rule(pos, neg, min_excess, ratio=1.0)
+    return passed, {"snr": list(ladder), "positive": pos, "negative": neg, "pixels": pixels}
+
+
 def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int = TILE,
                  background: int = BACKGROUND,
                  ladder: tuple[float, ...] = SNR_LADDER, min_excess: int = MIN_EXCESS) -> tuple[bool, dict]:
@@ -164,8 +189,7 @@ def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int 
     Args:
         residual: (N, H, W) channel-summed photo − Phong render (:func:`sampled_residual`).
         valid: (N, H, W) bool, pixels to look at (mask, not saturated).
-        stride: sample every ``stride``-th row and column of the inputs (the pipeline passes inputs
-            already sampled every :data:`SCREEN_STRIDE`-th, rendered only there).
+        stride: sample every ``stride``-th row and column of the inputs.
         tile: edge of the tiles (in sampled pixels) over which σ is estimated.
         background: radius (sampled pixels) of the box whose (clipped) mean is taken off first: a
             misfit wider than the box (a highlight of the wrong width or place) is not an outlier.
@@ -173,18 +197,24 @@ def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int 
     Returns:
         (passed, {"snr": [t…], "positive": [P…], "negative": [M…], "pixels": sampled pixel-shots valid}).
     """
-    r = residual[..., ::stride, ::stride]
-    ok = valid[..., ::stride, ::stride]
-    every = bool(ok.view(torch.uint8).amin())  # Tensor.all, cheaper
-    r = r if every else torch.where(ok, r, torch.zeros_like(r))
-    hp = _high_pass(r, None if every else ok, *_tile_stats(r, ok, tile, sub=2 * SUB), background, tile)
-    z = _per_tile(lambda x, med, sigma: (x - med) / sigma, hp, tile, *_tile_stats(hp, ok, tile))
-    z = z if every else torch.where(ok, z, torch.zeros_like(z))  # masked pixels count nowhere
-    hi, lo = z.amax(0), -z.amin(0)  # per sampled pixel, over the shots
-    top, glint = torch.maximum(hi, lo), hi >= lo
-    peak = _max3(top) == top
-    top = torch.where(peak, top, torch.zeros_like(top))  # one count per local peak: a blob is one outlier
-    pos = [int(((top > t) & glint).sum()) for t in ladder]
-    neg = [int(((top > t) & ~glint).sum()) for t in ladder]
-    passed = glint_rule(pos, neg, min_excess, ratio=1.0)
-    return passed, {"snr": list(ladder), "positive": pos, "negative": neg, "pixels": ok.numel() if every else int(ok.sum())}
+    hi, lo, pixels = _extremes(residual[..., ::stride, ::stride], valid[..., ::stride, ::stride], tile, background)
+    return _counts(hi, lo, pixels, ladder, min_excess)
+
+
+def screen_fit(fit, capture, stride: int = SCREEN_STRIDE, *, shots_per_pass: int | None = None) -> tuple[bool, dict]:
+    """:func:`glint_screen` of the fit's :func:`sampled_residual` on the pixels (i·stride, j·stride),
+    a few shots at a time (``shots_per_pass``, default ~:data:`CHUNK_ELEMENTS` sampled pixel-shots):
+    its memory is a few sampled planes, not the capture's. The same result as in one pass."""
+    h, w = capture.images.shape[-2:]
+    n = capture.num_shots
+    group = shots_per_pass or max(1, CHUNK_ELEMENTS // (-(-h // stride) * -(-w // stride)))
+    valid = sampled_valid(capture, stride)
+    hi = lo = None
+    pixels = 0
+    for k in range(0, n, group):
+        shots = range(k, min(n, k + group))
+        h_k, l_k, p_k = _extremes(sampled_residual(fit, capture, stride, shots=shots), valid[shots.start:shots.stop],
+                                  TILE, BACKGROUND)
+        hi, lo = (h_k, l_k) if hi is None else (torch.maximum(hi, h_k), torch.maximum(lo, l_k))
+        pixels += p_k
+    return _counts(hi, lo, pixels, SNR_LADDER, MIN_EXCESS)

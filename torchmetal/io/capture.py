@@ -30,6 +30,7 @@ from torch import Tensor
 
 from torchmetal.errors import CaptureError, InputError, TorchmetalError
 from torchmetal.io.images import _cv2, decode_planes, read_raw, srgb_to_linear
+from torchmetal.memory import release_free_memory
 
 __all__ = ["Capture", "load_capture", "check_light_camera", "read_meta", "parse_meta", "load_mask", "check_pixels",
            "FORMAT", "VERSION", "COLOR_SPACES", "UNIT_TOL"]
@@ -150,7 +151,7 @@ class Capture:
 
     Attributes:
         images: (N, 3, H, W) float linear RGB.
-        normals: (3, H, W) unit normals, world frame; default (0, 0, 1).
+        normals: (3, H, W) unit normals, world frame; default (0, 0, 1) (an expanded view: read-only).
         mask: (1, H, W) bool, True on the sample; default all True.
         lights: (N, 4) homogeneous (w = 1 position, w = 0 direction to the light).
         intensities: (N, 3) radiant intensity (point) or irradiance (directional), linear.
@@ -181,9 +182,8 @@ class Capture:
         if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[1] != 3:
             raise _shape_error("images", "(N, 3, H, W)", x)
         n, _, h, w = x.shape
-        if self.normals is None:
-            self.normals = torch.zeros(3, h, w, dtype=x.dtype, device=x.device)
-            self.normals[2] = 1.0
+        if self.normals is None:  # flat: one (3,) normal seen as (3, H, W) — no per-pixel storage
+            self.normals = torch.tensor([0.0, 0.0, 1.0], dtype=x.dtype, device=x.device).view(3, 1, 1).expand(3, h, w)
         if self.mask is None:
             self.mask = torch.ones(1, h, w, dtype=torch.bool, device=x.device)
         if self.saturated is None:
@@ -476,9 +476,11 @@ def load_capture(path: str | os.PathLike) -> Capture:
         saturated |= _load_saturated(root / sat_name, n, h, w)
 
     f32 = lambda rows: torch.tensor(rows, dtype=torch.float64).to(torch.float32)  # noqa: E731
-    return Capture(
+    cap = Capture(
         images=images, normals=normals, mask=mask,
         lights=f32([s.light for s in shots]), intensities=f32([s.intensity for s in shots]),
         cameras=f32([s.camera for s in shots]), size=size, saturated=saturated,
         names=[s.image for s in shots], color_space=color_space,
     )
+    release_free_memory()  # the decoders' buffers and the checks' temporaries
+    return cap

@@ -57,7 +57,7 @@ def tile_task(p: dict):
         seen = SeenStats()
         seen.add(obs.saa)
         nrm = cap.normals[:, rows, cols]
-        return {"A": obs.element_sum(obs.A, k), "n": float(obs.n.double().sum()),
+        return {"A": obs.element_sum(obs.A, k), "n": float(obs.n.sum()),
                 "first": None if ref is None else obs.first_stats[0], "seen": seen,
                 "flat": bool((nrm[0] == 0).all() and (nrm[1] == 0).all() and (nrm[2] == 1).all()),
                 "area": torch.bincount(obs.labels, minlength=k).double() if labeler is not None else None}
