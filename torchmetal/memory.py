@@ -3,8 +3,11 @@
 glibc serves allocations below its (dynamic, up to 32 MiB) mmap threshold from the heap and keeps
 what is freed there for reuse: after a stage's temporaries are gone, the process still holds
 their pages, and the next stage's peak sits on top of them (measured at 1024² × 16 shots: 40–60 MiB,
-a quarter of the capture). ``malloc_trim(0)`` returns every free page (a few milliseconds); it is
-called at the end of each stage. Elsewhere (macOS, Windows, musl) this is a no-op.
+a quarter of the capture). ``malloc_trim(0)`` returns every free page; the pages the next stage
+allocates are then faulted in again, which on a small capture costs more than the memory is worth
+(measured: +10–20 ms, a quarter of a 256² fit's flake screen). So it runs only for a large capture
+(:func:`is_large`): after loading, after the full-resolution LM, before the flake stage. Elsewhere
+(macOS, Windows, musl) this is a no-op.
 """
 
 from __future__ import annotations
@@ -12,6 +15,16 @@ from __future__ import annotations
 import ctypes
 import functools
 import sys
+
+
+#: a capture whose float32 images exceed this is "large": its full-resolution fit streams the
+#: geometry (:mod:`torchmetal.fit.grid_terms`) and freed heap pages go back to the OS between stages.
+LARGE_BYTES = 64 << 20
+
+
+def is_large(capture) -> bool:
+    """Whether the capture's float32 images exceed :data:`LARGE_BYTES`."""
+    return capture.images.numel() * 4 > LARGE_BYTES
 
 
 @functools.lru_cache(maxsize=1)

@@ -28,7 +28,6 @@ import torch
 
 from torchmetal.errors import InputError
 from torchmetal.flakes.prescreen import screen_fit
-from torchmetal.memory import release_free_memory
 from torchmetal.flakes.results import FlakeStageResult, Particles
 from torchmetal.material import Material
 
@@ -186,7 +185,6 @@ def fit_material(
         stage_times["flakes"] = 0.0
     else:
         t = time.perf_counter()
-        release_free_memory()  # the fit's full-resolution observations are gone: the screen must not sit on them
         two_fits = auto and scheme == "refine"
         refit = (lambda: fit_phong(capture, robust=ROBUST_GLINTS, **kw)) if two_fits else None
         coat_fit = (lambda cap: fit_phong(cap, robust=None, **kw)) if two_fits else None

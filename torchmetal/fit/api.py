@@ -38,7 +38,7 @@ from torchmetal.fit.refine import (
 from torchmetal.fit.result import FitResult
 from torchmetal.fit.run import FitRun
 from torchmetal.lobes import LOBES, check_lobe
-from torchmetal.memory import release_free_memory
+from torchmetal.memory import is_large, release_free_memory
 
 SCHEMES = ("paper", "refine")
 SPECULARS = ("auto", "global", "clustered", "maps", "none")
@@ -87,19 +87,6 @@ def _check_finite(name: str, *xs: Tensor) -> None:
 
 def _rmse(fit: SpecFit, obs: Observations) -> float:
     return math.sqrt(float(fit.cost.sum()) / max(1.0, float(obs.n.sum())))
-
-
-#: above this many bytes of stored per-observation geometry (g, u, L: 12 bytes per pixel and shot, 24
-#: for GGX, + 3 of validity — more than the float32 capture itself), the full-resolution pass streams
-#: it (:class:`~torchmetal.fit.grid_terms.GridSource`). Streaming costs one geometry evaluation per
-#: pass over the pixels (measured, 1024² × 8 shots: +0.14 s on a 0.16 s pass, −0.05 s on the build);
-#: below this size the memory saved is too small to pay for that.
-STREAM_BYTES = 64 << 20
-
-
-def _stream(capture, lobe: str) -> bool:
-    n, _, h, w = capture.images.shape
-    return n * h * w * (15 + 12 * (lobe == "ggx")) > STREAM_BYTES
 
 
 def _grid_maps(x: Tensor, h: int, w: int) -> Tensor:
@@ -267,14 +254,16 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
     dt = compute_dtype(imgs)
     h, w = imgs.shape[-2:]
 
-    # 5. full resolution
+    # 5. full resolution. A large capture streams the geometry (stored, it would weigh 1.25× the
+    # images): one geometry evaluation more per pass over the pixels (1024² × 8: +0.14 s on a 0.16 s
+    # pass, −0.05 s on the build); a small one stores it (the memory is not worth that time).
     with run.stage("geometry"):
         ref = None if spec is None else Reference(spec.s, spec.alpha)
         if ref is None and weighting is not None:
             ref = Reference(torch.zeros(1, 3, dtype=torch.float64, device=imgs.device),
                             torch.ones(1, 3, dtype=torch.float64, device=imgs.device))
         full = build_observations(capture, lobe=lobe, dtype=dt, chunk=chunk, ref=ref, weighting=weighting, labeler=labeler,
-                                  with_stats=spec is not None, want_tmin=use_maps, stream=_stream(capture, lobe))
+                                  with_stats=spec is not None, want_tmin=use_maps, stream=is_large(capture))
     n_obs = max(1.0, float(full.n.sum()))
     if spec is None:
         with run.stage("texture"):

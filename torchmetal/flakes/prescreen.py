@@ -91,11 +91,10 @@ def _high_pass(r: Tensor, ok: Tensor | None, med: Tensor, sigma: Tensor, radius:
     return r - box_mean(clipped.unsqueeze(1), radius, None if ok is None else ok.unsqueeze(1))[:, 0]
 
 
-def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | None = None,
-                     shots: range | None = None) -> Tensor:
-    """Channel-summed residual Σ_c (photo − render) of every shot (or of ``shots``) on the pixels
-    (i·stride, j·stride): (N, ⌈H/stride⌉, ⌈W/stride⌉) float32 (a noise-level decision needs no
-    more; the fit's float64 would cost 8× in the exponentials).
+def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | None = None) -> Tensor:
+    """Channel-summed residual Σ_c (photo − render) of every shot on the pixels (i·stride, j·stride):
+    (N, ⌈H/stride⌉, ⌈W/stride⌉) float32 (a noise-level decision needs no more; the fit's float64
+    would cost 8× in the exponentials).
 
     The render is formed on the grid separably (:func:`~torchmetal.geometry.grid_shading_terms`,
     :func:`~torchmetal.lobes.grid_half_terms`: no per-pixel vectors) and summed over channels as it
@@ -104,6 +103,12 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | 
     shots at a time (default: up to :data:`CHUNK_ELEMENTS` sampled pixel-shots, at least one shot —
     a small capture in one pass, not many small operations).
     """
+    parts = [r for _, r in residual_groups(fit, capture, stride, chunk)]
+    return parts[0] if len(parts) == 1 else torch.cat(parts)
+
+
+def residual_groups(fit, capture, stride: int = SCREEN_STRIDE, chunk: int | None = None):
+    """:func:`sampled_residual` ``chunk`` shots at a time: yields (shot range, (B, h, w) residual)."""
     from torchmetal.geometry import grid_shading_terms, pixel_axes
     from torchmetal.lobes import ggx_lobe, grid_half_terms
     from torchmetal.phong import exp_normal
@@ -119,10 +124,8 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | 
     s, alpha = ((x[grid] if x.dim() == 3 else x).to(dt) for x in (s, alpha))
     chunk = max(1, CHUNK_ELEMENTS // (xs.numel() * ys.numel())) if chunk is None else chunk
     shiny = bool((s != 0).any())  # no specular fitted (no highlight, an unidentifiable lobe): no lobe to render
-    shots = range(capture.num_shots) if shots is None else shots
-    parts = []
-    for k in range(shots.start, shots.stop, chunk):
-        k1 = min(k + chunk, shots.stop)
+    for k in range(0, capture.num_shots, chunk):
+        k1 = min(k + chunk, capture.num_shots)
         light, cam = capture.lights[k:k1].to(dt), capture.cameras[k:k1].to(dt)
         inten = capture.intensities[k:k1].to(dt)  # (B, 3)
         nl, q, d2 = grid_shading_terms(light, cam, xs, ys, nrm)  # (B, h, w) each
@@ -146,8 +149,7 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | 
         shade = spec.addcmul_(diffuse, nl.clamp_min(0.0)).div_(d2)
         img = capture.images[k:k1, :, ::stride, ::stride].to(dt)  # a view for float32 photos
         photo = img[:, 0] + img[:, 1] + img[:, 2]  # cheaper than .sum(1) on a strided view
-        parts.append(photo.sub_(shade))
-    return parts[0] if len(parts) == 1 else torch.cat(parts)
+        yield range(k, k1), photo.sub_(shade)
 
 
 def sampled_valid(capture, stride: int = SCREEN_STRIDE) -> Tensor:
@@ -205,16 +207,11 @@ def screen_fit(fit, capture, stride: int = SCREEN_STRIDE, *, shots_per_pass: int
     """:func:`glint_screen` of the fit's :func:`sampled_residual` on the pixels (i·stride, j·stride),
     a few shots at a time (``shots_per_pass``, default ~:data:`CHUNK_ELEMENTS` sampled pixel-shots):
     its memory is a few sampled planes, not the capture's. The same result as in one pass."""
-    h, w = capture.images.shape[-2:]
-    n = capture.num_shots
-    group = shots_per_pass or max(1, CHUNK_ELEMENTS // (-(-h // stride) * -(-w // stride)))
     valid = sampled_valid(capture, stride)
     hi = lo = None
     pixels = 0
-    for k in range(0, n, group):
-        shots = range(k, min(n, k + group))
-        h_k, l_k, p_k = _extremes(sampled_residual(fit, capture, stride, shots=shots), valid[shots.start:shots.stop],
-                                  TILE, BACKGROUND)
+    for shots, r in residual_groups(fit, capture, stride, shots_per_pass):
+        h_k, l_k, p_k = _extremes(r, valid[shots.start:shots.stop], TILE, BACKGROUND)
         hi, lo = (h_k, l_k) if hi is None else (torch.maximum(hi, h_k), torch.maximum(lo, l_k))
         pixels += p_k
     return _counts(hi, lo, pixels, SNR_LADDER, MIN_EXCESS)

@@ -30,7 +30,7 @@ from torch import Tensor
 
 from torchmetal.errors import CaptureError, InputError, TorchmetalError
 from torchmetal.io.images import _cv2, decode_planes, read_raw, srgb_to_linear
-from torchmetal.memory import release_free_memory
+from torchmetal.memory import is_large, release_free_memory
 
 __all__ = ["Capture", "load_capture", "check_light_camera", "read_meta", "parse_meta", "load_mask", "check_pixels",
            "FORMAT", "VERSION", "COLOR_SPACES", "UNIT_TOL"]
@@ -482,5 +482,6 @@ def load_capture(path: str | os.PathLike) -> Capture:
         cameras=f32([s.camera for s in shots]), size=size, saturated=saturated,
         names=[s.image for s in shots], color_space=color_space,
     )
-    release_free_memory()  # the decoders' buffers and the checks' temporaries
+    if is_large(cap):  # the decoders' buffers and the checks' temporaries
+        release_free_memory()
     return cap
