@@ -94,3 +94,21 @@ def test_observed_flakes_option_defaults_to_auto_and_bare_flag_is_on():
     assert p.parse_args(["fit", "C", "-o", "M"]).observed_flakes == "auto"
     assert p.parse_args(["fit", "C", "-o", "M", "--observed-flakes"]).observed_flakes == "on"
     assert p.parse_args(["fit", "C", "-o", "M", "--observed-flakes", "off"]).observed_flakes == "off"
+
+
+def test_console_entry_exits_fast_with_complete_outputs(tmp_path):
+    """``python -m torchmetal`` (and the ``torchmetal`` script) end with ``os._exit``: the exit code,
+    the flushed summary line and a complete material with its ONNX file must survive it, and no
+    temporary file may be left beside the output."""
+    from torchmetal.material import load_material
+
+    cap, mat = tmp_path / "cap", tmp_path / "out" / "mat"
+    assert main(["synth", "-o", str(cap), "--size", "24", "--shots", "4"]) == 0
+    proc = run_cli("fit", cap, "-o", mat, "-q", "--export")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("fitted 4 shots 24x24") and proc.stdout.endswith("\n")
+    assert load_material(mat).texture.shape == (3, 24, 24) and (mat / "renderer.onnx").stat().st_size > 0
+    assert sorted(p.name for p in mat.parent.iterdir()) == ["mat"]
+    tiled = run_cli("fit", cap, "-o", tmp_path / "out" / "bad", "--tile", "8", "--normals", "estimate")
+    assert_one_line_error(tiled, "--normals estimate")
+    assert sorted(p.name for p in mat.parent.iterdir()) == ["mat"]

@@ -1,5 +1,3 @@
-import sys
+from torchmetal.cli import run
 
-from torchmetal.cli import main
-
-sys.exit(main())
+run()
