@@ -105,8 +105,8 @@ def pool(x: Tensor, weights: list[tuple[int, int, Tensor]], radius: int) -> Tens
     c, h, w = x.shape
     xp = F.pad(x.unsqueeze(0), (radius,) * 4)[0]
     out = torch.zeros_like(x)
-    for dy, dx, wt in weights:
-        out += wt.to(x.dtype) * xp[:, radius + dy:radius + dy + h, radius + dx:radius + dx + w]
+    for dy, dx, wt in weights:  # in place: no (C, h, w) temporary per offset
+        out.addcmul_(xp[:, radius + dy:radius + dy + h, radius + dx:radius + dx + w], wt.to(x.dtype))
     return out
 
 
