@@ -299,3 +299,29 @@ def test_progress_bar_and_leave_one_out():
     assert f.status == "converged"
     vals = leave_one_out(r.capture, specular="global")
     assert len(vals) == 4 and all(v > 50 for v in vals)
+
+
+@pytest.mark.parametrize("case", ["clustered", "maps", "ggx_bumpy", "robust"])
+def test_streamed_full_resolution_pass_gives_the_same_fit(monkeypatch, case):
+    """A large capture streams its full-resolution geometry (torchmetal.memory.is_large): the fit is
+    the one the stored geometry gives, bit for bit, through clusters and relabelling, gloss maps,
+    GGX with normal maps, and robust weights."""
+    import torchmetal.fit.api as api
+
+    kw = {"clustered": dict(specular="auto"), "maps": dict(specular="maps"), "ggx_bumpy": dict(lobe="ggx"),
+          "robust": dict(robust="huber")}[case]
+    r = synth(size=40, shots=8, seed=21, spec_clusters=2 if case == "clustered" else 1, bumpy=case == "ggx_bumpy")
+    stored = fit_phong(r.capture, **kw)
+    monkeypatch.setattr(api, "is_large", lambda capture: True)
+    seen = []
+    build = api.build_observations
+    monkeypatch.setattr(api, "build_observations", lambda *a, **k: seen.append(k.get("stream")) or build(*a, **k))
+    streamed = fit_phong(r.capture, **kw)
+    assert seen == [True]  # the full-resolution pass (the subsamples are built elsewhere, stored)
+    assert streamed.specular == stored.specular and streamed.lobe == stored.lobe
+    for name in ("texture", "s", "alpha", "spec_labels", "cluster_s", "gloss_s", "gloss_alpha"):
+        a, b = getattr(streamed, name), getattr(stored, name)
+        assert (a is None) == (b is None), name
+        if a is not None:
+            assert torch.equal(a, b), name
+    assert streamed.rmse == stored.rmse
