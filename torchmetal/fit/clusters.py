@@ -222,11 +222,12 @@ def pixel_costs(obs: Observations, s: Tensor, alpha: Tensor) -> Tensor:
     under each element's s, α (K, 3) — the variable-projection cost A − 2·s·B + s²·C."""
     labels, obs.labels = obs.labels, None  # every pixel at the one α asked for
     try:
+        a = obs.A.double()  # once for every element
         out = []
         for k in range(int(s.shape[0])):
             st = spec_sums(obs, alpha[k].view(1, 3), per_pixel=True)[0]  # (6, 3, P)
             sk = s[k].to(torch.float64).view(3, 1)
-            out.append((obs.A.double() - 2.0 * sk * st[0].double() + sk * sk * st[1].double()).sum(0))
+            out.append((a - 2.0 * sk * st[0].double() + sk * sk * st[1].double()).sum(0))
     finally:
         obs.labels = labels
     return torch.stack(out)
