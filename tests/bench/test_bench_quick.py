@@ -178,6 +178,23 @@ def test_unknown_task_config_is_an_error_entry_not_a_crash():
     assert "error" in r and "FileNotFoundError" in r["error"]
 
 
+def test_real_task_scores_paper_and_default_leave_one_out(tmp_path):
+    """The real section's variants on a capture directory (a zoo scene standing in for shared/data):
+    each left-out shot scored once per variant, the default pipeline and the paper scheme beside
+    fit_phong, and an unknown variant is an error entry."""
+    from torchmetal.synth.zoo import SCENES, make_case
+
+    case = make_case(SCENES["three_shots"].with_(size=32, shots=4), tmp_path / "cap")
+    r = run_task("real", {"dir": str(case.capture_dir), "speculars": ["global", "paper", "default"]})
+    assert "error" not in r, r
+    assert r["shots"] == 4 and r["size"] == [32, 32]
+    for v in ("global", "paper", "default"):
+        assert len(r[v]["psnr"]) == 4 and all(30 < x < 100 for x in r[v]["psnr"]), (v, r[v])
+        assert r[v]["mean"] == pytest.approx(sum(r[v]["psnr"]) / 4)
+    bad = run_task("real", {"dir": str(case.capture_dir), "speculars": ["nonsense"]})
+    assert "error" in bad and "nonsense" in bad["error"]
+
+
 def test_cli_rejects_unknown_sections(capsys):
     from torchmetal.bench.__main__ import main
 

@@ -301,6 +301,26 @@ def test_progress_bar_and_leave_one_out():
     assert len(vals) == 4 and all(v > 50 for v in vals)
 
 
+def test_leave_one_out_with_any_fit_scores_each_left_out_shot():
+    from torchmetal.errors import InputError
+    from torchmetal.fit.holdout import leave_one_out_with
+
+    r = synth(size=16, shots=4, seed=16)
+    seen = []
+
+    def fit_render(train, one):
+        seen.append((train.num_shots, one.num_shots, torch.is_grad_enabled()))  # fits may use autograd
+        return fit_phong(train, specular="global").render(one.lights, one.intensities, one.cameras)
+
+    assert leave_one_out_with(r.capture, fit_render) == leave_one_out(r.capture, specular="global")
+    assert seen == [(3, 1, True)] * 4
+    # a render that misses the photo scores lower: the PSNR is of the left-out shot, not of the fit
+    bad = leave_one_out_with(r.capture, lambda train, one: 0.5 * fit_render(train, one))
+    assert all(b < 30 for b in bad)
+    with pytest.raises(InputError, match="at least 2 shots"):
+        leave_one_out_with(r.capture.subset([0]), fit_render)
+
+
 @pytest.mark.parametrize("case", ["clustered", "maps", "ggx_bumpy", "robust"])
 def test_streamed_full_resolution_pass_gives_the_same_fit(monkeypatch, case):
     """A large capture streams its full-resolution geometry (torchmetal.memory.is_large): the fit is

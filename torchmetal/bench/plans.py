@@ -30,7 +30,7 @@ class Plan:
     real_downsample: int = 1
     real_captures: tuple[str, ...] = ("cards_blue", "uw_gray_sphere")
     real_max_shots: int | None = None
-    real_speculars: tuple[str, ...] = ("global", "clustered")
+    real_speculars: tuple[str, ...] = ("global", "clustered", "paper", "default")
     realflakes_captures: tuple[str, ...] = ("cards_blue",)
     isolate: bool = True
     timeout_s: float = 1800.0
@@ -71,7 +71,7 @@ def quick_plan() -> Plan:
         adam_budget_s=0.0,
         load_size=64, load_shots=4, fit_size=48, fit_shots=4, skip_size=32, skip_shots=6,
         flake_size=64, onnx_size=32, real_downsample=8, real_captures=("uw_gray_sphere",), real_max_shots=5,
-        real_speculars=("global",), realflakes_captures=("uw_gray_sphere",), isolate=False, timeout_s=120.0, threads=1,
+        real_speculars=("global", "paper", "default"), realflakes_captures=("uw_gray_sphere",), isolate=False, timeout_s=120.0, threads=1,
         zoo_ci=True,  # every scene at its ci_scenes() size: ~25 s in all on 2 cores
     )
 

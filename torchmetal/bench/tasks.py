@@ -390,9 +390,12 @@ def task_onnx(cfg: dict) -> dict:
 
 
 def task_real(cfg: dict) -> dict:
-    """Leave-one-out PSNR on a real capture directory, global vs clustered specular."""
+    """Leave-one-out PSNR on a real capture directory for each of ``cfg["speculars"]``: "global" and
+    "clustered" are :func:`fit_phong` (the refine scheme) with that specular; a name of
+    :data:`torchmetal.bench.zoo.METHODS` ("default", "paper") is :func:`fit_material` with those options,
+    rendered as the material renders (sparkles included)."""
     load_capture = _need("torchmetal.io.capture", "load_capture")
-    leave_one_out = _need("torchmetal.fit.holdout", "leave_one_out")
+    leave_one_out, leave_one_out_with = _need("torchmetal.fit.holdout", "leave_one_out", "leave_one_out_with")
     cap = load_capture(cfg["dir"])
     if cfg.get("max_shots") and cap.num_shots > int(cfg["max_shots"]):
         cap = cap.subset(list(range(int(cfg["max_shots"]))))
@@ -401,9 +404,33 @@ def task_real(cfg: dict) -> dict:
     out = {"name": Path(cfg["dir"]).name, "shots": int(cap.images.shape[0]), "size": list(cap.images.shape[-2:])}
     for spec in cfg.get("speculars", ["global", "clustered"]):
         t0 = time.perf_counter()
-        vals = [float(v) for v in leave_one_out(cap, specular=spec)]
+        if spec in ("global", "clustered"):
+            vals = leave_one_out(cap, specular=spec)
+        else:
+            vals = leave_one_out_with(cap, _material_fit_render(spec))
+        vals = [float(v) for v in vals]
         out[spec] = {"psnr": vals, "mean": float(np.mean(vals)), "seconds": time.perf_counter() - t0}
     return out
+
+
+def _material_fit_render(method: str):
+    """fit_render for :func:`~torchmetal.fit.holdout.leave_one_out_with`: the whole pipeline with the
+    options of the zoo's ``method``, rendered by the material's renderer."""
+    import torch
+
+    from torchmetal.bench.zoo import METHODS
+    from torchmetal.pipeline import fit_material
+    from torchmetal.renderer import MaterialRenderer
+
+    if method not in METHODS:
+        raise ValueError(f"real: expected a variant among global, clustered, {', '.join(METHODS)}; found {method!r}")
+
+    def fit_render(train, one):
+        material = fit_material(train, seed=0, **METHODS[method]).material
+        with torch.no_grad():
+            return MaterialRenderer(material)(one.lights, one.intensities, one.cameras)
+
+    return fit_render
 
 
 def task_realflakes(cfg: dict) -> dict:

@@ -7,6 +7,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchmetal.errors import InputError
 from torchmetal.metrics import psnr
 
 
@@ -19,7 +20,7 @@ def valid_pixels(capture) -> Tensor:
 
 
 def leave_one_out(capture, specular: str = "auto", *, peak: float = 1.0, **fit_kwargs) -> list[float]:
-    """PSNR of each shot rendered from a fit on all the other shots.
+    """PSNR of each shot rendered from a :func:`~torchmetal.fit.fit_phong` fit on all the other shots.
 
     Args:
         capture: a Capture with N ≥ 2 shots.
@@ -32,13 +33,28 @@ def leave_one_out(capture, specular: str = "auto", *, peak: float = 1.0, **fit_k
     """
     from torchmetal.fit.api import fit_phong
 
+    def fit_render(train, one):
+        fit = fit_phong(train, specular=specular, **fit_kwargs)
+        with torch.no_grad():
+            return fit.render(one.lights, one.intensities, one.cameras)
+
+    return leave_one_out_with(capture, fit_render, peak=peak)
+
+
+def leave_one_out_with(capture, fit_render, *, peak: float = 1.0) -> list[float]:
+    """PSNR of each shot k rendered by ``fit_render(capture without k, capture of k)`` → (1, 3, H, W).
+
+    Any fit (the whole pipeline, another scheme) scored like :func:`leave_one_out`: N values (dB) over
+    mask pixels that are not saturated (NaN for a shot with none). The fit may use autograd: render
+    under ``torch.no_grad`` inside ``fit_render``.
+    """
     n = int(capture.images.shape[0])
+    if n < 2:
+        raise InputError(f"leave-one-out: expected a capture with at least 2 shots, found {n}")
     out = []
     for k in range(n):
-        fit = fit_phong(capture.subset([i for i in range(n) if i != k]), specular=specular, **fit_kwargs)
         one = capture.subset([k])
-        with torch.no_grad():
-            pred = fit.render(one.lights, one.intensities, one.cameras)
+        pred = fit_render(capture.subset([i for i in range(n) if i != k]), one).detach()
         v = valid_pixels(one)
         out.append(psnr(pred, one.images, mask=v, peak=peak) if bool(v.any()) else math.nan)
     return out
