@@ -83,3 +83,40 @@ def test_same_capture_same_material():
     assert a.material.flakes.to_dict() == b.material.flakes.to_dict()
     assert torch.equal(a.material.texture, b.material.texture)
     assert math.isfinite(a.material.report["total_time"])
+
+
+def test_glint_observations_leave_the_coat_fit_shot_by_shot():
+    """The coating's refit leaves out each detection (grown by 1 px) in the shot that saw it, as a saturated
+    observation; the pixel stays in the mask for its other shots."""
+    from torchmetal.pipeline import _without_glints
+
+    cap = _capture(0, "procedural", False, "ring", flake_seed=20).capture.subset([0, 1, 2])
+    labels = torch.zeros(3, SIZE, SIZE, dtype=torch.int64)
+    labels[1, 10, 20] = 7
+    out = _without_glints(cap, labels)
+    assert torch.equal(out.mask, cap.mask)
+    added = out.saturated & ~cap.saturated
+    assert added[1, :, 9:12, 19:22].all() and int(added.sum()) == 3 * 9  # shot 1 only, 3×3, every channel
+    assert torch.equal(out.saturated | cap.saturated, out.saturated)  # what was clipped stays clipped
+
+
+def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
+    """When the left-out shots' MD says no (torchmetal.flakes.choice.keep_flakes), the material is the one
+    flakes="off" gives — the first fit, no refit away from the detections, no sparkles — and the report
+    says why; when it says yes, the flakes stay with its numbers in the report."""
+    import torchmetal.flakes.choice as choice
+
+    flakes = FlakeModel(**DEMO_FLAKES, seed=20)
+    cap = synth_capture(size=128, shots=8, seed=0, noise=0.005, bits=16, exposure=0.8, flakes=flakes).capture
+    kept = fit_material(cap, seed=0)
+    ch = kept.report["flakes"]["flakes_choice"]
+    assert kept.material.flakes is not None and ch["kept"]
+    mean = lambda rows: sum(r["md"] for r in rows) / len(rows)  # noqa: E731
+    assert mean(ch["flakes"]) <= mean(ch["none"])
+    monkeypatch.setattr(choice, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))
+    dropped, off = fit_material(cap, seed=0), fit_material(cap, seed=0, flakes="off")
+    m = dropped.material
+    assert m.flakes is None and m.observed_flakes is None and dropped.flakes.model is None
+    assert torch.equal(m.texture, off.material.texture) and torch.equal(m.s, off.material.s)
+    assert any("not kept: MD says no" in x for x in m.report["skipped"])
+    assert dropped.report["flakes"]["flakes_choice"]["reason"] == "MD says no"

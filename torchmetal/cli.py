@@ -201,7 +201,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--scheme", choices=["refine", "paper"], default="refine")
     f.add_argument("--specular", choices=["auto", "global", "clustered", "maps", "none"], default="auto",
                    help="auto: global, or clustered / gloss maps (per-pixel s, alpha) when a held-out shot says they help")
-    f.add_argument("--flakes", choices=["auto", "on", "off"], default="auto")
+    f.add_argument("--flakes", choices=["auto", "on", "off"], default="auto",
+                   help="flake model: auto keeps it when detections exceed noise and left-out shots' sparkle "
+                        "statistics (MD) are no further from the photos with it; on: whenever detections exceed noise")
     f.add_argument("--robust", choices=["auto", "none", "huber", "cauchy"], default="auto",
                    help="IRLS weights of the Phong fit (auto: plain least squares)")
     f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")

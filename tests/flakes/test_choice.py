@@ -6,12 +6,14 @@ tests/test_pipeline.py (the dense hemisphere case: MD of a left-out photo with t
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from types import SimpleNamespace
 
 import pytest
 import torch
 
-from torchmetal.flakes.choice import _held_shots, _observed_without, choose_observed
+import torchmetal.flakes.choice as choice
+from torchmetal.flakes.choice import _held_shots, _observed_without, choose_observed, keep_flakes
 from torchmetal.flakes.results import Particles
 from torchmetal.flakes.model import FlakeModel
 
@@ -65,3 +67,58 @@ def test_bad_mode_is_one_line_error():
 
     with pytest.raises(InputError, match="observed_flakes: expected one of"):
         fit_material(_capture(), observed_flakes="sometimes")
+
+
+@dataclass
+class _Tagged:
+    """A stand-in material: a tag for the fake scores, and its observed flakes."""
+
+    tag: str
+    observed_flakes: object = None
+
+
+def _fake_scores(monkeypatch, table: dict):
+    """choice._scores from a table {(material tag, shot): (psnr, md)}; materials are tagged namespaces."""
+    monkeypatch.setattr(choice, "_scores", lambda material, capture, k: dict(zip(("psnr", "md"), table[(material.tag, k)])))
+
+
+@pytest.mark.parametrize("flake_md, kept", [(10.0, True), (30.0, False), (20.0, True)])
+def test_keep_flakes_when_left_out_md_is_no_higher(monkeypatch, flake_md, kept):
+    """The decision is the mean MD over the left-out shots (PSNR does not enter): reused from the
+    observed choice's report, the kept candidate's scores; the flake-free material scored on the same shots."""
+    plain = SimpleNamespace(tag="plain")
+    _fake_scores(monkeypatch, {("plain", 3): (30.0, 25.0), ("plain", 1): (30.0, 15.0)})
+    material = SimpleNamespace(tag="flaky", observed_flakes=None)
+    oc = {"held": [3, 1], "observed": [{"psnr": 0.0, "md": 99.0}] * 2,  # not the kept candidate: ignored
+          "statistical": [{"psnr": 20.0, "md": flake_md}, {"psnr": 20.0, "md": flake_md}]}
+    keep, rep = keep_flakes(_capture(), material, plain, None, oc)
+    assert keep is kept and rep["kept"] is kept and rep["held"] == [3, 1]
+    assert [r["md"] for r in rep["none"]] == [25.0, 15.0]
+    assert "MD" in rep["reason"]
+
+
+def test_keep_flakes_scores_its_own_left_out_shots(monkeypatch):
+    """Without the observed choice's report (observed flakes forced on): the shots with the most associated
+    detections are left out, the observed flakes measured without each."""
+    cap = _capture()
+    p = _particles([0, 1, 2, 3, 3], [5.0, 5.0, 15.0, 15.0, 9.0], [5.0, 5.0, 15.0, 15.0, 9.0])
+    res = SimpleNamespace(particles=p, flake_id=torch.tensor([0, 0, 1, 1, 2]),
+                          model=FlakeModel(density=0.01, glint_sigma=0.05))
+    seen = []
+
+    def scores(material, capture, k):
+        obs = material.observed_flakes
+        seen.append((material.tag, k, None if obs is None else len(obs)))
+        return {"psnr": 30.0, "md": 5.0 if material.tag == "flaky" else 50.0}
+
+    monkeypatch.setattr(choice, "_scores", scores)
+    keep, rep = keep_flakes(cap, _Tagged("flaky", object()), _Tagged("plain"), res, None)
+    assert keep and rep["held"] == [3, 0]
+    # shot 3 left out: flakes 0 (shots 0, 1) still seen, flake 1 in shot 2, flake 2 only in shot 3 → 2
+    assert seen[:2] == [("flaky", 3, 2), ("flaky", 0, 3)] and seen[2:] == [("plain", 3, None), ("plain", 0, None)]
+
+
+def test_keep_flakes_without_associated_detections_keeps():
+    res = SimpleNamespace(particles=_particles([0], [5.0], [5.0]), flake_id=torch.tensor([-1]), model=None)
+    keep, rep = keep_flakes(_capture(), SimpleNamespace(observed_flakes=None), None, res, None)
+    assert keep and "no associated detections" in rep["reason"]
