@@ -211,6 +211,7 @@ def fit_material(
         else:
             reason = flake_result.report.get("skipped", "detections consistent with noise")
             skipped.append(f"flakes: {reason}")
+
     def report_of(fit, skipped) -> dict:
         return {
             "stage_times": stage_times,
