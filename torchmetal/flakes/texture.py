@@ -25,7 +25,7 @@ from torch import Tensor
 
 from torchmetal.checks import check_shape
 from torchmetal.flakes.filters import box_mean
-from torchmetal.geometry import shading_geometry
+from torchmetal.geometry import direction_to, dot, surface_points
 
 _FILL_RADII = (2, 4, 8, 16)  # neighbourhoods tried for pixels with no undetected shot
 
@@ -109,8 +109,11 @@ def texture_without_glints(
 
 
 def _diffuse_gain(capture, shots: slice, dtype: torch.dtype) -> Tensor:
-    """a = E·max(n·l, 0) of the shots ``shots``, (B, 3, H, W): the diffuse term per unit texture."""
-    geom = shading_geometry(capture.normals.to(dtype), capture.lights[shots].to(dtype),
-                            capture.intensities[shots].to(dtype), capture.cameras[shots].to(dtype), capture.size)
-    a = geom.irradiance * geom.n_dot_l.clamp_min(0.0)
+    """a = E·max(n·l, 0) of the shots ``shots``, (B, 3, H, W): the diffuse term per unit texture (the
+    light's direction and distance only: the same values as :func:`~torchmetal.geometry.shading_geometry`'s
+    ``irradiance · n_dot_l``, at a third of its cost)."""
+    n = capture.normals.to(dtype)
+    points = surface_points(n.shape[-2], n.shape[-1], capture.size, dtype=dtype, device=n.device)
+    l, dist2 = direction_to(points, capture.lights[shots].to(dtype))
+    a = capture.intensities[shots].to(dtype)[:, :, None, None] / dist2 * dot(n.unsqueeze(0), l).clamp_min(0.0)
     return a.expand(-1, 3, -1, -1)
