@@ -71,7 +71,8 @@ def quick_plan() -> Plan:
         adam_budget_s=0.0,
         load_size=64, load_shots=4, fit_size=48, fit_shots=4, skip_size=32, skip_shots=6,
         flake_size=64, onnx_size=32, real_downsample=8, real_captures=("uw_gray_sphere",), real_max_shots=5,
-        real_speculars=("global", "paper", "default"), realflakes_captures=("uw_gray_sphere",), isolate=False, timeout_s=120.0, threads=1,
+        real_speculars=("global", "paper", "default"), realflakes_captures=("uw_gray_sphere",), isolate=False,
+        timeout_s=120.0, threads=1,
         zoo_ci=True,  # every scene at its ci_scenes() size: ~25 s in all on 2 cores
     )
 

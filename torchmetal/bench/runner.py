@@ -271,7 +271,8 @@ class Bench(SweepSection):
                 d, q = r["default"]["mean"], r["paper"]["mean"]
                 worse = sum(a < b for a, b in zip(r["default"]["psnr"], r["paper"]["psnr"]))
                 verdicts.append(f"{name}: default {d:.2f} dB, paper {q:.2f} dB → default ≥ paper: "
-                                f"{'yes' if d >= q else 'NO'} (mean); worse on {worse} of {len(r['paper']['psnr'])} left-out shots")
+                                f"{'yes' if d >= q else 'NO'} (mean); worse on {worse} of {len(r['paper']['psnr'])} "
+                                "left-out shots")
         self.add(md_table(["capture", "fit", "mean PSNR dB", "per left-out shot (dB)", "seconds"], rows))
         self.add("\n*fit*: global / clustered are `fit_phong` (refine scheme) with that specular; default is "
                  "`fit_material` as `torchmetal fit` runs it (flakes, lobe, normals and maps decided by it) and paper "

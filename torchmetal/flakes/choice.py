@@ -1,4 +1,5 @@
-"""Observed or statistical flakes? Decided on shots the observed flakes were not measured from.
+"""Observed or statistical flakes (:func:`choose_observed`), and flakes or none (:func:`keep_flakes`)?
+Decided on shots the observed flakes were not measured from.
 
 The sample's own flakes (:mod:`torchmetal.flakes.observed`) put the glints where the fit shots saw
 them; the statistical field (:mod:`torchmetal.flakes.field`) only gets their statistics right. Which
