@@ -122,3 +122,14 @@ def test_keep_flakes_without_associated_detections_keeps():
     res = SimpleNamespace(particles=_particles([0], [5.0], [5.0]), flake_id=torch.tensor([-1]), model=None)
     keep, rep = keep_flakes(_capture(), SimpleNamespace(observed_flakes=None), None, res, None)
     assert keep and "no associated detections" in rep["reason"]
+
+
+def test_images_too_small_for_md_keep_the_flakes_and_the_field():
+    """MD needs 16-px blocks: a smaller capture is not scored (no error on valid input), flakes kept."""
+    cap = _capture(h=12, w=12)
+    res = SimpleNamespace(particles=_particles([0, 1], [5.0, 5.0], [5.0, 5.0]), flake_id=torch.tensor([0, 0]),
+                          model=FlakeModel(density=0.01, glint_sigma=0.05))
+    keep, rep = keep_flakes(cap, _Tagged("flaky"), _Tagged("plain"), res, None)
+    assert keep and "too small" in rep["reason"]
+    obs, rep = choose_observed(cap, _Tagged("flaky"), res)
+    assert obs is None and "too small" in rep["reason"]

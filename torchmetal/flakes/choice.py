@@ -24,6 +24,7 @@ from dataclasses import replace
 import torch
 
 HELD = 2  # left-out shots (the ones with the most associated detections)
+MD_WINDOW = 16  # MD's block (px) in the left-out scores: smaller images cannot be scored
 
 
 def _held_shots(particles, flake_id: torch.Tensor, num_shots: int, count: int) -> list[int]:
@@ -61,7 +62,7 @@ def _scores(material, capture, k: int) -> dict:
                                           capture.cameras[k : k + 1].float())
     photo = capture.images[k : k + 1].float()
     valid = (capture.mask & ~capture.saturated[k].any(0, keepdim=True)).expand_as(photo[0]).unsqueeze(0)
-    return {"psnr": float(psnr(pred, photo, mask=valid)), "md": float(md(pred[0], photo[0]))}
+    return {"psnr": float(psnr(pred, photo, mask=valid)), "md": float(md(pred[0], photo[0], window=MD_WINDOW))}
 
 
 def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tuple[object, dict]:
@@ -80,6 +81,9 @@ def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tup
 
     parts, fid, model = flake_result.particles, flake_result.flake_id, flake_result.model
     report = {"held": [], "observed": [], "statistical": [], "kept": False}
+    if min(capture.images.shape[-2:]) < MD_WINDOW:
+        report["reason"] = f"images under {MD_WINDOW} px a side: too small for MD's blocks"
+        return None, report
     if fid is None or not bool((fid >= 0).any()):
         report["reason"] = "no associated detections"
         return None, report
@@ -132,6 +136,9 @@ def keep_flakes(capture, material, plain, flake_result, observed_report: dict | 
         (keep, report {"held", "flakes", "none", "kept", "reason"}).
     """
     rep = {"held": [], "flakes": [], "none": [], "kept": True}
+    if min(capture.images.shape[-2:]) < MD_WINDOW:
+        rep["reason"] = f"images under {MD_WINDOW} px a side: too small for MD's blocks, kept"
+        return True, rep
     oc = observed_report or {}
     if oc.get("held"):
         rep["held"] = list(oc["held"])
