@@ -113,6 +113,8 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
     assert kept.material.flakes is not None and ch["kept"]
     mean = lambda rows: sum(r["md"] for r in rows) / len(rows)  # noqa: E731
     assert mean(ch["flakes"]) <= mean(ch["none"])
+    times = kept.report["stage_times"]  # the total counts the flake choices too
+    assert kept.report["total_time"] >= times["flakes"] + times["flakes.observed"] + times["flakes.choice"]
     monkeypatch.setattr(choice, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))
     dropped, off = fit_material(cap, seed=0), fit_material(cap, seed=0, flakes="off")
     m = dropped.material

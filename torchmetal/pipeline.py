@@ -215,7 +215,6 @@ def fit_material(
     def report_of(fit, skipped) -> dict:
         return {
             "stage_times": stage_times,
-            "total_time": time.perf_counter() - t0,
             "skipped": skipped,
             "status": fit.status,
             "iterations": fit.iterations,
@@ -254,4 +253,5 @@ def fit_material(
                 flake_result = replace(flake_result, model=None)
                 plain_skipped[-1] = f"flakes: {flake_result.report['skipped']}"
                 fit, material = first, first.to_material(report_extra=report_of(first, plain_skipped))
+    material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
     return PipelineResult(material=material, fit=fit, flakes=flake_result, report=material.report)
