@@ -111,7 +111,7 @@ def texture_without_glints(
 def _diffuse_gain(capture, shots: slice, dtype: torch.dtype) -> Tensor:
     """a = E·max(n·l, 0) of the shots ``shots``, (B, 3, H, W): the diffuse term per unit texture (the
     light's direction and distance only: the same values as :func:`~torchmetal.geometry.shading_geometry`'s
-    ``irradiance · n_dot_l``, at a third of its cost)."""
+    ``irradiance · n_dot_l``, at half its cost)."""
     n = capture.normals.to(dtype)
     points = surface_points(n.shape[-2], n.shape[-1], capture.size, dtype=dtype, device=n.device)
     l, dist2 = direction_to(points, capture.lights[shots].to(dtype))
