@@ -74,6 +74,11 @@ def normalize(x: Tensor, dim: int = -3) -> Tensor:
     return x / torch.sqrt(n2.clamp_min(_EPS * _EPS))
 
 
+def is_flat(normals: Tensor) -> bool:
+    """True when every normal of ``normals`` (3, ...) is exactly (0, 0, 1): the flat sample's cheaper paths."""
+    return bool((normals[0] == 0).all() and (normals[1] == 0).all() and (normals[2] == 1).all())
+
+
 def dot(a: Tensor, b: Tensor, dim: int = -3) -> Tensor:
     """Dot product along the channel axis, keeping it: (..., 3, H, W) → (..., 1, H, W)."""
     return (a * b).sum(dim, keepdim=True)

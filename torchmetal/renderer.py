@@ -54,7 +54,7 @@ from torchmetal.checks import check_finite, check_float, check_shape
 from torchmetal.errors import InputError
 from torchmetal.flakes.field import FlakeField, sparkle_shading
 from torchmetal.flakes.observed import material_flake_field
-from torchmetal.geometry import shading_geometry, surface_points
+from torchmetal.geometry import is_flat, shading_geometry, surface_points
 from torchmetal.lobes import fresnel_ratio, ggx_k
 from torchmetal.material import Material
 from torchmetal.phong import channel_map
@@ -71,12 +71,6 @@ def _split(target: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """(B, 4) homogeneous vectors → four (B, 1, 1, 1) components x, y, z, w."""
     t = target.reshape(-1, 4, 1, 1)
     return t[:, 0:1], t[:, 1:2], t[:, 2:3], t[:, 3:4]
-
-
-def _is_flat(normals: Tensor | None) -> bool:
-    if normals is None:
-        return True
-    return bool((normals[0] == 0).all() and (normals[1] == 0).all() and (normals[2] == 1).all())
 
 
 class MaterialRenderer(nn.Module):
@@ -107,7 +101,7 @@ class MaterialRenderer(nn.Module):
         self.register_buffer("xs", surface_points(1, m.width, self.size, dtype=f32, device=dev)[0, 0].clone())
         self.register_buffer("ys", surface_points(m.height, 1, self.size, dtype=f32, device=dev)[1, :, 0].clone())
 
-        self.flat = _is_flat(m.normals)
+        self.flat = m.normals is None or is_flat(m.normals)
         if not self.flat:
             self.register_buffer("normals", m.normals.detach().to(f32).clone())
 

@@ -37,6 +37,7 @@ from torchmetal.fit.refine import (
 )
 from torchmetal.fit.result import FitResult
 from torchmetal.fit.run import FitRun
+from torchmetal.geometry import is_flat
 from torchmetal.lobes import LOBES, check_lobe
 from torchmetal.memory import is_large, release_free_memory
 
@@ -86,7 +87,7 @@ def _check_finite(name: str, *xs: Tensor) -> None:
 
 
 def _rmse(fit: SpecFit, obs: Observations) -> float:
-    return math.sqrt(float(fit.cost.sum()) / max(1.0, float(obs.n.sum())))
+    return math.sqrt(float(fit.cost.sum()) / obs.n_obs)
 
 
 def _grid_maps(x: Tensor, h: int, w: int) -> Tensor:
@@ -178,12 +179,10 @@ def fit_phong(
 
 
 def _result(capture, run: FitRun, texture: Tensor, s: Tensor, alpha: Tensor, **kw) -> FitResult:
-    normals = capture.normals
-    flat = bool((normals[0] == 0).all() and (normals[1] == 0).all() and (normals[2] == 1).all())
     dt = texture.dtype
     return FitResult(
-        texture=texture, s=s.to(dt), alpha=alpha.to(dt), normals=normals.to(dt), size=tuple(float(v) for v in capture.size),
-        history=run.history, stage_times=run.times, iterations=run.iterations, skipped=run.skipped, flat=flat, **kw,
+        texture=texture, s=s.to(dt), alpha=alpha.to(dt), normals=capture.normals.to(dt), size=tuple(float(v) for v in capture.size),
+        history=run.history, stage_times=run.times, iterations=run.iterations, skipped=run.skipped, flat=is_flat(capture.normals), **kw,
     )
 
 
@@ -209,7 +208,7 @@ def _fit_paper(capture, run: FitRun, *, specular: str, tol: float, max_iters: in
     h, w = capture.images.shape[-2:]
     with run.stage("geometry"):
         obs = build_observations(capture, dtype=dt, chunk=chunk)
-    n_obs = max(1.0, float(obs.n.sum()))
+    n_obs = obs.n_obs
     A = float(obs.A.sum(dtype=torch.float64))
     if specular == "none":
         run.skipped.append("specular: disabled by the caller (specular='none')")
@@ -264,7 +263,7 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
                             torch.ones(1, 3, dtype=torch.float64, device=imgs.device))
         full = build_observations(capture, lobe=lobe, dtype=dt, chunk=chunk, ref=ref, weighting=weighting, labeler=labeler,
                                   with_stats=spec is not None, want_tmin=use_maps, stream=is_large(capture))
-    n_obs = max(1.0, float(full.n.sum()))
+    n_obs = full.n_obs
     if spec is None:
         with run.stage("texture"):
             tex = _finish_texture(_no_specular_texture(full), full, capture, run)
@@ -288,7 +287,7 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
         with run.stage("relabel"):
             fit, moved = relabel_pixels(full, fit, lambda obs, f: fit_specular(
                 obs, torch.log(f.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix))
-            run.log("relabel", 1, math.sqrt(float(fit.cost.sum()) / max(1.0, float(full.n.sum()))), 1.0, moved)
+            run.log("relabel", 1, math.sqrt(float(fit.cost.sum()) / full.n_obs), 1.0, moved)
     if full.source is not None:  # a large capture: the LM's freed temporaries go back before the texture's
         release_free_memory()
     if lobe == "ggx" and not use_maps and s_fix is None:  # one roughness for the three channels, where the data allow it

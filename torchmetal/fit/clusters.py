@@ -257,7 +257,7 @@ def relabel_pixels(obs: Observations, fit: SpecFit, refit) -> tuple[SpecFit, int
     to :data:`RELABEL_ROUNDS` rounds. Returns (fit, pixels moved).
     """
     moved = 0
-    n_obs = max(1.0, float(obs.n.sum()))
+    n_obs = obs.n_obs
     for _ in range(RELABEL_ROUNDS):
         labels, n = relabel(obs, fit.s, fit.alpha, float(fit.cost.sum()) / n_obs)
         if n == 0:
@@ -283,7 +283,7 @@ class LabelMap:
 
 def mean_square(hold: Observations) -> float:
     """Mean of y² over the valid held-out observations."""
-    return float(hold.energy().sum()) / max(1.0, float(hold.n.sum()))
+    return float(hold.energy().sum()) / hold.n_obs
 
 
 def heldout_mse(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor, labels: Tensor | None) -> float:
@@ -373,7 +373,7 @@ def choose_specular(
     g = fit_specular(obs, torch.log(glob.alpha), tol=tol, max_iters=max_iters)
     if hold is None:  # no shot to spare: in-sample error (only to rank candidates when forced)
         ho = None
-        score = lambda fit, labels: float(fit.cost.sum()) / max(1.0, float(obs.n.sum()))  # noqa: E731
+        score = lambda fit, labels: float(fit.cost.sum()) / obs.n_obs  # noqa: E731
     else:
         ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk, lobe=glob.lobe)
         score = lambda fit, labels: heldout_mse(ho, texture_map(obs, fit.s, fit.eb), fit.s, fit.alpha, labels)  # noqa: E731

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.lobes import LOG_OFF, observation_lobe_terms
-from torchmetal.geometry import grid_shading_terms, pixel_axes
+from torchmetal.geometry import grid_shading_terms, is_flat, pixel_axes
 from torchmetal.lobes import grid_half_terms
 from torchmetal.phong import log1p_exact
 
@@ -60,8 +60,7 @@ def grid_axes(capture, rows: slice, cols: slice, dtype: torch.dtype) -> tuple[Te
     big_h, big_w = int(capture.images.shape[-2]), int(capture.images.shape[-1])
     xs, ys = pixel_axes(big_h, big_w, capture.size, rows=rows, cols=cols, dtype=dtype, device=capture.images.device)
     normals = capture.normals[:, rows, cols]
-    flat = bool((normals[:2] == 0).all() and (normals[2] == 1).all())
-    return xs, ys, None if flat else normals
+    return xs, ys, None if is_flat(normals) else normals
 
 
 def grid_geometry(

@@ -360,7 +360,7 @@ def paper_scheme(
 
     ``on_iter(stage, iteration, rmse, active)`` reports "init" once, then "paper" per iteration.
     """
-    n_obs = max(1.0, float(obs.n.sum()))
+    n_obs = obs.n_obs
     bidx = bins_of(obs, n_bins)
     t0, s, beta = initial_approximation(obs, bidx, n_bins=n_bins)
     alpha = torch.exp(beta)

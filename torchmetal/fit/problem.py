@@ -145,6 +145,11 @@ class Observations:
     def device(self) -> torch.device:
         return self.y.device
 
+    @property
+    def n_obs(self) -> float:
+        """Σ n over pixels and channels, at least 1: the divisor of per-observation means."""
+        return max(1.0, float(self.n.sum()))
+
     def energy(self, k: int = 1) -> Tensor:
         """Per-element (K, 3) float64 sums of Σ w·y² = A + saa·d0² (an energy scale for relative
         thresholds; by ``labels`` if K > 1), pixel block by pixel block (no full-size temporaries)."""

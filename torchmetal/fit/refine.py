@@ -164,7 +164,7 @@ def fit_specular(
     k = int(beta0.shape[0])
     A = obs.element_sum(obs.A, k)
     Y = obs.energy(k)
-    n_total = max(1.0, float(obs.n.sum()))
+    n_total = obs.n_obs
     labels = obs.labels if k > 1 else None
     state = {"active": 1.0}
     floor = (0.01 * torch.finfo(obs.dtype).eps * A).reshape(-1)  # cost resolution of the working dtype
@@ -254,7 +254,7 @@ def share_alpha(obs: Observations, fit: SpecFit) -> tuple[SpecFit, dict]:
         trial = evaluate_specular(obs, None, torch.exp(cand).expand(k, 3).contiguous())
         if best is None or float(trial.cost.sum()) < float(best.cost.sum()):
             best = trial
-    n_obs = max(1.0, float(obs.n.sum()))
+    n_obs = obs.n_obs
     nu = 2.0 * k
     chi2 = nu * (1.0 - 2.0 / (9.0 * nu) + SHARED_ALPHA_P * math.sqrt(2.0 / (9.0 * nu))) ** 3
     rise = float(best.cost.sum() - fit.cost.sum())

@@ -109,7 +109,7 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | 
 
 def residual_groups(fit, capture, stride: int = SCREEN_STRIDE, chunk: int | None = None):
     """:func:`sampled_residual` ``chunk`` shots at a time: yields (shot range, (B, h, w) residual)."""
-    from torchmetal.geometry import grid_shading_terms, pixel_axes
+    from torchmetal.geometry import grid_shading_terms, is_flat, pixel_axes
     from torchmetal.lobes import ggx_lobe, grid_half_terms
     from torchmetal.phong import exp_normal
 
@@ -119,7 +119,7 @@ def residual_groups(fit, capture, stride: int = SCREEN_STRIDE, chunk: int | None
     tex = fit.texture[grid].to(dt)
     xs, ys = pixel_axes(h, w, fit.size, rows=grid[1], cols=grid[2], dtype=dt, device=tex.device)
     normals = fit.normals[grid].to(dt)
-    nrm = None if bool((normals[:2] == 0).all() and (normals[2] == 1).all()) else normals
+    nrm = None if is_flat(normals) else normals
     s, alpha = fit.specular_maps()
     s, alpha = ((x[grid] if x.dim() == 3 else x).to(dt) for x in (s, alpha))
     chunk = max(1, CHUNK_ELEMENTS // (xs.numel() * ys.numel())) if chunk is None else chunk

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.lobe_fit import LobeFit, ggx_terms, fit_lobe
-from torchmetal.geometry import normalize, shading_geometry
+from torchmetal.geometry import is_flat, normalize, shading_geometry
 
 COAT_F0 = 0.04  # glTF/OpenPBR clear coat at IOR 1.5
 MAX_GROUPS = 64  # distinct exponent triples fitted one by one; more are binned in log α
@@ -77,8 +77,7 @@ class EngineMaterial:
 
     @property
     def flat(self) -> bool:
-        n = self.normal
-        return bool((n[0] == 0).all() and (n[1] == 0).all() and (n[2] == 1).all())
+        return is_flat(self.normal)
 
 
 def _lobe_kind(material) -> str:

@@ -31,8 +31,9 @@ import torch
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.engine import Coat, EngineMaterial, engine_material
-from torchmetal.formats.textures import (decode_png, hwc, is_constant, is_up, png_bytes, specular_encoding, to_linear,
+from torchmetal.formats.textures import (decode_png, hwc, is_constant, png_bytes, specular_encoding, to_linear,
                                          to_srgb)
+from torchmetal.geometry import is_flat
 
 GENERATOR = "torchmetal"
 
@@ -72,7 +73,7 @@ def gltf_document(em: EngineMaterial, extras: dict) -> tuple[dict, bytes]:
     uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
     idx = np.array([0, 3, 2, 0, 2, 1], np.uint16)  # counter-clockwise seen from +z
     accessors = []
-    tangents = not em.flat or (em.coat is not None and not is_up(em.coat.normal))  # only with normal maps
+    tangents = not em.flat or (em.coat is not None and not is_flat(em.coat.normal))  # only with normal maps
     arrays = ((pos, "VEC3"), (nrm, "VEC3"), (uv, "VEC2")) + (((tan, "VEC4"),) if tangents else ())
     for arr, typ in arrays:
         acc = {"bufferView": b.view(arr.tobytes(), 34962), "componentType": 5126, "count": 4, "type": typ}
@@ -141,7 +142,7 @@ def _clearcoat(b: _Builder, coat: Coat) -> dict:
         r = hwc(coat.roughness)
         cc["clearcoatRoughnessFactor"] = 1.0
         cc["clearcoatRoughnessTexture"] = b.texture(np.concatenate([r, r, r], 2), "clearcoat_roughness")
-    if not is_up(coat.normal):
+    if not is_flat(coat.normal):
         cc["clearcoatNormalTexture"] = b.texture(0.5 * (hwc(coat.normal) + 1.0), "clearcoat_normal")
     return cc
 

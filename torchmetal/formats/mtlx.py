@@ -30,8 +30,9 @@ import torch
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.engine import EngineMaterial, engine_material
-from torchmetal.formats.textures import (f0_to_ior, gray, hwc, is_constant, is_up, specular_encoding, to_srgb,
+from torchmetal.formats.textures import (f0_to_ior, gray, hwc, is_constant, specular_encoding, to_srgb,
                                          write_texture_dir)
+from torchmetal.geometry import is_flat
 
 TARGETS = ("glsl", "osl", "mdl")
 
@@ -59,7 +60,7 @@ def mtlx_plan(material, views=None) -> tuple[EngineMaterial, dict, dict[str, np.
     em = engine_material(replace(material, flakes=None), views=views)
     textures: dict[str, np.ndarray] = {"base_color": to_srgb(hwc(em.base_color))}
     ins: dict = {"base_color": ("texture", "base_color"), "base_weight": 1.0, "base_metalness": 0.0}
-    normal = None if is_up(em.normal) else "normal"
+    normal = None if is_flat(em.normal) else "normal"
     if normal:
         textures["normal"] = 0.5 * (hwc(em.normal) + 1.0)
 

@@ -53,10 +53,6 @@ def to_linear(x: np.ndarray) -> np.ndarray:
     return srgb_to_linear(torch.from_numpy(x)).numpy()
 
 
-def is_up(n: torch.Tensor) -> bool:
-    return bool((n[0] == 0).all() and (n[1] == 0).all() and (n[2] == 1).all())
-
-
 def is_constant(x: torch.Tensor) -> bool:
     return bool((x == x.reshape(x.shape[0], -1)[:, :1].reshape(-1, 1, 1)).all())
 

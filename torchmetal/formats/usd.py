@@ -24,7 +24,8 @@ import numpy as np
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.engine import EngineMaterial, engine_material
-from torchmetal.formats.textures import gray, hwc, is_constant, is_up, to_srgb, write_texture_dir
+from torchmetal.formats.textures import gray, hwc, is_constant, to_srgb, write_texture_dir
+from torchmetal.geometry import is_flat
 
 ROOT = "/torchmetal"
 MATERIAL = f"{ROOT}/Looks/M_torchmetal"
@@ -92,7 +93,7 @@ def _preview(stage, material, em: EngineMaterial, files: dict[str, str]):
         rough.Set(float(em.roughness.reshape(-1)[0]))
     else:
         rough.ConnectToSource(texture("preview_roughness", "r", False))
-    if not is_up(em.normal):
+    if not is_flat(em.normal):
         surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(texture("preview_normal", "rgb", False, True))
     if em.coat is not None:
         cc = surf.CreateInput("clearcoat", Sdf.ValueTypeNames.Float)
@@ -115,7 +116,7 @@ def preview_textures(em: EngineMaterial) -> dict[str, np.ndarray]:
         t["preview_specular_color"] = to_srgb(hwc(em.f0.clamp(0.0, 1.0)))
     if not is_constant(em.roughness):
         t["preview_roughness"] = gray(hwc(em.roughness))
-    if not is_up(em.normal):
+    if not is_flat(em.normal):
         t["preview_normal"] = 0.5 * (hwc(em.normal) + 1.0)
     if em.coat is not None:
         if not is_constant(em.coat.weight):

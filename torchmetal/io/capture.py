@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import CaptureError, InputError, TorchmetalError
+from torchmetal.geometry import is_flat
 from torchmetal.io.images import _cv2, decode_planes, read_raw, srgb_to_linear
 from torchmetal.memory import is_large, release_free_memory
 
@@ -253,8 +254,7 @@ class Capture:
     @property
     def flat(self) -> bool:
         """True when every normal is exactly (0, 0, 1)."""
-        n = self.normals
-        return bool((n[0] == 0).all() and (n[1] == 0).all() and (n[2] == 1).all())
+        return is_flat(self.normals)
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "Capture":
         """Copy on ``device`` and/or with float tensors cast to ``dtype`` (bool masks stay bool)."""

@@ -26,6 +26,7 @@ import torch
 from torchmetal.fit.clusters import relabel
 from torchmetal.fit.problem import build_observations
 from torchmetal.fit.refine import spec_sums, texture_map
+from torchmetal.geometry import is_flat
 from torchmetal.scale.tiled_texture import SeenStats, unobserved_tile
 from torchmetal.scale.tiles import TiledCapture
 
@@ -59,7 +60,7 @@ def tile_task(p: dict):
         nrm = cap.normals[:, rows, cols]
         return {"A": obs.element_sum(obs.A, k), "n": float(obs.n.sum()),
                 "first": None if ref is None else obs.first_stats[0], "seen": seen,
-                "flat": bool((nrm[0] == 0).all() and (nrm[1] == 0).all() and (nrm[2] == 1).all()),
+                "flat": is_flat(nrm),
                 "area": torch.bincount(obs.labels, minlength=k).double() if labeler is not None else None}
     if kind == "stats":
         return spec_sums(obs, p["alpha"])[0]
