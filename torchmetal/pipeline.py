@@ -65,9 +65,9 @@ def _without_glints(capture, labels: torch.Tensor):
     Masking the pixel in every shot instead took the real card's foil out of its own specular fit (15 %
     of the pixels are detected in some shot): 1.4 dB lost on a left-out shot, for nothing gained on the
     zoo's flake scenes (coat PSNR away from the flakes equal to 0.001 dB)."""
-    import torch.nn.functional as F
+    from torchmetal.flakes.texture import grown_detections
 
-    hit = F.max_pool2d((labels > 0).unsqueeze(1).float(), 3, stride=1, padding=1) > 0  # (N, 1, H, W)
+    hit = grown_detections(labels)
     sat = capture.saturated if capture.saturated is not None else torch.zeros_like(capture.images, dtype=torch.bool)
     return replace(capture, saturated=sat | hit)
 
@@ -242,8 +242,7 @@ def fit_material(
             stage_times["flakes.observed"] = time.perf_counter() - t
         if flakes == "auto":  # flakes or none: the left-out shots' sparkle statistics (MD) decide
             t = time.perf_counter()
-            plain_skipped = [*first.skipped, "flakes: see the flake report's flakes_choice"]
-            plain = first.to_material(report_extra=report_of(first, plain_skipped))
+            plain = first.to_material(report_extra=report_of(first, list(first.skipped)))
             keep, flake_result.report["flakes_choice"] = keep_flakes(capture, material, plain, flake_result,
                                                                       observed_report)
             stage_times["flakes.choice"] = time.perf_counter() - t
@@ -251,7 +250,7 @@ def fit_material(
                 flake_result.report["skipped"] = ("detections found, but not kept: "
                                                   f"{flake_result.report['flakes_choice']['reason']}")
                 flake_result = replace(flake_result, model=None)
-                plain_skipped[-1] = f"flakes: {flake_result.report['skipped']}"
-                fit, material = first, first.to_material(report_extra=report_of(first, plain_skipped))
+                plain.report["skipped"].append(f"flakes: {flake_result.report['skipped']}")
+                fit, material = first, plain
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
     return PipelineResult(material=material, fit=fit, flakes=flake_result, report=material.report)

@@ -65,6 +65,11 @@ def _scores(material, capture, k: int) -> dict:
     return {"psnr": float(psnr(pred, photo, mask=valid)), "md": float(md(pred[0], photo[0], window=MD_WINDOW))}
 
 
+def _mean(rows: list[dict], key: str) -> float:
+    """Mean of one score over the left-out shots."""
+    return sum(r[key] for r in rows) / len(rows)
+
+
 def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tuple[object, dict]:
     """The observed flakes of ``flake_result`` if left-out shots prefer them, else None.
 
@@ -102,9 +107,8 @@ def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tup
     if not report["held"]:
         report["reason"] = "no left-out shot keeps associated detections in the others"
         return None, report
-    mean = lambda rows, key: sum(r[key] for r in rows) / len(rows)  # noqa: E731
-    o_psnr, s_psnr = mean(report["observed"], "psnr"), mean(report["statistical"], "psnr")
-    o_md, s_md = mean(report["observed"], "md"), mean(report["statistical"], "md")
+    o_psnr, s_psnr = _mean(report["observed"], "psnr"), _mean(report["statistical"], "psnr")
+    o_md, s_md = _mean(report["observed"], "md"), _mean(report["statistical"], "md")
     better = o_psnr > s_psnr and o_md <= s_md
     report["kept"] = better
     report["reason"] = (f"left-out shots: observed flakes {o_psnr:.2f} dB, MD {o_md:.2f}; statistical field "
@@ -159,8 +163,7 @@ def keep_flakes(capture, material, plain, flake_result, observed_report: dict | 
         rep["reason"] = "no left-out shot: kept"
         return True, rep
     rep["none"] = [_scores(plain, capture, k) for k in rep["held"]]
-    mean = lambda rows: sum(r["md"] for r in rows) / len(rows)  # noqa: E731
-    f_md, n_md = mean(rep["flakes"]), mean(rep["none"])
+    f_md, n_md = _mean(rep["flakes"], "md"), _mean(rep["none"], "md")
     rep["kept"] = f_md <= n_md
     rep["reason"] = (f"left-out shots {rep['held']}: MD {f_md:.2f} with the flake model, {n_md:.2f} without "
                      "(kept when no higher)")

@@ -30,6 +30,11 @@ from torchmetal.geometry import direction_to, dot, surface_points
 _FILL_RADII = (2, 4, 8, 16)  # neighbourhoods tried for pixels with no undetected shot
 
 
+def grown_detections(labels: Tensor) -> Tensor:
+    """(N, 1, H, W) bool: the pixels of detections ``labels`` (N, H, W) (> 0 on a particle), grown by 1 px."""
+    return F.max_pool2d((labels > 0).unsqueeze(1).float(), 3, stride=1, padding=1) > 0
+
+
 def texture_without_glints(
     capture, texture: Tensor, phong_images: Tensor, labels: Tensor, *, chunk: int = 4, guard: bool = True
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -55,7 +60,7 @@ def texture_without_glints(
     check_shape(texture, (3, h, w), "texture")
     check_shape(phong_images, (n, 3, h, w), "phong_images")
     check_shape(labels, (n, h, w), "labels")
-    flagged = F.max_pool2d((labels > 0).unsqueeze(1).float(), 3, stride=1, padding=1) > 0  # (N, 1, H, W)
+    flagged = grown_detections(labels)
     changed = flagged.any(0)  # (1, H, W)
     if not bool(changed.any()):
         return texture, phong_images, changed
