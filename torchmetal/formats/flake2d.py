@@ -205,7 +205,7 @@ def slope_density_ggx(s: np.ndarray, a: float) -> np.ndarray:
 def fit_flake_roughness(tilt_sigma: float) -> tuple[float, float]:
     """GGX a for torchmetal's Gaussian slopes (see the module docstring); returns (roughness, relative
     RMS error of the slope density over the slopes that hold 99 % of the flakes)."""
-    from scipy.optimize import minimize_scalar
+    from torchmetal.formats.brent import minimize_bounded
 
     sigma = max(float(tilt_sigma), 1e-4)
     s = np.linspace(0.0, sigma * math.sqrt(-2 * math.log(0.01)), 200)
@@ -217,8 +217,8 @@ def fit_flake_roughness(tilt_sigma: float) -> tuple[float, float]:
         return float(np.sqrt((w * d * d).sum() / (w * ref * ref).sum()))
 
     a0 = sigma * math.sqrt(2 * math.log(2))
-    res = minimize_scalar(err, bounds=(math.log(a0) - 2, math.log(a0) + 2), method="bounded")
-    return math.sqrt(math.exp(res.x)), err(res.x)
+    x, _ = minimize_bounded(err, math.log(a0) - 2, math.log(a0) + 2)
+    return math.sqrt(math.exp(x)), err(x)
 
 
 @dataclass

@@ -306,7 +306,7 @@ def fit_ggx(target: Target, *, cone: float, views: Tensor | None = None, per_vie
     Returns:
         :class:`LobeFit`.
     """
-    from scipy.optimize import minimize_scalar
+    from torchmetal.formats.brent import minimize_bounded
 
     l_t, v_t = lobe_directions(cone, views, per_view)
     y_t = target(l_t, v_t).to(torch.float64)
@@ -332,8 +332,8 @@ def fit_ggx(target: Target, *, cone: float, views: Tensor | None = None, per_vie
     costs = [solve(g)[0] for g in grid]
     i = int(np.argmin(costs))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-    best = minimize_scalar(lambda t: solve(t)[0], bounds=(a, b), method="bounded", options={"xatol": 1e-5})
-    log_r = float(best.x) if best.fun <= costs[i] else float(grid[i])
+    best_x, best_fun = minimize_bounded(lambda t: solve(t)[0], a, b, xatol=1e-5)
+    log_r = float(best_x) if best_fun <= costs[i] else float(grid[i])
     _, f0, f90, pred = solve(log_r)
     tb_r = tb_err = None
     if textbook is not None:
