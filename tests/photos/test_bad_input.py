@@ -1,5 +1,6 @@
 """Each bad photo gets its one-line reason, the good ones still make a capture; an unusable set is
-a clear error (CaptureError; the CLI exits 2 with one line)."""
+a clear error (CaptureError; the CLI exits 2 with one line). A photo without EXIF is not bad: its
+white band sets its exposure."""
 
 import pytest
 
@@ -12,15 +13,15 @@ from .conftest import FLASH
 EXPECT = {
     "noboard.jpg": "no board found (no markers detected)", "blurred.jpg": "blurred: edges",
     "veryblurred.jpg": "no board found (no markers detected): the photo is blurred", "small.jpg": "mixed resolutions",
-    "othercam.jpg": "another camera", "noexif.jpg": "missing EXIF", "notaphoto.jpg": "expected a JPEG",
+    "othercam.jpg": "another camera", "notaphoto.jpg": "expected a JPEG",
     "grazing.jpg": "below 20 deg", "cutoff.jpg": "board cut off", "bent.jpg": "reprojection error",
 }
 
 
 def test_each_bad_photo_gets_its_reason(bad_set, board):
     good, made = bad_set
-    bad = {k: v for k, v in made.items() if k != "partial.jpg"}
-    paths = [good[0], *bad.values(), *good[1:], made["partial.jpg"]]  # partial: sees ~96 % of the window
+    bad = {k: v for k, v in made.items() if k not in ("partial.jpg", "noexif.jpg")}
+    paths = [good[0], *bad.values(), *good[1:], made["noexif.jpg"], made["partial.jpg"]]  # partial: sees ~96 %
     result = capture_from_photos(paths, board, flash_offset_mm=FLASH, resolution=64)
     rows = {r["file"]: r for r in result.report["photos"]}
     for name, text in EXPECT.items():
@@ -28,9 +29,10 @@ def test_each_bad_photo_gets_its_reason(bad_set, board):
         assert text in rows[name]["reason"], (name, rows[name]["reason"])
         assert "\n" not in rows[name]["reason"]
     used = [r for r in result.report["photos"] if r["used"]]
-    names = [p.name for p in good] + ["partial.jpg"]
+    names = [p.name for p in good] + ["noexif.jpg", "partial.jpg"]
     assert [r["file"] for r in used] == names and [r["shot"] for r in used] == list(range(len(names)))
     assert result.capture.num_shots == len(names)
+    assert rows["noexif.jpg"]["exposure_source"] == "white_band" and rows[good[0].name]["exposure_source"] == "exif"
     seen = result.capture.mask.float().mean()
     assert 0.85 < seen < 0.995  # the mask keeps the pixels every photo saw
     assert result.report["mask_pct"] == pytest.approx(100 * float(seen), abs=1e-3)
@@ -38,7 +40,7 @@ def test_each_bad_photo_gets_its_reason(bad_set, board):
 
 def test_too_few_usable_photos_is_one_clear_error(bad_set, board):
     _, made = bad_set
-    with pytest.raises(CaptureError, match=r"expected at least 3 usable photos .* found 0 of 3 \(noboard.jpg: no board"):
+    with pytest.raises(CaptureError, match=r"expected at least 3 usable photos .* found 1 of 3 \(noboard.jpg: no board"):
         capture_from_photos([made["noboard.jpg"], made["notaphoto.jpg"], made["noexif.jpg"]], board, resolution=16)
 
 

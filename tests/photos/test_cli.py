@@ -14,12 +14,13 @@ def test_cli_exit_codes(bad_set, board, tmp_path, capsys):
     good, made = bad_set
     _, meta = write_board(board, tmp_path / "board")
     out = tmp_path / "cap"
-    rc = main(["capture", *map(str, good[:3]), str(made["noexif.jpg"]), "--board", str(meta), "-o", str(out),
-               "--resolution", "24", "--flash-offset", *map(str, FLASH), "-q"])
+    rc = main(["capture", *map(str, good[:3]), str(made["noexif.jpg"]), str(made["othercam.jpg"]), "--board", str(meta),
+               "-o", str(out), "--resolution", "24", "--flash-offset", *map(str, FLASH), "-q"])
     text = capsys.readouterr().out
-    assert rc == 0 and "rejected noexif.jpg: missing EXIF" in text
+    assert rc == 0 and "rejected othercam.jpg: another camera" in text and "white band (no EXIF): noexif.jpg" in text
     rep = json.loads((out / "report.json").read_text())
-    assert [r["used"] for r in rep["photos"]] == [True, True, True, False]
+    assert [r["used"] for r in rep["photos"]] == [True, True, True, True, False]
+    assert [r.get("exposure_source") for r in rep["photos"]] == ["exif", "exif", "exif", "white_band", None]
     rc = main(["capture", str(made["noboard.jpg"]), str(made["small.jpg"]), "--board", str(meta), "-o", str(tmp_path / "x"), "-q"])
     err = capsys.readouterr().err
     assert rc == 2 and len(err.strip().splitlines()) == 1 and "usable photos" in err

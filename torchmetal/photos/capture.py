@@ -9,8 +9,11 @@
    rejected and the calibration redone once without them;
 4. per photo: pose, camera and flash positions, elevation, how much of the window it sees and
    how blurred it is at the capture's scale;
-5. rectification onto the N-pixel grid, white balance from the paper band around the window,
-   exposure from EXIF.
+5. rectification onto the N-pixel grid; the white reference from the unclipped part of the paper
+   band around the window (:mod:`~torchmetal.photos.white`);
+6. exposure from EXIF, or else from the band's level; white balance from the band, or else the
+   set's median gains (:func:`_exposures`). A photo is rejected for its exposure only when neither
+   EXIF nor its band can set it.
 
 Every rejected photo gets a one-line reason in the report; too few usable photos raise a
 :class:`~torchmetal.errors.CaptureError` that lists them. Nothing is written until everything
@@ -35,6 +38,7 @@ from torchmetal.photos.board import Board
 from torchmetal.photos.calibrate import Intrinsics, calibrate, camera_position, flash_position, project, solve_pose
 from torchmetal.photos.detect import Observation, inspect_photo
 from torchmetal.photos.rectify import Rectified, photo_scale, rectify, window_points
+from torchmetal.photos.white import WhiteReference, white_reference
 
 __all__ = ["PhotoCapture", "capture_from_photos", "save_photo_capture", "MIN_PHOTOS", "MIN_ELEVATION_DEG"]
 
@@ -58,6 +62,7 @@ class PhotoCapture:
     observations: list[Observation]
     rectified: dict[int, Rectified] = field(default_factory=dict)  # photo index → rectified
     poses: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    whites: dict[int, WhiteReference] = field(default_factory=dict)  # photo index → its band's white level
 
 
 def _stems(paths: list[Path]) -> list[str]:
@@ -68,8 +73,14 @@ def _stems(paths: list[Path]) -> list[str]:
     return stems
 
 
+def _camera(o: Observation) -> str | None:
+    """The photo's camera and lens, None when its EXIF names no make or model (stripped)."""
+    return None if o.exif.make is None and o.exif.model is None else o.exif.camera
+
+
 def _consistency(obs: list[Observation], ok: list[int], intrinsics: Intrinsics | None) -> None:
-    """Reject photos from another camera or with another resolution than the set's (in place)."""
+    """Reject photos from another camera or with another resolution than the set's (in place).
+    A photo whose EXIF names no camera is taken as the set's when its resolution matches."""
     if intrinsics is not None:
         want = tuple(intrinsics.image_size)
         for i in ok:
@@ -77,15 +88,16 @@ def _consistency(obs: list[Observation], ok: list[int], intrinsics: Intrinsics |
                 obs[i].reason = (f"resolution {obs[i].size[0]}x{obs[i].size[1]}, the intrinsics are for "
                                  f"{want[0]}x{want[1]}")
     ok = [i for i in ok if obs[i].reason is None]
-    keys = collections.Counter((obs[i].size, obs[i].exif.camera) for i in ok)
+    named = [i for i in ok if _camera(obs[i]) is not None] or ok  # photos without a camera follow the rest
+    keys = collections.Counter((obs[i].size, _camera(obs[i])) for i in named)
     if not keys:
         return
     best = max(keys.values())
-    (size, cam) = next(k for k in ((obs[i].size, obs[i].exif.camera) for i in ok) if keys[k] == best)
+    (size, cam) = next(k for k in ((obs[i].size, _camera(obs[i])) for i in named) if keys[k] == best)
     for i in ok:
         if obs[i].size != size:
             obs[i].reason = f"mixed resolutions: {obs[i].size[0]}x{obs[i].size[1]}, the set is {size[0]}x{size[1]}"
-        elif obs[i].exif.camera != cam:
+        elif _camera(obs[i]) is not None and _camera(obs[i]) != cam:
             obs[i].reason = f"another camera or lens: {obs[i].exif.camera!r}, the set is {cam!r}"
 
 
@@ -131,7 +143,7 @@ def _self_calibrate(obs: list[Observation], ok: list[int], board: Board) -> Intr
         raise CaptureError(f"camera calibration failed: expected a plausible lens, found f = {f:.0f} px and principal point "
                            f"({cx:.0f}, {cy:.0f}) for {w}x{h} (photos from more varied angles, or --intrinsics FILE)")
     intr.source = f"calibrated from {len(ok)} photos"
-    intr.camera = obs[ok[0]].exif.camera
+    intr.camera = next((_camera(obs[i]) for i in ok if _camera(obs[i]) is not None), obs[ok[0]].exif.camera)
     return intr
 
 
@@ -162,6 +174,44 @@ def mirror_point(light: np.ndarray, camera: np.ndarray) -> np.ndarray | None:
     t = light[2] / (light[2] + camera[2])
     mirrored = np.array([camera[0], camera[1], -camera[2]])
     return (light + t * (mirrored - light))[:2]
+
+
+def _exposures(obs: list[Observation], used: list[int], whites: dict[int, WhiteReference]):
+    """Exposure, white balance and the intensity unit of the used photos, and which reference set each.
+
+    Exposure: EXIF (t · ISO / N²) where the photo has it; else the band's green level divided by
+    the set's paper level per unit EXIF exposure (the median over photos with both), so both kinds
+    share one scale; relative to the first used photo. White balance: the band's gains (green kept),
+    else the median gains of the photos with a band. The unit: photo value per unit irradiance of
+    the white paper at relative exposure 1 (paper albedo 1), the median over the photos with a band.
+    Photos exposed by EXIF alone whose scale no photo with both can relate to the band's get a
+    reason (in place); no band in any photo is an error.
+
+    Returns:
+        rel {i: float}, gains {i: (3,) float64}, unit float, sources {i: (exposure, white balance)}.
+    """
+    band = {i: whites[i].level for i in used if whites[i].level is not None}
+    exif = {i: obs[i].exif.exposure for i in used if obs[i].exif.exposure is not None}
+    if not band:
+        raise CaptureError(f"expected the white paper band unclipped in at least one photo, found it clipped or hidden "
+                           f"in all {len(used)} usable photos: nothing sets the colours and the intensity unit")
+    both = [i for i in band if i in exif]
+    if not both:
+        for i in used:
+            if i not in band:
+                obs[i].reason = ("exposure: expected a photo with both EXIF exposure and the white band to relate this "
+                                 "photo's EXIF to the others' band, found none")
+        used = [i for i in used if i in band]
+    per_exif = float(np.median([band[i][1] / exif[i] for i in both])) if both else 1.0
+    expo = {i: exif[i] if (both and i in exif) else float(band[i][1]) / per_exif for i in used}
+    rel = {i: expo[i] / expo[used[0]] for i in used}
+    unit = float(np.median([band[i][1] / rel[i] for i in used if i in band]))
+    own = {i: band[i][1] / band[i] for i in used if i in band}
+    median_gains = np.median(np.stack(list(own.values())), axis=0)
+    gains = {i: own.get(i, median_gains) for i in used}
+    sources = {i: ("exif" if both and i in exif else "white_band", "white_band" if i in band else "set_median")
+               for i in used}
+    return rel, gains, unit, sources
 
 
 def capture_from_photos(
@@ -201,9 +251,6 @@ def capture_from_photos(
     with ThreadPoolExecutor(workers) as pool:
         obs = list(_bar(pool.map(lambda p: inspect_photo(p, board), paths), len(paths), "detect", progress))
     stages = {"inspect": time.perf_counter() - t0}
-    for o in obs:
-        if o.reason is None and o.exif.exposure is None:
-            o.reason = f"missing EXIF {', '.join(o.exif.missing)}: the exposure cannot be normalised"
     ok = [i for i, o in enumerate(obs) if o.reason is None]
     _consistency(obs, ok, intrinsics)
     ok = [i for i in ok if obs[i].reason is None]
@@ -216,6 +263,7 @@ def capture_from_photos(
     entries: dict[int, dict] = {i: {} for i in range(len(obs))}
     found_poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     rect: dict[int, Rectified] = {}
+    whites: dict[int, WhiteReference] = {}
     for i in _bar(ok, len(ok), "rectify", progress):
         o, e = obs[i], entries[i]
         obj = board.corner_points()[o.ids]
@@ -256,33 +304,29 @@ def capture_from_photos(
                             f"resolution {resolution}")
                 continue
         r = rectify(o, board, intr, (rvec, tvec), h, w)
-        if r.paper is None or not np.all(r.paper > 0):
-            o.reason = "no white reference: the paper band around the window is hidden or clipped"
+        white = whites[i] = white_reference(board.board_to_capture(r.paper_points), r.paper_values, r.paper_clipped,
+                                            r.paper_seen, light, (ww / 2000.0, wh / 2000.0))
+        e["white_band_unclipped"] = round(white.unclipped, 4)
+        if white.level is None and o.exif.exposure is None:
+            o.reason = (f"no exposure reference: expected EXIF {', '.join(o.exif.missing)} or the white paper band "
+                        f"around the window, found neither ({white.reason})")
             continue
         rect[i] = r
     used = [i for i in ok if obs[i].reason is None]
+    if len(used) >= MIN_PHOTOS:
+        rel, gains, unit, sources = _exposures(obs, used, whites)
+        used = [i for i in used if obs[i].reason is None]
     if len(used) < MIN_PHOTOS:
         raise _too_few(obs, len(used), "for a capture")
     stages["poses_rectify"] = time.perf_counter() - t0 - sum(stages.values())
 
-    # exposure (EXIF), white balance (paper → neutral, green kept), the intensity unit (paper albedo 1)
-    e0 = obs[used[0]].exif.exposure
-    rel = {i: obs[i].exif.exposure / e0 for i in used}
-    per_unit = []
     lights, cams = {}, {}
     for i in used:
         r, (rvec, tvec) = rect[i], found_poses[i]
-        light = flash_position(board, rvec, tvec, offset)
-        q = board.board_to_capture(r.paper_points)
-        lv = light[None] - q
-        d2 = (lv * lv).sum(1)
-        irr = np.clip(lv[:, 2], 0, None) / (d2 * np.sqrt(d2))
-        gains = r.paper[1] / r.paper
-        per_unit.append(float(r.paper[1]) / max(float(np.median(irr)), 1e-12) / rel[i])
-        r.image *= gains[:, None, None].astype(np.float32)
-        entries[i]["white_balance"] = [round(float(g), 4) for g in gains]
-        lights[i], cams[i] = light, camera_position(board, rvec, tvec)
-    unit = float(np.median(per_unit))
+        r.image *= gains[i][:, None, None].astype(np.float32)
+        entries[i]["white_balance"] = [round(float(g), 4) for g in gains[i]]
+        entries[i]["exposure_source"], entries[i]["white_balance_source"] = sources[i]
+        lights[i], cams[i] = flash_position(board, rvec, tvec, offset), camera_position(board, rvec, tvec)
     stems = _stems([paths[i] for i in used])
     n = len(used)
     capture = Capture(
@@ -301,7 +345,7 @@ def capture_from_photos(
         row = {"file": o.name, "used": i in shot_of, "shot": shot_of.get(i), "reason": o.reason,
                "reprojection_px": e.pop("reprojection_px", None), "corners": 0 if o.ids is None else int(len(o.ids)),
                "markers": o.markers, "blur_px": None if o.blur_px is None else round(o.blur_px, 3)}
-        if i in rect:
+        if i in shot_of:
             sat = rect[i].saturated.any(0)
             row["saturated_pct"] = round(100.0 * float(sat.mean()), 3)
             row["exposure"] = round(rel[i], 6)
@@ -315,7 +359,7 @@ def capture_from_photos(
         "stage_seconds": {k: round(v, 3) for k, v in stages.items()},
         "mask_pct": round(100.0 * float(capture.mask.float().mean()), 3),
     }
-    return PhotoCapture(capture, board, report, intr, obs, rect, found_poses)
+    return PhotoCapture(capture, board, report, intr, obs, {i: rect[i] for i in used}, found_poses, whites)
 
 
 def save_photo_capture(result: PhotoCapture, out: str | os.PathLike, *, contact_sheet: bool = True) -> Path:

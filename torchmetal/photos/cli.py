@@ -50,6 +50,11 @@ def cmd_capture(args: argparse.Namespace) -> int:
     for row in rep["photos"]:
         if not row["used"]:
             print(f"  rejected {row['file']}: {row['reason']}")
+    for key, src, what in (("exposure_source", "white_band", "exposure from the white band (no EXIF)"),
+                           ("white_balance_source", "set_median", "white balance from the set's median (no usable band)")):
+        names = [row["file"] for row in rep["photos"] if row.get(key) == src]
+        if names:
+            print(f"  {what}: {', '.join(names)}")
     k = result.intrinsics.to_json()
     cap = result.capture
     print(f"capture: {rep['used']} of {len(rep['photos'])} photos, {cap.height}x{cap.width} px over "

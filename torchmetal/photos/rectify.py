@@ -8,7 +8,8 @@ resampled only once), read bilinearly in *linear* light (sRGB decoded first) and
 pixel covers, so the average is the photo's area mean over the pixel's footprint.
 
 Beside the image: which channels were clipped (255 anywhere in the footprint), which pixels the
-photo saw, and the white paper just outside the window, the colour reference.
+photo saw, and the values of the white paper band just outside the window (the colour and
+exposure reference, :mod:`torchmetal.photos.white`), clipped points flagged.
 """
 
 from __future__ import annotations
@@ -31,15 +32,17 @@ RING_MM = (1.0, BLANK_MARGIN_MM - 1.0)  # the paper band (outside the window) us
 @dataclass
 class Rectified:
     """One photo on the capture grid: image (3, H, W) float32 linear RGB (photo units),
-    saturated (3, H, W) bool, seen (H, W) bool, the paper's linear RGB (3,) and its points
-    (n, 3) board mm, the photo pixels per capture pixel (worst direction) and ``ss``."""
+    saturated (3, H, W) bool, seen (H, W) bool; the paper band's points (n, 3) board mm, their
+    linear RGB (n, 3) (0 where unseen), clipped (n,) bool (some channel 255 in the footprint) and
+    seen (n,) bool (inside the photo); the photo pixels per capture pixel (worst direction), ``ss``."""
 
     image: np.ndarray
     saturated: np.ndarray
     seen: np.ndarray
-    paper: np.ndarray | None
     paper_points: np.ndarray
     paper_values: np.ndarray
+    paper_clipped: np.ndarray
+    paper_seen: np.ndarray
     px_per_cell: float
     supersample: int
 
@@ -110,24 +113,6 @@ def _ring_points(board: Board, step: float = 0.5) -> np.ndarray:
     return np.stack([cx + gx, cy - gy, np.zeros(gx.size)], 1)
 
 
-def _paper(board: Board, points: np.ndarray, values: np.ndarray, pose) -> np.ndarray:
-    """Linear RGB (3,) of the paper band: the median of its brightest half, where neither ink nor
-    the sample bleeds in (both are darker than paper; their colour would tint the reference).
-    Brightness is compared after dividing out the fall-off cos/d² from the camera (the flash
-    sits beside it); the result is scaled back to the band's median fall-off."""
-    import cv2
-
-    rot = cv2.Rodrigues(np.asarray(pose[0], np.float64).reshape(3, 1))[0]
-    centre = -rot.T @ np.asarray(pose[1], np.float64)
-    d = centre[None] - points
-    d2 = (d * d).sum(1)
-    falloff = np.abs(d[:, 2]) / (d2 * np.sqrt(d2))
-    v = values / falloff[:, None]
-    lum = v.mean(1)  # selecting on one channel would bias it by its own noise
-    bright = lum >= np.median(lum)
-    return np.median(v[bright], axis=0) * float(np.median(falloff))
-
-
 def _block_mean(a: np.ndarray, ss: int) -> np.ndarray:
     """(h·ss, w·ss[, C]) float32 → (h, w[, C]): the mean of each ss × ss block (OpenCV's integer-factor
     area reduction, ~5x faster than numpy's strided mean; equal to it to float32 rounding)."""
@@ -179,10 +164,10 @@ def rectify(obs: Observation, board: Board, intr: Intrinsics, pose, h: int, w: i
     img = _block_mean(vals[:n].reshape(h * ss, w * ss, 3), ss)
     sat = _block_mean(sats[:n].reshape(h * ss, w * ss, 3), ss) > 0  # bilinear reads of 0/1 are >= 0: mean > 0 iff any
     seen = _block_mean(in_img[:n].reshape(h * ss, w * ss).astype(np.float32), ss) == 1.0
-    ring_ok = in_img[n:] & ~(sats[n:] > 0).any(1)
-    ring_vals = vals[n:][ring_ok][:, ::-1]
-    paper = _paper(board, ring[ring_ok], ring_vals, pose) if len(ring_vals) >= 20 else None
+    ring_seen = in_img[n:]
+    ring_vals = np.where(ring_seen[:, None], vals[n:][:, ::-1], 0.0).astype(np.float32)
     return Rectified(
         image=np.ascontiguousarray(img[:, :, ::-1].transpose(2, 0, 1)), saturated=np.ascontiguousarray(sat[:, :, ::-1].transpose(2, 0, 1)),
-        seen=seen, paper=paper, paper_points=ring[ring_ok], paper_values=ring_vals, px_per_cell=scale, supersample=ss,
+        seen=seen, paper_points=ring, paper_values=ring_vals, paper_clipped=ring_seen & (sats[n:] > 0).any(1),
+        paper_seen=ring_seen, px_per_cell=scale, supersample=ss,
     )

@@ -3,7 +3,9 @@
 Per tile: the photo (sensor orientation) with the detected corners (green), the window as the
 pose projects it (green: used, red: rejected), the flash's mirror point (yellow cross), the
 rectified window in the corner, and below it the file name, used / rejected with the reason,
-reprojection error, corners, saturation and elevation. One PNG, the check to look at after a
+reprojection error, corners, saturation, elevation, and which reference set the exposure (EXIF or
+the white band) and the white balance (the band, or the set's median gains), with the share of the
+band that was unclipped. One PNG, the check to look at after a
 capture (docs/capture.md).
 """
 
@@ -18,8 +20,20 @@ import numpy as np
 __all__ = ["contact_sheet", "contact_image"]
 
 COLUMNS = 4
-TEXT_ROWS = 3
+TEXT_ROWS = 4
 ROW_PX = 16
+
+
+_SOURCE = {"exif": "EXIF", "white_band": "white band", "set_median": "set median"}
+
+
+def references_line(row: dict) -> str:
+    """Which reference set a used photo's exposure and white balance (WB), and how much of the
+    paper band was unclipped, e.g. ``exposure EXIF, WB white band, band 90 % unclipped``."""
+    band = row.get("white_band_unclipped")
+    share = "" if band is None else f", band {100 * band:.0f} % unclipped"
+    return (f"exposure {_SOURCE.get(row.get('exposure_source'), '?')}, "
+            f"WB {_SOURCE.get(row.get('white_balance_source'), '?')}{share}")
 
 
 def _text_lines(row: dict) -> list[str]:
@@ -27,12 +41,10 @@ def _text_lines(row: dict) -> list[str]:
     if row["used"]:
         second = (f"reproj {row['reprojection_px']:.2f} px, {row['corners']} corners, sat {row.get('saturated_pct', 0):.1f} %")
         third = f"elev {row.get('elevation_deg', 0):.0f} deg, highlight {row.get('highlight', 'none')}"
-    else:
-        lines = textwrap.wrap(row["reason"] or "", 58) + ["", ""]
-        second, third = lines[0], " ".join(lines[1:]).strip()
-        if len(third) > 58:
-            third = third[:55] + "..."
-    return [first, second, third]
+        return [first, second, third, references_line(row)]
+    lines = textwrap.wrap(row["reason"] or "", 58) + ["", "", ""]
+    rest = " ".join(lines[2:]).strip()
+    return [first, lines[0], lines[1], rest if len(rest) <= 58 else rest[:55] + "..."]
 
 
 def _tile(result, i: int, width: int) -> np.ndarray:

@@ -7,7 +7,9 @@ torchmetal's own forward model (:func:`torchmetal.geometry.shading_geometry` +
 :func:`torchmetal.phong.phong_shading`): the sample (texture, s, α) inside the window, the
 printed sheet (Lambertian paper and ink) around it. The linear image is scaled by the photo's
 exposure (EXIF time × ISO / f-number², written into the file) and an auto-white-balance tint,
-gets shot and read noise, and is stored as an sRGB 8-bit JPEG.
+gets shot and read noise, and is stored as an sRGB 8-bit JPEG. Options for what real photos do
+to the white reference: a flash hotspot on the paper (:class:`Hotspot`, clipped where it is
+bright) and photos written without any EXIF (``strip_exif``).
 
 The truth (:class:`PhotoSet`) gives what a perfect capture would hold: intrinsics, poses,
 camera and flash positions in the capture frame, and the light intensity in pixel units, so
@@ -28,7 +30,7 @@ from torchmetal.photos.board import Board, render_sheet
 from torchmetal.photos.calibrate import Intrinsics
 from torchmetal.photos.exif import PhotoExif, exif_bytes
 
-__all__ = ["Sample", "PhotoSet", "smooth_texture", "phone_camera", "hand_held_poses", "render_photo", "phone_photos",
+__all__ = ["Sample", "PhotoSet", "Hotspot", "smooth_texture", "phone_camera", "hand_held_poses", "render_photo", "phone_photos",
            "direct_render", "truth_capture"]
 
 PAPER_ALBEDO = 0.85  # printer paper
@@ -47,6 +49,19 @@ class Sample:
     texture: torch.Tensor
     s: torch.Tensor
     alpha: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Hotspot:
+    """A flash hotspot on the printed sheet (glossy paper): outside the window, the sheet's radiance
+    is multiplied by 1 + ``peak`` · exp(−r² / 2σ²), r the distance on the sheet from ``centre_mm``
+    (capture frame: mm from the window centre, x right, y up), σ = ``sigma_mm``. With the paper
+    near 0.55 of full scale, ``peak`` 4 clips it out to r ≈ 1.8 σ; a huge σ brightens the whole sheet.
+    The sample in the window is untouched (its truth stays the model's)."""
+
+    centre_mm: tuple[float, float] = (27.0, 0.0)
+    sigma_mm: float = 4.0
+    peak: float = 4.0
 
 
 @dataclass
@@ -204,13 +219,13 @@ def _lookup(img: np.ndarray, x: np.ndarray, y: np.ndarray, border: float | None)
 
 
 def render_photo(board: Board, sheet: np.ndarray, sample: Sample, intr: Intrinsics, pose, light: np.ndarray,
-                 intensity: float, *, supersample: int = 2) -> np.ndarray:
+                 intensity: float, *, supersample: int = 2, hotspot: Hotspot | None = None) -> np.ndarray:
     """Linear radiance (h, w, 3) float32 of one photo (before exposure gain, tint and noise).
 
     ``sheet``: (Hs, Ws) reflectance of the print (1 = paper) at ``board.dpi``; ``light``: the
     flash (3,) in the capture frame (m); ``intensity``: its radiant intensity. The sample is
     shaded by :func:`~torchmetal.phong.phong_shading`, the sheet (paper, ink) and the table
-    around it as Lambertian surfaces.
+    around it as Lambertian surfaces; ``hotspot`` brightens the sheet around a point.
     """
     import cv2
 
@@ -230,6 +245,9 @@ def render_photo(board: Board, sheet: np.ndarray, sample: Sample, intr: Intrinsi
     d2 = (lv * lv).sum(1)
     lambert = intensity * np.clip(lv[:, 2], 0, None) / (d2 * np.sqrt(d2))
     rad = (albedo * lambert)[:, None] * np.ones((1, 3), np.float32)
+    if hotspot is not None:
+        r2 = ((q[:, 0] * 1000 - hotspot.centre_mm[0]) ** 2 + (q[:, 1] * 1000 - hotspot.centre_mm[1]) ** 2)
+        rad *= (1 + hotspot.peak * np.exp(-r2 / (2 * hotspot.sigma_mm**2)))[:, None].astype(np.float32)
     # the sample: torchmetal's Phong model at the plane points inside the window
     cx, cy = board.window_centre_board
     wmm, hmm = board.window_size_mm
@@ -252,7 +270,7 @@ def render_photo(board: Board, sheet: np.ndarray, sample: Sample, intr: Intrinsi
     return np.ascontiguousarray(img, dtype=np.float32)
 
 
-def _encode_jpeg(linear: np.ndarray, quality: int, exif: PhotoExif) -> bytes:
+def _encode_jpeg(linear: np.ndarray, quality: int, exif: PhotoExif | None) -> bytes:
     import io
 
     from PIL import Image
@@ -261,14 +279,16 @@ def _encode_jpeg(linear: np.ndarray, quality: int, exif: PhotoExif) -> bytes:
 
     code = np.rint(linear_to_srgb(torch.from_numpy(np.clip(linear, 0, 1))).numpy() * 255).astype(np.uint8)
     buf = io.BytesIO()
-    Image.fromarray(code, "RGB").save(buf, "JPEG", quality=quality, exif=exif_bytes(exif), subsampling=0)
+    extra = {} if exif is None else {"exif": exif_bytes(exif)}
+    Image.fromarray(code, "RGB").save(buf, "JPEG", quality=quality, subsampling=0, **extra)
     return buf.getvalue()
 
 
 def phone_photos(out_dir: str | os.PathLike, board: Board, sample: Sample, *, n: int = 12, seed: int = 0,
                  camera: Intrinsics | None = None, poses=None, flash_offset_mm=(12.0, -4.0, 0.0), noise: float = 0.01,
                  quality: int = 92, supersample: int = 2, tint: float = 0.08, sheet: np.ndarray | None = None,
-                 names: list[str] | None = None, exif: list[PhotoExif | None] | None = None) -> PhotoSet:
+                 names: list[str] | None = None, exif: list[PhotoExif | None] | None = None,
+                 hotspots: dict[int, Hotspot] | None = None, strip_exif=()) -> PhotoSet:
     """Write ``n`` generated JPEG photos into ``out_dir``; returns them with their truth.
 
     Args:
@@ -277,6 +297,8 @@ def phone_photos(out_dir: str | os.PathLike, board: Board, sample: Sample, *, n:
         noise: shot-noise level (σ = noise·√(v/0.5) at linear value v, plus a read noise of noise/4).
         tint: spread of the per-photo white-balance gains on red and blue.
         exif: per photo, the EXIF to write instead of the true one (None entries: the truth).
+        hotspots: {photo index: :class:`Hotspot`}, a flash hotspot on the sheet of those photos.
+        strip_exif: indices of photos written without any EXIF block (the truth keeps their exposure).
     """
     from torchmetal.io.images import atomic_write_bytes
     from torchmetal.photos.calibrate import camera_position, flash_position
@@ -300,12 +322,13 @@ def phone_photos(out_dir: str | os.PathLike, board: Board, sample: Sample, *, n:
         ex = PhotoExif(exposure_time=t, f_number=F_NUMBER, iso=iso, make="Generated", model="Phone",
                        focal_mm=4.25)
         gain = GAIN * ex.exposure  # photo value per unit radiance
-        rad = render_photo(board, sheet, sample, camera, pose, light, 1.0, supersample=supersample)
+        rad = render_photo(board, sheet, sample, camera, pose, light, 1.0, supersample=supersample,
+                           hotspot=(hotspots or {}).get(k))
         wb = np.array([1 + rng.uniform(-tint, tint), 1.0, 1 + rng.uniform(-tint, tint)])
         v = rad * gain * wb
         sigma = np.sqrt(noise**2 * np.clip(v, 0, None) / 0.5 + (noise / 4) ** 2)
         v = v + sigma * rng.standard_normal(v.shape)
-        written = ex if exif is None or exif[k] is None else exif[k]
+        written = None if k in strip_exif else ex if exif is None or exif[k] is None else exif[k]
         name = names[k] if names else f"IMG_{k + 1:04d}.jpg"
         path = out / name
         atomic_write_bytes(path, _encode_jpeg(v, quality, written))
