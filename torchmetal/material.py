@@ -8,6 +8,8 @@ material/
   specular_labels.npy    (H, W) int32, only with clustered specular
   gloss_s.npy, gloss_alpha.npy   (H, W, 3) float32 gloss maps, only with specular="maps"
   flakes_*.npy           observed flakes (torchmetal.flakes.observed), named in material.json
+  flakes_density_map.npy, flakes_color_map.npy   (gh, gw) / (gh, gw, 3) float32 flake-density map and
+                         per-block colour means (torchmetal.flakes.density_map), named in material.json
   renderer.onnx          when exported
 ```
 Writes are atomic: everything goes to a temporary sibling directory that replaces the target in
@@ -174,10 +176,37 @@ def material_to_json(m: Material) -> dict:
             else {"labels": "specular_labels.npy", "s": _to_list(m.cluster_s), "alpha": _to_list(m.cluster_alpha)},
             "maps": None if m.gloss_s is None else {"s": "gloss_s.npy", "alpha": "gloss_alpha.npy"},
         },
-        "flakes": m.flakes.to_dict() if m.flakes is not None else None,
+        "flakes": _flakes_json(m.flakes),
         "observed_flakes": None if m.observed_flakes is None else observed_json(m.observed_flakes),
         "fit": m.report,
     }
+
+
+FLAKE_MAP_FILES = {"density_map": "flakes_density_map.npy", "color_map": "flakes_color_map.npy"}
+
+
+def _flakes_json(f: FlakeModel | None) -> dict | None:
+    """material.json's ``flakes``: the statistics, plus ``maps`` naming the array files of the maps it has."""
+    if f is None:
+        return None
+    d = f.to_dict()
+    maps = {k: v for k, v in FLAKE_MAP_FILES.items() if getattr(f, k) is not None}
+    if maps:
+        d["maps"] = maps
+    return d
+
+
+def _load_flakes(root: Path, entry: dict | None) -> FlakeModel | None:
+    """The FlakeModel of material.json's ``flakes`` entry, with its map arrays (see :func:`_flakes_json`)."""
+    if not entry:
+        return None
+    d = dict(entry)
+    maps = d.pop("maps", None) or {}
+    if not isinstance(maps, dict) or not set(maps) <= set(FLAKE_MAP_FILES):
+        raise MaterialError(f"flakes.maps: expected a dict with keys among {sorted(FLAKE_MAP_FILES)}, found {maps!r}")
+    for key, name in maps.items():
+        d[key] = _load_array(root, str(name), "(gh, gw)" if key == "density_map" else "(gh, gw, 3)")
+    return FlakeModel.from_dict(d)
 
 
 def _hwc(x: Tensor) -> np.ndarray:
@@ -204,6 +233,10 @@ def save_material(m: Material, path: str | os.PathLike, *, extra_files: dict[str
             np.save(tmp / "gloss_alpha.npy", _hwc(m.gloss_alpha))
         if m.observed_flakes is not None:
             save_observed(m.observed_flakes, tmp)
+        for key, name in FLAKE_MAP_FILES.items():
+            arr = None if m.flakes is None else getattr(m.flakes, key)
+            if arr is not None:
+                np.save(tmp / name, np.ascontiguousarray(arr.detach().cpu().float().numpy()))
         (tmp / "material.json").write_text(json.dumps(material_to_json(m), indent=2, allow_nan=False))
         keep = path / "renderer.onnx"
         if keep.is_file() and not (extra_files and "renderer.onnx" in extra_files):
@@ -269,7 +302,7 @@ def load_material(path: str | os.PathLike) -> Material:
         gs = ga = None
         if ph.get("maps"):
             gs, ga = (_load_map(root, ph["maps"][k], texture.shape) for k in ("s", "alpha"))
-        flakes = FlakeModel.from_dict(meta["flakes"]) if meta.get("flakes") else None
+        flakes = _load_flakes(root, meta.get("flakes"))
         observed = load_observed(root, meta.get("observed_flakes")) if flakes is not None else None
         size = (float(meta["surface"]["width"]), float(meta["surface"]["height"]))
         lobe = meta.get("lobe", "phong")  # absent: a material from before the lobe choice

@@ -252,5 +252,11 @@ def fit_material(
                 flake_result = replace(flake_result, model=None)
                 plain.report["skipped"].append(f"flakes: {flake_result.report['skipped']}")
                 fit, material = first, plain
+    if material.flakes is not None and flake_result is not None:  # glitter where it is: a density map, chosen left out
+        from torchmetal.flakes.density_choice import choose_density_map
+
+        t = time.perf_counter()
+        material.flakes, flake_result.report["density_map_choice"] = choose_density_map(capture, material, flake_result)
+        stage_times["flakes.density_map"] = time.perf_counter() - t
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
     return PipelineResult(material=material, fit=fit, flakes=flake_result, report=material.report)

@@ -5,6 +5,11 @@ The texture plane is cut into square cells of ``C`` pixels. A 32-bit integer has
 flake's centre, ellipse, colour and normal tilt from the :class:`FlakeModel`. Integer hashing
 in int64 (masked to 32 bits) is bit-identical on every device and runtime — no RNG ops.
 
+With a density map (:attr:`FlakeModel.density_map`, glitter on part of the sample) a cell's
+presence threshold is the local density, read at the map block of the cell's centre, and its colour
+mean the block's (``color_map``); the hash bits are the same, so a uniform map of ones draws today's
+field bit for bit, and the cell is sized for the densest block (:func:`field_cell`).
+
 The field depends on the material only, not on the light, so it is built once (and baked into
 the ONNX renderer). Footprints are anti-aliased ellipses whose weights sum to the drawn area (px²), so detected
 flux/peak areas measure the model's area directly.
@@ -76,6 +81,34 @@ def cell_size(density: float) -> int:
     return max(MIN_CELL, math.ceil(math.sqrt(_TARGET_OCCUPANCY / density)))
 
 
+def field_cell(model: FlakeModel) -> int:
+    """Cell edge of ``model``'s field: sized for its densest block (the global density without a map;
+    a uniform map of ones gives the same cell, so the same field bit for bit)."""
+    if model.density_map is None:
+        return cell_size(model.density)
+    return cell_size(model.density * float(model.density_map.max()))
+
+
+def map_blocks(gh: int, gw: int, rows: Tensor, cols: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
+    """Block (row, col) of a gh×gw map covering an H×W texture for pixel ``rows``/``cols`` (int64)."""
+    return (rows * gh // height).clamp(0, gh - 1), (cols * gw // width).clamp(0, gw - 1)
+
+
+def _cell_maps(model: FlakeModel, c: int, gi: Tensor, gj: Tensor, height: int, width: int, dtype) -> tuple[Tensor, Tensor | None]:
+    """Per hash cell (the grid ``gi``, ``gj``): presence probability (dtype; computed in float64 as
+    the scalar path's Python float is) and colour mean (3, gi, gj) or None, both read at the block
+    of the cell's centre pixel."""
+    dm = model.density_map.to(gi.device, torch.float64)
+    rows = (gi * c + c // 2).clamp(max=height - 1)
+    cols = (gj * c + c // 2).clamp(max=width - 1)
+    bi, bj = map_blocks(dm.shape[0], dm.shape[1], rows, cols, height, width)
+    presence = (model.density * dm[bi, bj] * c * c).clamp(max=1.0).to(dtype)
+    mean = None
+    if model.color_map is not None:
+        mean = model.color_map.to(gi.device, dtype)[bi, bj].permute(2, 0, 1)
+    return presence, mean
+
+
 @dataclass
 class FlakeField:
     """Per-pixel flake maps (light-independent).
@@ -118,8 +151,7 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
     if normals is None:
         normals = torch.zeros(3, height, width, dtype=dtype, device=device)
         normals[2] = 1.0
-    c = cell_size(model.density)
-    presence = min(1.0, model.density * c * c)
+    c = field_cell(model)
     ii = torch.arange(height, device=device)
     jj = torch.arange(width, device=device)
     ci = (ii // c).view(-1, 1).expand(height, width)
@@ -133,7 +165,14 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
     def u(k: int) -> Tensor:
         return hash_uniform(gi, gj, model.seed, k, dtype)[ci, cj]
 
-    present = u(0) < presence
+    if model.density_map is None:
+        presence = min(1.0, model.density * c * c)
+        cell_mean = None
+        present = u(0) < presence
+    else:  # the local density: same hash bits, a per-cell threshold
+        cell_presence, cell_mean = _cell_maps(model, c, gi, gj, height, width, dtype)
+        presence = float(cell_presence.max())
+        present = hash_uniform(gi, gj, model.seed, 0, dtype)[ci, cj] < cell_presence[ci, cj]
     z_area, z_aspect = _normal_pair(u(3), u(4))
     area = torch.exp(model.area_log_mean + model.area_log_std * z_area)
     aspect = (model.aspect_mean + model.aspect_std * z_aspect).clamp(0.2, 1.0)
@@ -166,6 +205,8 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
     z3, _ = _normal_pair(u(10), u(11))
     chol = colour_factor(model.color_cov).to(dtype=dtype, device=device)
     mean = torch.tensor(model.color_mean, dtype=dtype, device=device).view(3, 1, 1)
+    if cell_mean is not None:
+        mean = cell_mean[:, ci, cj]
     z = torch.stack([z1, z2, z3])
     color = (mean + torch.einsum("ij,jhw->ihw", chol, z)).clamp_min(0.0)
 

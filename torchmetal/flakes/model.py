@@ -7,13 +7,30 @@ reflectances (peak flake radiance divided by irradiance), comparable to the text
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
+from copy import deepcopy
+
+import torch
 
 from torchmetal.errors import MaterialError
 
 MIN_CELL = 3  # px: the hash field holds at most one flake per MIN_CELL² cell …
 MAX_DENSITY = 1.0 / (MIN_CELL * MIN_CELL)  # … so this is the densest field it can draw (flakes/px)
 MAX_COLOR = 1.0e4  # glint reflectance bound: a mirror flake's peak is ~1/(π·glint σ²) ≈ 350 at σ = 0.03 rad
+
+
+MAP_FIELDS = ("density_map", "color_map")  # array fields: not in to_dict, files in the material directory
+
+
+def _as_map(x, name: str, dims: int) -> torch.Tensor:
+    """A numpy array or tensor with ``dims`` dimensions → float32 CPU tensor (one-line error otherwise)."""
+    try:
+        t = torch.as_tensor(x).detach().to("cpu", torch.float32)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise MaterialError(f"FlakeModel.{name}: expected a numeric array, found {type(x).__name__} ({e})") from None
+    if t.dim() != dims:
+        raise MaterialError(f"FlakeModel.{name}: expected {dims} dimensions, found shape {tuple(t.shape)}")
+    return t.contiguous()
 
 
 def _check_covariance(cov: tuple[tuple[float, ...], ...]) -> None:
@@ -53,6 +70,11 @@ class FlakeModel:
         shape_lines: the paper's limit lines (b1, k1, b2, k2): b + k·√area bounds the semi-major
             axis from below and above; descriptive, fitted from detections.
         seed: seed of the deterministic hash field.
+        density_map: optional (gh, gw) float32 map of the density relative to ``density`` over a
+            gh×gw grid of blocks covering the texture (glitter on part of the sample;
+            :mod:`torchmetal.flakes.density_map`); None = uniform. ``density``·max ≤ MAX_DENSITY.
+        color_map: optional (gh, gw, 3) float32 colour mean per block of ``density_map`` (replaces
+            ``color_mean`` there; the covariance stays global); None = ``color_mean`` everywhere.
     """
 
     density: float
@@ -67,6 +89,8 @@ class FlakeModel:
     shape_lines: tuple[float, float, float, float] | None = None
     seed: int = 0
     extra: dict = field(default_factory=dict)
+    density_map: torch.Tensor | None = field(default=None, compare=False, repr=False)
+    color_map: torch.Tensor | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         checks = {
@@ -90,13 +114,40 @@ class FlakeModel:
         self.color_mean = tuple(float(c) for c in self.color_mean)  # type: ignore[assignment]
         self.color_cov = tuple(tuple(float(c) for c in r) for r in self.color_cov)
         _check_covariance(self.color_cov)
+        self._check_maps()
+
+    def _check_maps(self) -> None:
+        """density_map (gh, gw) finite ≥ 0 within the field's capacity; color_map (gh, gw, 3) on its grid."""
+        if self.density_map is None:
+            if self.color_map is not None:
+                raise MaterialError("FlakeModel.color_map: expected a density_map to give its grid, found none")
+            return
+        self.density_map = _as_map(self.density_map, "density_map", 2)
+        dm = self.density_map
+        if dm.numel() == 0 or not bool(torch.isfinite(dm).all()) or bool((dm < 0).any()):
+            raise MaterialError(f"FlakeModel.density_map: expected a non-empty finite (gh, gw) map >= 0, found shape "
+                                f"{tuple(dm.shape)}, min {float(dm.min()) if dm.numel() else float('nan'):g}")
+        peak = self.density * float(dm.max())
+        if peak > MAX_DENSITY * (1.0 + 1e-5):
+            raise MaterialError(f"FlakeModel.density_map: expected density x max(map) <= {MAX_DENSITY:.6g} (the field's "
+                                f"capacity), found {peak:.6g}")
+        if self.color_map is None:
+            return
+        self.color_map = _as_map(self.color_map, "color_map", 3)
+        cm = self.color_map
+        if tuple(cm.shape) != (*dm.shape, 3):
+            raise MaterialError(f"FlakeModel.color_map: expected shape {(*dm.shape, 3)}, found {tuple(cm.shape)}")
+        if not bool(torch.isfinite(cm).all()) or bool((cm < 0).any()) or bool((cm > MAX_COLOR).any()):
+            raise MaterialError(f"FlakeModel.color_map: expected finite values in [0, {MAX_COLOR:g}], found min "
+                                f"{float(cm.min()):g}, max {float(cm.max()):g}")
 
     @property
     def median_area(self) -> float:
         return math.exp(self.area_log_mean)
 
     def to_dict(self) -> dict:
-        d = asdict(self)
+        """The JSON-able statistics (the maps are arrays: the material directory stores them as files)."""
+        d = {f.name: deepcopy(getattr(self, f.name)) for f in fields(self) if f.name not in MAP_FIELDS}
         d["color_mean"] = list(self.color_mean)
         d["color_cov"] = [list(r) for r in self.color_cov]
         d["shape_lines"] = list(self.shape_lines) if self.shape_lines is not None else None

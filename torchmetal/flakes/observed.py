@@ -39,7 +39,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import MaterialError
-from torchmetal.flakes.field import FlakeField, cell_size, flake_field, hash_uniform
+from torchmetal.flakes.field import FlakeField, field_cell, flake_field, hash_uniform
 from torchmetal.flakes.model import MAX_COLOR, FlakeModel
 from torchmetal.flakes.placement import MIN_AMP_STD, place_normals
 from torchmetal.geometry import normalize, shading_geometry
@@ -346,7 +346,7 @@ def _fill_keep(model: FlakeModel, stat: FlakeField, obs: ObservedFlakes, occupie
     """(H, W) bool: statistical-field pixels to keep, decided per hash cell (one flake each), and the
     number of statistical flakes kept."""
     h, w = occupied.shape
-    c = cell_size(model.density)
+    c = field_cell(model)  # the field's own cells (sized for a density map's densest block)
     gw = -(-w // c)
     cell = ((torch.arange(h, device=occupied.device) // c).view(-1, 1) * gw
             + (torch.arange(w, device=occupied.device) // c).view(1, -1)).reshape(-1)

@@ -19,6 +19,8 @@ _FLAKES_A = {"density": 0.004, "area_median": 4.0, "area_log_std": 0.35, "aspect
 _FLAKES_B = {"density": 0.008, "area_median": 2.5, "area_log_std": 0.3, "aspect": (0.6, 1.0), "tilt_sigma": 0.2,
              "glint_sigma": 0.04, "color": (0.7, 0.75, 0.9)}
 
+_FLAKES_HALF = {**_FLAKES_A, "density": 0.008, "region": "left"}
+
 #: name → Scene at full (bench) size. The issue's table is the first five; then the rest of the space.
 SCENES: dict[str, Scene] = {s.name: s for s in [
     Scene("photo_srgb8", size=384, shots=12, texture="photo:astronaut", layout="hemisphere", camera="jitter",
@@ -42,6 +44,8 @@ SCENES: dict[str, Scene] = {s.name: s for s in [
     Scene("blind_peak", size=256, shots=10, layout="blind", s=0.6, alpha=150, seed=12),
     Scene("flakes_a", size=256, shots=16, layout="hemisphere", flakes=_FLAKES_A, s=0.4, alpha=60, seed=13),
     Scene("flakes_b", size=256, shots=16, layout="ring", flakes=_FLAKES_B, s=0.3, alpha=40, normals="bumpy", seed=14),
+    # glitter on the left half only: a density map must put the sparkles there (issue 26)
+    Scene("flakes_half", size=256, shots=16, layout="hemisphere", flakes=_FLAKES_HALF, s=0.4, alpha=60, seed=17),
     Scene("photo_bumpy_noise2", size=256, shots=12, texture="photo:chelsea", normals="bumpy", noise=0.02,
           layout="ring", s=0.5, alpha=100, seed=15),
 ]}

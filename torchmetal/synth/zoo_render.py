@@ -47,7 +47,8 @@ class Scene:
     """What one zoo capture is like (all lengths in metres, angles in degrees).
 
     ``flakes`` (or None): density (flakes/px), area_median (px²), area_log_std, aspect (range of
-    minor/major), tilt_sigma (Rayleigh σ of the tilt, radians), glint_sigma (radians), color (3,).
+    minor/major), tilt_sigma (Rayleigh σ of the tilt, radians), glint_sigma (radians), color (3,),
+    optional region ("left": flakes only where x < 0, density counted there).
     ``second``: (s, α) of a foil disc of radius 0.3·width in the centre (darker texture there).
     """
 
@@ -271,8 +272,15 @@ def make_flakes(spec: dict, n: int, rng: np.random.Generator) -> dict:
     phi = rng.uniform(0, 2 * math.pi, count)
     normal = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
     color = np.asarray(spec.get("color", (0.9, 0.8, 0.6)))[None] * np.exp(0.1 * rng.normal(size=(count, 3)))
-    return {"centre": rng.uniform(0, n, (count, 2)), "axes": np.stack([major, major * aspect], -1),
-            "angle": rng.uniform(0, math.pi, count), "normal": normal, "color": color, "area": area}
+    out = {"centre": rng.uniform(0, n, (count, 2)), "axes": np.stack([major, major * aspect], -1),
+           "angle": rng.uniform(0, math.pi, count), "normal": normal, "color": color, "area": area}
+    region = spec.get("region")
+    if region is None:
+        return out
+    if region != "left":
+        raise ValueError(f"flakes region: expected None or 'left', found {region!r}")
+    keep = out["centre"][:, 0] < 0.5 * n  # glitter on the left half only (x < 0): the same draws, thinned
+    return {k: v[keep] for k, v in out.items()}
 
 
 def _flake_cover(fl: dict, n: int, sub: int = 4) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:

@@ -1,0 +1,211 @@
+"""Glitter where it is: the flake-density map (torchmetal.flakes.density_map, density_choice), its field,
+its material files, its ONNX renderer and its choice on left-out shots."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+import torchmetal.flakes.density_choice as dc
+from torchmetal.errors import MaterialError
+from torchmetal.flakes.density_map import estimate_map, map_grid, with_map
+from torchmetal.flakes.field import flake_field
+from torchmetal.flakes.model import MAX_DENSITY, FlakeModel
+from torchmetal.flakes.results import FlakeStageResult, Particles
+from torchmetal.material import Material, load_material, save_material
+
+
+def _fields_equal(a, b) -> bool:
+    return a.count == b.count and all(torch.equal(x, y) for x, y in ((a.weight, b.weight), (a.normal, b.normal),
+                                                                      (a.color, b.color)))
+
+
+@pytest.mark.parametrize("density,dtype,shape", [(0.003, torch.float32, (97, 130)), (MAX_DENSITY, torch.float32, (64, 64)),
+                                                 (0.02, torch.float64, (50, 41)), (0.0, torch.float32, (32, 32))])
+def test_uniform_map_is_todays_field_bit_for_bit(density, dtype, shape):
+    m = FlakeModel(density=density, seed=7, tilt_sigma=0.2)
+    n = torch.zeros(3, *shape, dtype=dtype)
+    n[2] = 1.0
+    for grid in ((1, 1), (5, 4), (16, 16)):
+        assert _fields_equal(flake_field(m, *shape, n), flake_field(replace(m, density_map=np.ones(grid)), *shape, n))
+
+
+def test_map_puts_flakes_and_colours_where_it_says():
+    m = FlakeModel(density=0.01, seed=3, density_map=torch.tensor([[2.0, 0.0]]),
+                   color_map=torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]]), color_cov=((0.0,) * 3,) * 3)
+    f = flake_field(m, 128, 128)
+    assert float(f.weight[0, :, 64:].sum()) == 0.0 and float(f.weight[0, :, :64].sum()) > 0
+    on = f.weight[0] > 0
+    assert torch.allclose(f.color[:, on].mean(1), torch.tensor([1.0, 0.0, 0.0]))
+    uniform = flake_field(replace(m, density_map=None, color_map=None), 128, 128)
+    assert 0.75 * uniform.count < f.count < 1.3 * uniform.count  # twice the density on half the sample
+
+
+@pytest.mark.parametrize("kw,expect", [
+    (dict(density=0.1, density_map=[[2.0]]), "capacity"),
+    (dict(density=0.01, density_map=[[float("nan"), 1.0]]), "finite"),
+    (dict(density=0.01, density_map=[[-1.0, 1.0]]), ">= 0"),
+    (dict(density=0.01, density_map=[1.0, 1.0]), "2 dimensions"),
+    (dict(density=0.01, density_map="abc"), "numeric array"),
+    (dict(density=0.01, color_map=[[[1.0, 1.0, 1.0]]]), "density_map"),
+    (dict(density=0.01, density_map=[[1.0, 1.0]], color_map=[[[1.0, 1.0, 1.0]]]), "shape (1, 2, 3)"),
+    (dict(density=0.01, density_map=[[1.0]], color_map=[[[1.0, -1.0, 1.0]]]), "finite values in"),
+])
+def test_bad_maps_are_one_line_errors(kw, expect):
+    with pytest.raises(MaterialError) as e:
+        FlakeModel(**kw)
+    assert expect in str(e.value) and "\n" not in str(e.value) and "expected" in str(e.value)
+
+
+def _material(flakes: FlakeModel, h: int = 40, w: int = 48) -> Material:
+    g = torch.Generator().manual_seed(0)
+    return Material(0.05 + 0.6 * torch.rand(3, h, w, generator=g), torch.tensor([0.3, 0.6, 1.2]),
+                    torch.tensor([15.0, 120.0, 900.0]), (0.1, 0.08), flakes=flakes)
+
+
+MAPPED = FlakeModel(density=0.01, seed=4, glint_sigma=0.05, density_map=torch.tensor([[3.0, 0.0], [1.0, 0.5]]),
+                    color_map=torch.tensor([[[0.9, 0.2, 0.1], [0.5, 0.5, 0.5]], [[0.1, 0.3, 0.9], [0.8, 0.8, 0.8]]]))
+
+
+def test_material_round_trip_keeps_the_maps(tmp_path):
+    m = _material(MAPPED)
+    save_material(m, tmp_path / "m")
+    assert (tmp_path / "m" / "flakes_density_map.npy").is_file() and (tmp_path / "m" / "flakes_color_map.npy").is_file()
+    back = load_material(tmp_path / "m").flakes
+    assert torch.equal(back.density_map, MAPPED.density_map) and torch.equal(back.color_map, MAPPED.color_map)
+    assert _fields_equal(flake_field(back, 40, 48), flake_field(MAPPED, 40, 48))
+    plain = _material(replace(MAPPED, density_map=None, color_map=None))
+    save_material(plain, tmp_path / "p")
+    assert "maps" not in json.loads((tmp_path / "p" / "material.json").read_text())["flakes"]
+    assert load_material(tmp_path / "p").flakes.density_map is None
+
+
+def test_bad_map_file_is_a_one_line_material_error(tmp_path):
+    save_material(_material(MAPPED), tmp_path / "m")
+    np.save(tmp_path / "m" / "flakes_density_map.npy", np.full((2, 2), np.inf, np.float32))
+    with pytest.raises(MaterialError, match="finite") as e:
+        load_material(tmp_path / "m")
+    assert "\n" not in str(e.value)
+    (tmp_path / "m" / "flakes_density_map.npy").unlink()
+    with pytest.raises(MaterialError, match="found nothing"):
+        load_material(tmp_path / "m")
+
+
+def test_onnx_parity_with_a_map(tmp_path):
+    from torchmetal.onnx_export import PARITY_TOL, export_onnx, verify_onnx
+    from torchmetal.renderer import MaterialRenderer
+
+    m = _material(MAPPED)
+    r = MaterialRenderer(m)
+    assert r.has_flakes
+    cols = (r.flake_index % 48)[(r.flake_index // 48) < 20]  # top half: the zero block is on the right
+    assert bool((cols < 24).all())
+    path = export_onnx(m, tmp_path / "r.onnx", check=False)
+    assert verify_onnx(path, r) <= PARITY_TOL
+
+
+# ----------------------------------------------------------------------------- estimate and choice
+
+
+def _capture(n: int = 4, h: int = 64, w: int = 64):
+    normals = torch.zeros(3, h, w)
+    normals[2] = 1.0
+    lights = torch.tensor([[0.02 * k, 0.01, 0.3, 1.0] for k in range(n)])
+    return SimpleNamespace(images=torch.full((n, 3, h, w), 0.2), normals=normals, mask=torch.ones(1, h, w, dtype=torch.bool),
+                           saturated=torch.zeros(n, 3, h, w, dtype=torch.bool), lights=lights,
+                           intensities=torch.ones(n, 3), cameras=lights.clone(), size=(0.1, 0.1), num_shots=n)
+
+
+def _left_particles(n_shots: int = 4, flakes: int = 120, w: int = 64, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    cy = torch.rand(flakes, generator=g) * 64
+    cx = torch.rand(flakes, generator=g) * (w / 2)
+    shot = torch.arange(flakes) % n_shots
+    one = torch.ones(flakes)
+    rgb = torch.where((cy < 32).view(-1, 1), torch.tensor([0.8, 0.2, 0.1]), torch.tensor([0.1, 0.3, 0.8]))
+    p = Particles(shot=shot, area=2 * one, cy=cy, cx=cx, major=2 * one, minor=2 * one, angle=0 * one,
+                  rgb=rgb + 0.02 * torch.randn(flakes, 3, generator=g), lab=torch.zeros(flakes, 3), peak=rgb, amp=one,
+                  snr=20 * one, flux=one, sigma=0.02 * one)
+    return p, torch.arange(flakes)
+
+
+def test_estimate_map_left_half():
+    cap = _capture()
+    model = FlakeModel(density=0.01, tilt_sigma=0.3)
+    p, fid = _left_particles()
+    assert map_grid(64, 64, 120) == (3, 3) and map_grid(1024, 1024, 10**6) == (16, 16)
+    dm = estimate_map(cap, model, p, fid, grid=(2, 2), mode="area")
+    assert not dm.uniform and dm.grid == (2, 2)
+    assert float(dm.density[:, 1].max()) == 0.0 and float(dm.density[:, 0].min()) > 1.5  # zero where none was found
+    assert dm.report["zero_blocks"] == 2
+    assert dm.color is not None and float(dm.color[0, 0, 0]) > float(dm.color[1, 0, 0])  # red top, blue bottom
+    glint = estimate_map(cap, model, p, fid, grid=(2, 2), mode="glint")
+    assert float(glint.density[:, 1].max()) == 0.0
+    assert estimate_map(cap, model, p.select(torch.arange(10)), fid[:10]) is None  # too few flakes
+    m2 = with_map(model, dm)
+    assert m2.density_map is not None and with_map(model, None) is model
+
+
+def test_choice_report_and_rule(monkeypatch):
+    cap = _capture()
+    p, fid = _left_particles()
+    model = FlakeModel(density=0.01, tilt_sigma=0.3)
+    mat = _material(model, 64, 64)
+    result = FlakeStageResult(model, p, {}, fid)
+    monkeypatch.setattr(dc, "estimate_map", lambda *a, **k: estimate_map(*a, **{**k, "grid": (2, 2)}))
+
+    def fake(better: bool):
+        def score(material, capture, k, grid):
+            has = material.flakes.density_map is not None
+            md = 10.0 if (has == better) else 20.0
+            return {"md": md, "block_error": md / 10, "predicted": [[0.0] * grid[1]] * grid[0],
+                    "observed": [[0.0] * grid[1]] * grid[0]}
+        return score
+
+    monkeypatch.setattr(dc, "score_shot", fake(True))
+    flakes, rep = dc.choose_density_map(cap, mat, result)
+    assert rep["candidates"] == ["uniform", "map:glint", "map:area"] and len(rep["held"]) == 2
+    assert rep["kept"] and rep["winner"].startswith("map:") and flakes.density_map is not None
+    assert set(rep["scores"]) == set(rep["candidates"]) and "map_estimate" in rep and "reason" in rep
+    monkeypatch.setattr(dc, "score_shot", fake(False))
+    flakes, rep = dc.choose_density_map(cap, mat, result)
+    assert not rep["kept"] and rep["winner"] == "uniform" and flakes is model
+    assert dc.choose_density_map(cap, replace(mat, flakes=None), result)[1]["reason"] == "no flake model"
+
+
+def test_sparkle_counts_per_block():
+    img = torch.zeros(3, 32, 32)
+    img[:, 5, 5] = 1.0
+    img[:, 20, 25] = 1.0
+    pred, obs = dc.sparkle_counts(img, torch.zeros(3, 32, 32) + 0.001 * torch.randn(3, 32, 32), (2, 2))
+    assert pred.tolist() == [[1.0, 0.0], [0.0, 1.0]] and float(obs.sum()) == 0.0
+    assert dc.block_error(pred, obs) == pytest.approx(0.5 * np.log(2))
+
+
+@pytest.mark.slow
+def test_half_glitter_zoo_scene(tmp_path):
+    """Zoo flakes_half: the fit keeps a map, its density right of the glitter ≪ left, and the render has
+    no flake right of it."""
+    from torchmetal.io.capture import load_capture
+    from torchmetal.pipeline import fit_material
+    from torchmetal.flakes.observed import material_flake_field
+    from torchmetal.synth.zoo import SCENES, make_case
+
+    case = make_case(SCENES["flakes_half"], tmp_path / "half")
+    res = fit_material(load_capture(case.capture_dir), seed=0)
+    fl = res.material.flakes
+    choice = res.flakes.report["density_map_choice"]
+    assert fl is not None and choice["kept"], choice.get("reason")
+    dm = fl.density_map
+    g = dm.shape[1]
+    left, right = dm[:, : g // 2].mean(), dm[:, g - g // 2:].mean()  # the middle column (odd g) straddles the edge
+    assert float(right) < 0.1 * float(left)
+    m = res.material
+    f = material_flake_field(fl, m.observed_flakes, m.height, m.width, m.flat_normals(), m.size)
+    edge = int(np.ceil(m.width * ((g + 1) // 2) / g))  # right of the blocks that touch the glitter
+    assert float(f.weight[0, :, :edge].sum()) > 0 and float(f.weight[0, :, edge:].sum()) == 0.0
