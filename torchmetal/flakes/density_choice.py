@@ -11,8 +11,9 @@ left-out photo is compared with the material rendered with the uniform model and
 
 The candidates are the uniform model and a map per detectability model ("map:glint", "map:area":
 :func:`~torchmetal.flakes.density_map.detectability`). A map wins when its mean MD and its mean
-block error are both no higher than the uniform model's (a default must never be worse than the
-simpler option), the lowest MD among those; it is then estimated from every shot. The coating, the flake statistics and the observed flakes (when kept, measured without the
+block error are both no higher than the uniform model's and one is lower (a default must never be
+worse than the simpler option, and a tie keeps the simpler one: zoo flakes_b, whose observed flakes
+leave the map nothing to change, scores identically), the lowest MD among those; it is then estimated from every shot. The coating, the flake statistics and the observed flakes (when kept, measured without the
 left-out shot) are shared by both candidates.
 """
 
@@ -142,11 +143,15 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
     rep["scores"] = {c: {"md": _mean(rep["per_shot"][c], "md"), "block_error": _mean(rep["per_shot"][c], "block_error")}
                      for c in cands}
     uni = rep["scores"]["uniform"]
-    ok = [c for c in cands[1:] if rep["scores"][c]["md"] <= uni["md"] and rep["scores"][c]["block_error"] <= uni["block_error"]]
+    def beats(v: dict) -> bool:  # no worse on both scores, better on one (a tie keeps the simpler model)
+        return (v["md"] <= uni["md"] and v["block_error"] <= uni["block_error"]
+                and (v["md"] < uni["md"] or v["block_error"] < uni["block_error"]))
+
+    ok = [c for c in cands[1:] if beats(rep["scores"][c])]
     winner = min(ok, key=lambda c: (rep["scores"][c]["md"], rep["scores"][c]["block_error"])) if ok else "uniform"
     summary = "; ".join(f"{c} MD {v['md']:.2f}, block sparkle error {v['block_error']:.3f}" for c, v in rep["scores"].items())
     reason = (f"left-out shots {rep['held']}: {summary} (a map wins when neither score is above the uniform "
-              "model's; the lowest MD among those)")
+              "model's and one is below; the lowest MD among those)")
     final = estimate_map(capture, model, parts, fid, mode=winner.split(":")[1]) if winner != "uniform" else None
     if winner != "uniform" and (final is None or final.uniform):
         winner, reason = "uniform", reason + "; the map from every shot is uniform"
