@@ -11,10 +11,11 @@ SITE/
   README.txt                                           how to serve it
 ```
 onnxruntime-web comes from npm (the repository's package.json + package-lock.json, ``npm ci``):
-the writer copies it from ``ort_dir``, else ``$TORCHMETAL_ORT_WEB``, else ``node_modules`` of the
-repository or of the working directory. The page loads ORT only from the site folder. Browsers
-refuse wasm from ``file://``, so the folder is served (any static server, e.g. ``python3 -m
-http.server``); single-threaded wasm needs no cross-origin isolation headers.
+the writer copies it from ``ort_dir``, else ``$TORCHMETAL_ORT_WEB``, else the copy a wheel carries
+(``torchmetal/_npm/onnxruntime-web``, put there by setup.py's build hook, so ``pip install torchmetal``
+exports sites without npm), else ``node_modules`` of the repository or of the working directory.
+The page loads ORT only from the site folder. Browsers refuse wasm from ``file://``, so the folder
+is served (any static server, e.g. ``python3 -m http.server``); single-threaded wasm needs no cross-origin isolation headers.
 """
 
 from __future__ import annotations
@@ -45,8 +46,10 @@ def _candidates(ort_dir: str | os.PathLike | None) -> list[Path]:
         return [Path(ort_dir)]
     if os.environ.get(ORT_ENV):
         return [Path(os.environ[ORT_ENV])]
-    repo = Path(__file__).resolve().parents[2]
-    return list(dict.fromkeys([repo / "node_modules" / "onnxruntime-web", Path.cwd() / "node_modules" / "onnxruntime-web"]))
+    here = Path(__file__).resolve()
+    wheel = here.parents[1] / "_npm" / "onnxruntime-web"  # copied into the wheel by setup.py's build hook
+    repo = here.parents[2] / "node_modules" / "onnxruntime-web"
+    return list(dict.fromkeys([wheel, repo, Path.cwd() / "node_modules" / "onnxruntime-web"]))
 
 
 def find_ort_web(ort_dir: str | os.PathLike | None = None, *, webgpu: bool = False) -> tuple[Path, str]:
