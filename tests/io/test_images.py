@@ -1,6 +1,7 @@
 """sRGB transfer function and image files: exactness, channel order, saturation, one-line errors."""
 
 import os
+import sys
 
 import cv2
 import numpy as np
@@ -9,7 +10,7 @@ import torch
 
 from torchmetal.errors import CaptureError, InputError
 from torchmetal.io.images import (
-    code_table, decode_planes, have_exr, linear_to_srgb, quantize, read_image, read_raw, srgb_to_linear, write_image,
+    code_table, decode_planes, linear_to_srgb, quantize, read_image, read_raw, srgb_to_linear, write_image,
 )
 
 
@@ -315,20 +316,41 @@ class TestBadFiles:
             read_image(tmp_path / "i.npy")
         one_line(e, "int32")
 
-    @pytest.mark.skipif(have_exr(), reason="this OpenCV build reads EXR")
-    def test_exr_unsupported_is_clear(self, tmp_path):
+    def test_exr_unsupported_is_clear(self, tmp_path, monkeypatch):
+        """Neither OpenCV nor the OpenEXR package reads EXR: one line that says what to do."""
+        import torchmetal.io.images as images
+
+        monkeypatch.setattr(images, "have_exr", lambda: False)
+        monkeypatch.setitem(sys.modules, "OpenEXR", None)  # import OpenEXR raises ImportError
         (tmp_path / "a.exr").write_bytes(b"\x76\x2f\x31\x01" + b"\0" * 64)
         with pytest.raises(CaptureError) as e:
             read_image(tmp_path / "a.exr")
-        one_line(e, "OpenEXR")
+        one_line(e, "OpenEXR", "pip install openexr")
 
-    @pytest.mark.skipif(not have_exr(), reason="this OpenCV build has no OpenEXR")
-    def test_exr_read(self, tmp_path):  # pragma: no cover - depends on the OpenCV build
+    @pytest.mark.parametrize("layout", ["RGB", "RGBA", "R,G,B half"])
+    def test_exr_read(self, tmp_path, layout):
+        """Float EXR files read back exactly, through OpenCV where its build has OpenEXR, else OpenEXR."""
+        import OpenEXR
+
         img = rand_image()
-        cv2.imwrite(str(tmp_path / "a.exr"), img[..., ::-1].copy())
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        if layout == "RGB":
+            channels = {"RGB": img}
+        elif layout == "RGBA":
+            channels = {"RGBA": np.concatenate([img, np.ones_like(img[..., :1])], axis=-1)}
+        else:
+            img = img.astype(np.float16).astype(np.float32)
+            channels = {c: img[..., k].astype(np.float16) for k, c in enumerate("RGB")}
+        OpenEXR.File(header, channels).write(str(tmp_path / "a.exr"))
         back, sat = read_image(tmp_path / "a.exr")
         np.testing.assert_array_equal(back, img)
         assert not sat.any()
+
+    def test_exr_garbage_is_clear(self, tmp_path):
+        (tmp_path / "a.exr").write_bytes(b"\x76\x2f\x31\x01" + b"\0" * 64)
+        with pytest.raises(CaptureError) as e:
+            read_image(tmp_path / "a.exr")
+        one_line(e, "a.exr", "expected a readable EXR")
 
     def test_write_bad_shape(self, tmp_path):
         with pytest.raises(InputError) as e:

@@ -39,8 +39,22 @@ def _stop(signum, frame):  # SIGTERM → normal exit, so temporary captures and 
     raise SystemExit(128 + signum)
 
 
+def _importable(module: str) -> bool:
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:
+        return False
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    missing = [name for name, mod in (("scipy", "scipy.optimize"), ("scikit-image", "skimage")) if not _importable(mod)]
+    if missing:  # the numpy/scipy paper baseline, the zoo's photo textures
+        print(f"torchmetal bench: error: expected scipy and scikit-image (pip install 'torchmetal[bench]'), found "
+              f"{' and '.join(missing)} missing", file=sys.stderr)
+        return 2
     sections = [s.strip() for s in args.sections.split(",") if s.strip()]
     bad = [s for s in sections if s not in SECTIONS]
     if bad:

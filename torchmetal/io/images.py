@@ -11,7 +11,7 @@ suffix    read                                   write
 ========  =====================================  ============================
 .png      8-/16-bit RGB or RGBA (alpha dropped)  8- or 16-bit RGB
 .npy      float (H, W, 3) (or (H, W, 4))          float32 (H, W, 3)
-.exr      float RGB(A), when OpenCV has OpenEXR  –
+.exr      float RGB(A) (OpenCV, else OpenEXR)    –
 ========  =====================================  ============================
 """
 
@@ -137,10 +137,34 @@ def have_exr() -> bool:
     return False
 
 
+def _read_openexr(path: Path) -> np.ndarray:
+    """An EXR file through the OpenEXR package (a dependency: pip's OpenCV builds have no OpenEXR)."""
+    try:
+        import OpenEXR
+    except ImportError:
+        raise CaptureError(f"{path}: expected a readable EXR file, found that neither this OpenCV build nor the OpenEXR "
+                           "package can read it (pip install openexr, or convert the images to 16-bit PNG or float .npy)"
+                           ) from None
+    try:
+        with OpenEXR.File(str(path)) as f:
+            channels = {name: np.asarray(c.pixels) for name, c in f.channels().items()}
+    except Exception as e:  # noqa: BLE001 - OpenEXR raises RuntimeError/ValueError on bad files
+        raise CaptureError(f"{path}: expected a readable EXR image, found undecodable data "
+                           f"({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+    for name in ("RGB", "RGBA"):
+        if name in channels:
+            arr = channels[name]
+            break
+    else:
+        if not {"R", "G", "B"} <= set(channels):
+            raise CaptureError(f"{path}: expected R, G and B channels, found {sorted(channels)}")
+        arr = np.stack([channels[c] for c in "RGB"], axis=-1)
+    return arr.astype(np.float32) if arr.dtype == np.float16 else arr
+
+
 def _read_cv2(path: Path) -> np.ndarray:
     if path.suffix.lower() == ".exr" and not have_exr():
-        raise CaptureError(f"{path}: expected a readable EXR file, found that this OpenCV build has no OpenEXR support "
-                           "(convert the images to 16-bit PNG or float .npy)")
+        return _read_openexr(path)
     data = np.fromfile(path, dtype=np.uint8)  # handles non-ASCII paths, unlike cv2.imread
     cv2 = _cv2()
     arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
