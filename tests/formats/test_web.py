@@ -33,8 +33,11 @@ def test_site_files(plain):
     root, _ = plain
     site = root / "site"
     names = {p.relative_to(site).as_posix() for p in site.rglob("*") if p.is_file()}
-    assert names == {"index.html", "viewer.js", "state.js", "display.js", "style.css", "config.json", "README.txt",
-                     "renderer.onnx", "photos/000.png", "photos/001.png", *(f"ort/{n}" for n in web.WASM_FILES)}
+    from torchmetal.viewer.three import FILES as THREE_FILES
+
+    assert names == {"index.html", "viewer.js", "state.js", "display.js", "style.css", "preview.js", "config.json",
+                     "README.txt", "renderer.onnx", "photos/000.png", "photos/001.png",
+                     *(f"ort/{n}" for n in web.WASM_FILES), "material.glb", *THREE_FILES}  # 3D preview: tests/viewer/test_preview.py
     cfg = json.loads((site / "config.json").read_text())
     assert (cfg["mode"], cfg["width"], cfg["height"], cfg["threads"]) == ("static", 32, 32, 1)
     assert cfg["graphs"] == {"plain": "renderer.onnx"}  # no flakes: one graph, flakes toggle disabled

@@ -52,16 +52,12 @@ def artefacts(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def browser():
-    from torchmetal.viewer.browser import CHROMIUM, launch_chromium
+    from torchmetal.viewer.browser import CHROMIUM, close_shared_chromium, shared_chromium
 
     if not Path(CHROMIUM).exists():
         pytest.skip(f"browser tests need Debian's chromium at {CHROMIUM} (CI installs it)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = launch_chromium(p)
-        yield b
-        b.close()
+    yield shared_chromium()  # one per process: tests/formats/test_engine_parity.py uses it too
+    close_shared_chromium()
 
 
 @pytest.fixture(scope="session")

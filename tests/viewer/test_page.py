@@ -113,8 +113,9 @@ class TestPage:
         urls: list[str] = []
         p = open_viewer(browser, mode_url[1] + CHOSEN[k], requests=urls)
         try:
-            # everything (page, ORT's .mjs/.wasm, graphs) comes from this site / server only
-            assert urls and all(u.startswith(mode_url[1]) or u.startswith("data:") for u in urls), urls
+            # everything (page, ORT's .mjs/.wasm, graphs, three.js, the glb) comes from this site / server
+            # only; blob: URLs of this origin are the glb's embedded textures (GLTFLoader)
+            assert urls and all(u.startswith((mode_url[1], "data:", "blob:" + mode_url[1])) for u in urls), urls
             if mode_url[0] == "static":
                 assert any(u.endswith("ort/ort-wasm-simd-threaded.wasm") for u in urls), urls
             p.evaluate("window.tmviewer.idle()")

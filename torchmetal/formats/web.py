@@ -2,7 +2,9 @@
 
 ```
 SITE/
-  index.html viewer.js state.js display.js style.css   the page (shared with ``torchmetal view``)
+  index.html viewer.js state.js display.js style.css preview.js   the page (shared with ``torchmetal view``)
+  material.glb, three/…                                the 3D preview: the glTF export, three.js 0.187 from npm
+                                                       (absent without three.js: the page then has no preview)
   config.json                                          size, surface, graphs, shots (torchmetal.viewer.site)
   renderer.onnx, renderer-noflakes.onnx                flakes on / off (one renderer.onnx without flakes)
   ort/ort.wasm.min.mjs, ort-wasm-simd-threaded.{mjs,wasm}   onnxruntime-web 1.30 (wasm, single-threaded)
@@ -134,6 +136,11 @@ def write(material, path: str | os.PathLike, *, capture: str | os.PathLike | Non
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp.", dir=path.parent))
     try:
         graphs = site.export_graphs(material, tmp, opset=opset)
+        preview, preview_note = site.write_preview(material, tmp)
+        if preview is not None:
+            from torchmetal.viewer.three import copy_three
+
+            copy_three(tmp)
         for name in site.PAGE_FILES:
             shutil.copyfile(site.static_dir() / name, tmp / name)
         (tmp / "ort").mkdir()
@@ -145,7 +152,8 @@ def write(material, path: str | os.PathLike, *, capture: str | os.PathLike | Non
                 atomic_write_bytes(tmp / shot["photo"], site.photo_png(cap, k))
         title = title or "torchmetal"
         ort = {"wasm": f"ort/{WASM_FILES[0]}", "webgpu": f"ort/{WEBGPU_FILES[0]}" if webgpu else None, "version": version}
-        cfg = site.make_config(material, graphs, shots, mode="static", title=title, ort=ort, threads=threads)
+        cfg = site.make_config(material, graphs, shots, mode="static", title=title, ort=ort, threads=threads,
+                               preview=preview, preview_note=preview_note)
         (tmp / "config.json").write_text(json.dumps(cfg, indent=1, allow_nan=False) + "\n")
         (tmp / "README.txt").write_text(README.format(
             title=title, height=material.height, width=material.width, version=version, threads=threads,

@@ -23,9 +23,40 @@ def launch_chromium(playwright, **kwargs):
     return playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, **kwargs)
 
 
+_SHARED: dict = {}
+
+
+def shared_chromium():
+    """One Chromium per process (Playwright's sync API allows one running instance per thread):
+    the viewer tests and the engine-parity client share it. :func:`close_shared_chromium` ends it."""
+    if "browser" not in _SHARED:
+        from playwright.sync_api import sync_playwright
+
+        pw = sync_playwright().start()
+        try:
+            _SHARED["browser"] = launch_chromium(pw)
+        except BaseException:
+            pw.stop()
+            raise
+        _SHARED["playwright"] = pw
+    return _SHARED["browser"]
+
+
+def close_shared_chromium() -> None:
+    """Close the browser of :func:`shared_chromium` (if started); idempotent."""
+    browser, pw = _SHARED.pop("browser", None), _SHARED.pop("playwright", None)
+    for f in (getattr(browser, "close", None), getattr(pw, "stop", None)):
+        if f is not None:
+            try:
+                f()
+            except Exception:
+                pass
+
+
 class _Quiet(SimpleHTTPRequestHandler):
     extensions_map = {**SimpleHTTPRequestHandler.extensions_map, ".mjs": "text/javascript", ".js": "text/javascript",
-                      ".wasm": "application/wasm", ".onnx": "application/octet-stream", ".json": "application/json"}
+                      ".wasm": "application/wasm", ".onnx": "application/octet-stream", ".json": "application/json",
+                      ".glb": "model/gltf-binary"}
 
     def log_message(self, format: str, *args) -> None:
         pass

@@ -7,6 +7,7 @@ print(server.url); server.serve_forever()                        # Ctrl-C, then 
 ```
 Routes: ``GET /`` and the page assets (``static/``), ``GET /config.json`` (see
 :mod:`torchmetal.viewer.site`), ``GET /photos/NNN.png`` (shot NNN as 8-bit sRGB), and
+``GET /material.glb`` and ``GET /three/…`` (the 3D preview: the glTF export and three.js from npm), and
 ``POST /render`` with JSON ``{"light": [4], "light_intensity": [3], "camera": [4], "flakes": bool}``
 answered with the renderer's image (3, H, W) as little-endian float32 bytes (the page encodes it).
 Bad requests get HTTP 400 with a one-line reason. Requests whose ``Host`` is not this server's
@@ -29,14 +30,15 @@ from torchmetal.viewer import site
 
 MAX_BODY = 1 << 16
 CONTENT_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
-                 ".css": "text/css; charset=utf-8", ".json": "application/json", ".png": "image/png"}
+                 ".css": "text/css; charset=utf-8", ".json": "application/json", ".png": "image/png",
+                 ".glb": "model/gltf-binary", "": "text/plain; charset=utf-8"}
 
 
 class Viewer:
     """One material ready to serve: its config, onnxruntime sessions and the capture's photos.
 
     Args:
-        material_dir: a material directory (DESIGN 2.3); its ``renderer.onnx`` is used when it
+        material_dir: a material directory (docs/design.md §2.3); its ``renderer.onnx`` is used when it
             matches the material, the other graph is exported into a temporary folder.
         capture: optional capture directory whose shots are offered as photos (A/B).
         reuse: further ONNX files that may hold the graphs (checked like ``renderer.onnx``).
@@ -66,10 +68,19 @@ class Viewer:
             so = session_options(threads)
             self.sessions = {k: ort.InferenceSession(str(self.graph_dir / name), so, providers=["CPUExecutionProvider"])
                              for k, name in graphs.items()}
+            if log is not None:
+                log("exporting the 3D preview (glTF)…")
+            preview, note = site.write_preview(self.material, self.graph_dir)
         except BaseException:
             shutil.rmtree(self.graph_dir, ignore_errors=True)
             raise
-        self.config = site.make_config(self.material, graphs, shots, mode="served", title=f"torchmetal · {root.resolve().name}")
+        self.config = site.make_config(self.material, graphs, shots, mode="served", title=f"torchmetal · {root.resolve().name}",
+                                       preview=preview, preview_note=note)
+        from torchmetal.viewer.three import three_files
+
+        self.assets = {}  # the 3D preview's files: served name -> path
+        if preview is not None:
+            self.assets = {site.PREVIEW_GLB: self.graph_dir / site.PREVIEW_GLB, **(three_files() or {})}
         self._photos: dict[int, bytes] = {}
         self._lock = threading.Lock()
 
@@ -151,6 +162,8 @@ class _Handler(BaseHTTPRequestHandler):
             return self._send(200, json.dumps(viewer.config).encode(), CONTENT_TYPES[".json"])
         if name in site.PAGE_FILES:
             return self._send(200, site.page_bytes(name), CONTENT_TYPES[Path(name).suffix])
+        if name in viewer.assets:
+            return self._send(200, viewer.assets[name].read_bytes(), CONTENT_TYPES[Path(name).suffix])
         if name.startswith("photos/") and name.endswith(".png") and name[7:-4].isdigit():
             try:
                 return self._send(200, viewer.photo(int(name[7:-4])), CONTENT_TYPES[".png"])

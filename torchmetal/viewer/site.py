@@ -8,12 +8,17 @@ The page (``static/``) reads ``config.json``:
  "shots": [{"name": "000", "photo": "photos/000.png", "light": [x, y, z, w],
             "light_intensity": [r, g, b], "camera": [x, y, z, w]}, …],
  "ort": {"wasm": "ort/ort.wasm.min.mjs", "webgpu": "ort/ort.webgpu.min.mjs" | null} | null,
- "threads": 1}
+ "threads": 1,
+ "preview": {"glb": "material.glb", "three": "0.187.0"} | null, "preview_note": "…"}
 ```
-Two graphs because the ONNX renderer bakes the flake term in (DESIGN 2.4): "flakes off" runs the
+Two graphs because the ONNX renderer bakes the flake term in (docs/design.md §2.4): "flakes off" runs the
 graph exported with ``flakes=False``, so each toggle state is exactly the torch renderer's image.
 Photos are 8-bit sRGB PNGs of the capture's linear images (clipped to [0, 1]); the page decodes
 them to linear and applies the same exposure and sRGB encoding as to the renders.
+
+The 3D preview (``preview.js``) shows ``material.glb`` (the glTF export, flakes baked) with three.js
+served from ``three/`` (:mod:`torchmetal.viewer.three`, from npm); without three.js, or when the
+export fails, ``preview`` is null and ``preview_note`` says why.
 """
 
 from __future__ import annotations
@@ -27,7 +32,8 @@ CONFIG_FORMAT = "torchmetal-viewer"
 CONFIG_VERSION = 1
 GRAPH_FLAKES = "renderer.onnx"
 GRAPH_PLAIN = "renderer-noflakes.onnx"
-PAGE_FILES = ("index.html", "viewer.js", "display.js", "state.js", "style.css")
+PAGE_FILES = ("index.html", "viewer.js", "display.js", "state.js", "style.css", "preview.js")
+PREVIEW_GLB = "material.glb"
 
 
 def static_dir() -> Path:
@@ -132,12 +138,31 @@ def photo_png(capture, k: int) -> bytes:
     return encode_image(linear_to_srgb(img).permute(1, 2, 0).numpy(), ".png", bits=8)
 
 
+def write_preview(material, out_dir: str | os.PathLike) -> tuple[dict | None, str]:
+    """The 3D preview's ``material.glb`` in ``out_dir`` (when three.js is installed); returns the
+    config's (``preview``, ``preview_note``)."""
+    from torchmetal.errors import TorchmetalError
+    from torchmetal.formats.gltf import write_glb
+    from torchmetal.viewer.three import find_three
+
+    found = find_three()
+    if found is None:
+        return None, "no 3D preview: three.js not found (run `npm ci` in the torchmetal repository)"
+    try:
+        write_glb(material, Path(out_dir) / PREVIEW_GLB)
+    except (TorchmetalError, ValueError) as e:
+        return None, f"no 3D preview: the glTF export failed ({str(e).splitlines()[0]})"
+    return {"glb": PREVIEW_GLB, "three": found[1]}, "3D preview: the glTF export in three.js"
+
+
 def make_config(material, graphs: dict[str, str], shots: list[dict], *, mode: str,
-                title: str = "torchmetal", ort: dict | None = None, threads: int = 1) -> dict:
+                title: str = "torchmetal", ort: dict | None = None, threads: int = 1,
+                preview: dict | None = None, preview_note: str = "") -> dict:
     """The page's ``config.json`` (see the module docstring)."""
     return {
         "format": CONFIG_FORMAT, "version": CONFIG_VERSION, "mode": mode, "title": title,
         "width": int(material.width), "height": int(material.height),
         "surface": [float(material.size[0]), float(material.size[1])],
         "graphs": dict(graphs), "shots": list(shots), "ort": ort, "threads": int(threads),
+        "preview": preview, "preview_note": preview_note,
     }

@@ -65,6 +65,7 @@ let linear = null; // last render (3, H, W)
 let photo = null; // linear photo of the selected shot (3, H, W)
 let busy = false, pending = false, waiters = [];
 let photoTask = Promise.resolve();
+let preview = null, previewPaused = false; // the 3D preview (preview.js), when config.json offers one
 const times = [];
 
 function setStatus(text) { $("status").textContent = text || ""; }
@@ -132,6 +133,7 @@ api.bench = async (n = 30) => {
   await api.idle();
   const ms = [], render = [];
   const base = state.laz;
+  previewPaused = true; // the frame rate is the texture view's: the 3D preview waits
   for (let k = 0; k < n; k++) {
     const t0 = performance.now();
     setState({ laz: base + (360 * (k + 1)) / n });
@@ -139,6 +141,8 @@ api.bench = async (n = 30) => {
     ms.push(performance.now() - t0);
     render.push(api.lastRenderMs);
   }
+  previewPaused = false;
+  updatePreview();
   const median = (a) => [...a].sort((x, y) => x - y)[a.length >> 1];
   const mean = ms.reduce((a, b) => a + b, 0) / n;
   // ms_render: the backend alone (ORT run, or the HTTP round trip); the rest is sRGB encode + draw
@@ -181,9 +185,32 @@ function redraw() {
   $("photo-caption").textContent = shot ? `photo: shot ${shot.name}` : "photo";
   $("view-caption").textContent = split ? `photo (left) | render (right) — shot ${shot.name}` : "render";
   drawHemisphere();
+  updatePreview();
   const i = api.lastInputs || inputsFromState(state, extent);
   const f = (v) => v.map((x) => Number(x.toPrecision(4))).join(", ");
   $("inputs").textContent = `light [${f(i.light)}]\nintensity [${f(i.light_intensity)}]\ncamera [${f(i.camera)}]`;
+}
+
+function updatePreview() {
+  if (preview && !previewPaused) preview.update(inputsFromState(state, extent), state.ex);
+}
+
+/** The 3D preview: three.js and the glTF export from this site (see preview.js); optional. */
+async function startPreview() {
+  if (!cfg.preview) {
+    api.preview = { error: cfg.preview_note || "no 3D preview" };
+    return;
+  }
+  $("preview-box").hidden = false;
+  try {
+    const { createPreview } = await import("./preview.js");
+    preview = api.preview = await createPreview($("preview"), cfg);
+    updatePreview();
+  } catch (e) {
+    $("preview-box").hidden = true;
+    api.preview = { error: `3D preview: ${e.message || e}` };
+    setStatus(api.preview.error);
+  }
 }
 
 function drawHemisphere() {
@@ -362,6 +389,7 @@ async function start() {
   if (state.shot >= 0) await loadPhoto(state.shot);
   await requestRender();
   if (api.error) throw new Error(api.error);
+  api.previewReady = startPreview();
 }
 
 api.ready = start().catch((e) => {
