@@ -17,7 +17,7 @@ Command line::
     python torchmetal_runtime.py renderer.onnx --orbit 36 -o orbit.gif      # GIF (needs Pillow)
     python torchmetal_runtime.py renderer.onnx --time
 
-Conventions (torchmetal DESIGN 2.1/2.4): the sample is the plane z = 0 centred at the origin;
+Conventions (torchmetal docs/design.md §2.1/2.4): the sample is the plane z = 0 centred at the origin;
 ``light`` and ``camera`` are homogeneous (x, y, z, w): w = 1 a position, w = 0 a direction
 towards the light / camera; ``light_intensity`` is RGB radiant intensity (point light) or
 irradiance (directional light). Images are linear radiance (B, 3, H, W).

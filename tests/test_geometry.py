@@ -8,7 +8,7 @@ from torchmetal.geometry import dot, grid_shading_terms, normalize, pixel_axes, 
 
 
 def numpy_geometry(normals, light, intensity, camera, size):
-    """Straight transcription of DESIGN 2.1/2.2 in float64 numpy, one pixel at a time style."""
+    """Straight transcription of docs/design.md §2.1/2.2 in float64 numpy, one pixel at a time style."""
     _, h, w = normals.shape
     i, j = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
     p = np.stack([((j + 0.5) / w - 0.5) * size[0], (0.5 - (i + 0.5) / h) * size[1], np.zeros((h, w))])

@@ -1,4 +1,4 @@
-"""``torchmetal`` command line: a thin layer over the library (DESIGN 2.5).
+"""``torchmetal`` command line: a thin layer over the library (docs/design.md §2.5).
 
 Every verb has ``--help``; bad input exits with status 2 and one line on stderr, never a
 traceback. Heavy imports happen inside the verbs so ``--help`` stays instant.
@@ -196,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_demo)
 
     f = sub.add_parser("fit", help="fit a material to a capture directory")
-    f.add_argument("capture", help="capture directory (DESIGN 2.1)")
+    f.add_argument("capture", help="capture directory (docs/design.md §2.1)")
     f.add_argument("-o", "--output", required=True, help="material directory to write")
     f.add_argument("--scheme", choices=["refine", "paper"], default="refine")
     f.add_argument("--specular", choices=["auto", "global", "clustered", "maps", "none"], default="auto",
@@ -213,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep the flakes the shots saw where they are, the statistical field filling the rest "
                         "(auto: when left-out shots say they render better; bare flag: on)")
     f.add_argument("--lobe", choices=["phong", "blinn", "ggx", "auto"], default="phong",
-                   help="specular lobe: phong (DESIGN 2.2, default), blinn, ggx (microfacet, Fresnel, shadowing) "
+                   help="specular lobe: phong (docs/design.md §2.2, default), blinn, ggx (microfacet, Fresnel, shadowing) "
                         "or auto (the best on held-out shots)")
     f.add_argument("--normals", choices=["given", "flat", "estimate"], default="given",
                    help="given: the capture's normals.npy (flat without one); flat: (0, 0, 1); "

@@ -9,7 +9,7 @@ No files or downloads are needed: the sample is rendered by :func:`torchmetal.sy
       report.png      input shots · fitted texture vs truth · specular lobe · detected flakes ·
                       re-render beside the held-out photo · error map
       metrics.json    the numbers below, plus per-stage times and what was skipped
-      material/       the material directory (DESIGN 2.3) with its ONNX renderer
+      material/       the material directory (docs/design.md §2.3) with its ONNX renderer
 
 Metrics (all PSNRs are :func:`torchmetal.metrics.psnr` — linear values clipped to [0, 1], peak 1 —
 and leave out pixels saturated in the photo; "clean" pixels are also free of flakes — there the

@@ -1,4 +1,4 @@
-"""Per-shot, per-pixel shading geometry on the sample plane (DESIGN 2.1, 2.2).
+"""Per-shot, per-pixel shading geometry on the sample plane (docs/design.md §2.1, 2.2).
 
 The surface is the plane z = 0 centred at the origin; pixel (row i, col j) of an H×W image is
 x = ((j + 0.5)/W − 0.5)·width, y = (0.5 − (i + 0.5)/H)·height. Lights and cameras are

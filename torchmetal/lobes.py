@@ -1,12 +1,12 @@
-"""Specular lobes beside the Phong one: Blinn-Phong and a GGX microfacet lobe (DESIGN 2.2 extensions).
+"""Specular lobes beside the Phong one: Blinn-Phong and a GGX microfacet lobe (docs/design.md §2.2 extensions).
 
-Each lobe takes the place of max(r·v, 0)^α in DESIGN 2.2's model,
+Each lobe takes the place of max(r·v, 0)^α in docs/design.md §2.2's model,
 
     I_k(p)_c = E_c · [ d_c(p)·max(n·l, 0) + [n·l > 0] · s_c · lobe_c ],
 
 with one sharpness α per channel (global (3,) or per-pixel (3, H, W)) for every lobe:
 
-- ``phong`` (the default, DESIGN 2.2): max(r·v, 0)^α, r = 2(n·l)n − l.
+- ``phong`` (the default, docs/design.md §2.2): max(r·v, 0)^α, r = 2(n·l)n − l.
 - ``blinn``: max(n·h, 0)^α, h = (l + v)/|l + v|. Near the peak the angle between n and h is half
   the one between r and v, so a Blinn α is about 4× the Phong α of the same highlight.
 - ``ggx``: the Cook–Torrance microfacet term with the GGX (Trowbridge–Reitz) distribution,

@@ -1,4 +1,4 @@
-"""The fitted material and its directory on disk (DESIGN 2.3).
+"""The fitted material and its directory on disk (docs/design.md §2.3).
 
 ```
 material/
@@ -52,7 +52,7 @@ class Material:
         normals: (3, H, W) unit normals, or None for flat (0, 0, 1).
         flakes: the flake model, or None when the sample has no flakes.
         report: the fit report (per-stage times, iterations, errors, what was skipped).
-        lobe: the specular lobe of ``s``/``alpha``: "phong" (DESIGN 2.2, the default), "blinn" or
+        lobe: the specular lobe of ``s``/``alpha``: "phong" (docs/design.md §2.2, the default), "blinn" or
             "ggx" (:mod:`torchmetal.lobes`); saved as ``"lobe"`` in material.json (absent = phong).
     """
 

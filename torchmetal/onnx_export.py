@@ -1,4 +1,4 @@
-"""Export a material's renderer to one self-contained ONNX file (DESIGN 2.4), and time it.
+"""Export a material's renderer to one self-contained ONNX file (docs/design.md §2.4), and time it.
 
 ```python
 from torchmetal.onnx_export import export_onnx, time_renderer
@@ -304,7 +304,7 @@ def _annotate(proto, renderer: MaterialRenderer, opset: int) -> None:
 
 
 def _check_interface(proto) -> None:
-    """The DESIGN 2.4 names, ranks and dtypes, with a symbolic batch dimension."""
+    """The docs/design.md §2.4 names, ranks and dtypes, with a symbolic batch dimension."""
     import onnx
 
     want = {"light": 4, "light_intensity": 3, "camera": 4}

@@ -1,4 +1,4 @@
-"""The reflectance model of DESIGN 2.2, as pure functions plus a thin ``nn.Module``.
+"""The reflectance model of docs/design.md §2.2, as pure functions plus a thin ``nn.Module``.
 
 I_k(p)_c = E_c · [ d_c(p)·max(n·l, 0) + [n·l > 0] · s_c · max(r·v, 0)^{α_c} ]
 

@@ -3,7 +3,7 @@
 ``MaterialRenderer(material)(light (B,4), light_intensity (B,3), camera (B,4)) -> (B,3,H,W)``
 computes exactly the model of :func:`torchmetal.phong.phong_render` plus
 :func:`torchmetal.flakes.field.sparkle_render` (to float32 rounding), but is written for speed
-and for a small ONNX graph (DESIGN 2.4):
+and for a small ONNX graph (docs/design.md §2.4):
 
 - **Only what the material uses is in the graph.** No flake ops when the material has no flakes
   (or ``flakes=False``); global ``(3,)`` specular terms stay scalars per channel, clustered

@@ -104,7 +104,7 @@ class TestRestart:
 def _sphere(size: int = 56, s: float = 0.1, alpha: float = 10.0, noise: float = 0.004, seed: int = 3):
     """A grey sphere under 12 directional lights 5–40° from the orthographic camera, all from one side
     (azimuths 30–125°, like a hand-held lamp: uw_gray_sphere's kind of layout), with a Phong lobe
-    (DESIGN 2.2), noise and 8-bit quantisation, rendered here in float64."""
+    (docs/design.md §2.2), noise and 8-bit quantisation, rendered here in float64."""
     import math
 
     from torchmetal.io.capture import Capture

@@ -1,4 +1,4 @@
-"""The scene zoo's generator: deterministic, its own geometry agrees with DESIGN 2.1/2.2, noise as stated."""
+"""The scene zoo's generator: deterministic, its own geometry agrees with docs/design.md §2.1/2.2, noise as stated."""
 
 import json
 

@@ -1,6 +1,6 @@
 """Reference implementations the benchmark measures torchmetal against.
 
-Two baselines, both fitting the paper's model (DESIGN 2.2)
+Two baselines, both fitting the paper's model (docs/design.md §2.2)
 ``I_k(p)_c = E_c·[d_c(p)·max(n·l, 0) + [n·l > 0]·s_c·max(r·v, 0)^{α_c}]``:
 
 * :func:`paper_scheme_numpy` — a plain numpy/scipy implementation of section 4.1 of the source
@@ -157,7 +157,7 @@ def _lobe(q: np.ndarray, alpha) -> np.ndarray:
 
 
 def np_render(texture, s, alpha, normals, light, intensity, camera, size) -> np.ndarray:
-    """numpy Phong render of B shots (DESIGN 2.2), (B, 3, H, W) float64."""
+    """numpy Phong render of B shots (docs/design.md §2.2), (B, 3, H, W) float64."""
     nl, q, e = np_geometry(np.asarray(normals, np.float64), np.asarray(light, np.float64).reshape(-1, 4),
                            np.asarray(intensity, np.float64).reshape(-1, 3), np.asarray(camera, np.float64).reshape(-1, 4),
                            size, dtype=np.float64)

@@ -1,6 +1,6 @@
 """The numpy paper scheme as a whole process, the way a user of a plain CPU reference runs it.
 
-``python -m torchmetal.bench.paper_process CAPTURE_DIR OUT.npz`` reads a DESIGN 2.1 capture
+``python -m torchmetal.bench.paper_process CAPTURE_DIR OUT.npz`` reads a docs/design.md §2.1 capture
 directory with numpy and OpenCV only (no torch: this process pays for no interpreter start-up
 that the reference would not have), fits it with :func:`torchmetal.bench.baselines.paper_scheme_numpy`
 and writes ``texture`` (3, H, W), ``s`` (3,), ``alpha`` (3,), ``seconds`` and ``iterations`` to

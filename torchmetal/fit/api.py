@@ -111,7 +111,7 @@ def fit_phong(
     seed: int = 0,
     lobe: str = "phong",
 ) -> FitResult:
-    """Fit the Phong model of DESIGN 2.2 (texture d(p), s, α per channel) to a capture.
+    """Fit the Phong model of docs/design.md §2.2 (texture d(p), s, α per channel) to a capture.
 
     Args:
         capture: a :class:`~torchmetal.io.capture.Capture` (images (N,3,H,W) linear, normals,
@@ -135,7 +135,7 @@ def fit_phong(
             ~N·3·chunk values each); results do not depend on it.
         sub_pixels, select_pixels: pixel budgets of the init and selection subsamples.
         seed: k-means seed.
-        lobe: the specular lobe (:mod:`torchmetal.lobes`): "phong" (DESIGN 2.2, the default),
+        lobe: the specular lobe (:mod:`torchmetal.lobes`): "phong" (docs/design.md §2.2, the default),
             "blinn", "ggx", or "auto" (the lowest error on held-out shots,
             :mod:`torchmetal.fit.lobe_choice`; phong unless another lobe wins by 1 %). Other
             lobes than phong need scheme="refine".

@@ -8,7 +8,7 @@ already capture. A per-pixel fit whose neighbourhood is *edge-aware* (weights fr
 T_min, the paper's highlight-free texture bound) covers both: inside a material it pools a
 window of pixels (the smoothness prior), across a colour edge it does not.
 
-The model per pixel p and channel c (DESIGN 2.2 with s, α maps):
+The model per pixel p and channel c (docs/design.md §2.2 with s, α maps):
 
     I_k(p) = E·[d(p)·max(n·l, 0) + s(p)·lobe(α(p))]
 

@@ -6,7 +6,7 @@ fit on all shots ranks the shots by predicted specular energy; the ``holds`` mos
 variable-projection LM (:func:`~torchmetal.fit.refine.fit_specular`) on the other shots, and the
 squared errors of rendering the left-out shot's valid observations.
 
-Phong — DESIGN 2.2's model — is kept unless another lobe's errors are lower *beyond noise*: the
+Phong — docs/design.md §2.2's model — is kept unless another lobe's errors are lower *beyond noise*: the
 held-out MSE is mostly the photo's own noise (on the zoo's blinn scene, Blinn is 1.2 dB closer to the
 clean truth than Phong but only 0.1 % lower in held-out MSE, leave-one-out over its 10 shots), so a relative-gain rule cannot see
 the lobe. The errors of two lobes pair up observation by observation (same pixels, same noise), and
@@ -101,11 +101,11 @@ def choose_lobe(
     ``stride``; keep the lowest held-out MSE, Phong unless beaten beyond noise (module docstring)."""
     n = int(capture.images.shape[0])
     if n < 3:
-        return LobeSelection("phong", reason=f"a held-out test needs >= 3 shots, found {n}: phong (DESIGN 2.2)")
+        return LobeSelection("phong", reason=f"a held-out test needs >= 3 shots, found {n}: phong (docs/design.md §2.2)")
     every = build_observations(capture, stride=stride, dtype=dtype, chunk=chunk)
     base = fit_lobe(every, tol=tol, max_iters=max_iters)
     if not bool(evidence(base).any()):
-        return LobeSelection("phong", reason="no highlight evidence: the lobe shape is not observable; phong (DESIGN 2.2)")
+        return LobeSelection("phong", reason="no highlight evidence: the lobe shape is not observable; phong (docs/design.md §2.2)")
     order = torch.argsort(specular_energy(every, base), descending=True).tolist()
     del every
     held = order[: max(1, min(holds, n))]

@@ -5,7 +5,7 @@ t = ∂λ/∂β (β = log α) for its Gauss–Newton terms (:mod:`torchmetal.fit
 per-observation ``L`` (N, 1, P) of :class:`~torchmetal.fit.problem.Observations`, and for GGX the
 extra geometry ``geo`` (N, 3, P):
 
-- ``phong``: L = log max(r·v, 0), λ = α·L, t = α·L (DESIGN 2.2, unchanged);
+- ``phong``: L = log max(r·v, 0), λ = α·L, t = α·L (docs/design.md §2.2, unchanged);
 - ``blinn``: L = log max(n·h, 0), λ = α·L, t = α·L — the same algebra on another cosine;
 - ``ggx``: L = log F̂(v·h) (α-free Fresnel factor; ``LOG_OFF`` where n·v ≤ 0), geo = (1 − n·h,
   n·l, n·v) with placeholder 1 where n·l ≤ 0 or n·v ≤ 0 (u = 0 or L = LOG_OFF gate those), and

@@ -1,5 +1,5 @@
 """Per-pixel normals from the photos (``fit --normals estimate``): photometric stereo with the
-known lights, refined jointly with the Phong terms of DESIGN 2.2.
+known lights, refined jointly with the Phong terms of docs/design.md §2.2.
 
 Per pixel, with the normal written through the surface gradient θ = (θx, θy),
 n = (−θx, −θy, 1)/√(1 + θx² + θy²) (so n·z > 0 by construction), for shot k and channel c:

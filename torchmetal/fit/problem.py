@@ -1,6 +1,6 @@
 """The observations of a Phong fit, precomputed once and processed in pixel chunks.
 
-For shot k, pixel p, channel c (DESIGN 2.2), with intensity i_kc, n·l, q = 1 − r·v, dist²:
+For shot k, pixel p, channel c (docs/design.md §2.2), with intensity i_kc, n·l, q = 1 − r·v, dist²:
 
     I_kcp = a_kcp·d_cp + s_c·b_kcp(α_c),   a = i·g,   b = i·u·exp(α·L)
     g_kp = max(n·l, 0)/dist²,   u_kp = [n·l > 0]/dist²,   L_kp = log max(r·v, 0) = log1p(−q)

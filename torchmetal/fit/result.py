@@ -75,7 +75,7 @@ class FitResult:
         scheme, specular: what ran ("paper"/"refine"; "global"/"clustered"/"none").
         selection: the held-out comparison behind specular="auto"/"clustered", if any.
         flat: True when every normal is (0, 0, 1).
-        lobe: the specular lobe ("phong", DESIGN 2.2; "blinn"; "ggx"), see :mod:`torchmetal.lobes`.
+        lobe: the specular lobe ("phong", docs/design.md §2.2; "blinn"; "ggx"), see :mod:`torchmetal.lobes`.
         lobe_selection: the held-out comparison behind lobe="auto", if any.
     """
 

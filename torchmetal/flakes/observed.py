@@ -52,7 +52,7 @@ DENSITY_CELL = 32  # px: cell of the coarse flake-density map
 DENSITY_DISPERSION = 2.0  # variance/mean of the cell counts above which the glitter is patchy (Poisson: 1)
 MIN_FLAKES_MAP = 20  # fewer observed flakes: no density map
 
-#: array name → (attribute, file name): the material directory's files (DESIGN 2.3)
+#: array name → (attribute, file name): the material directory's files (docs/design.md §2.3)
 ARRAYS = {
     "position": "flakes_position.npy", "axes": "flakes_axes.npy", "angle": "flakes_angle.npy",
     "normal": "flakes_normal.npy", "color": "flakes_color.npy", "probe_lights": "flakes_probe_lights.npy",
@@ -411,7 +411,7 @@ def material_flake_field(model: FlakeModel, obs: ObservedFlakes | None, height: 
     return FlakeField(weight, normal, color, float(model.glint_sigma), len(obs) + kept)
 
 
-# ----------------------------------------------------------------------------- files (DESIGN 2.3)
+# ----------------------------------------------------------------------------- files (docs/design.md §2.3)
 
 
 def observed_json(obs: ObservedFlakes) -> dict:

@@ -7,7 +7,7 @@ accumulated with ``index_add_`` / ``scatter_reduce_`` over the foreground pixel 
 their cost scales with the foreground, not the image.
 
 Conventions: pixel (row i, col j) has its centre at (i + 0.5, j + 0.5); angles are measured
-from the +column axis towards image *up* (−row), like the surface frame of DESIGN 2.1; axis
+from the +column axis towards image *up* (−row), like the surface frame of docs/design.md §2.1; axis
 lengths follow scikit-image (``4·√λ`` of the weighted second-moment matrix).
 """
 

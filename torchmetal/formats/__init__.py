@@ -1,4 +1,4 @@
-"""Writers that take a fitted material out of torchmetal (DESIGN 2.5 ``export --format``).
+"""Writers that take a fitted material out of torchmetal (docs/design.md §2.5 ``export --format``).
 
 ``FORMATS`` maps each format name to ``"module:function"``; the function is
 ``write(material: Material, path: str | os.PathLike, **options) -> Path`` and writes atomically.

@@ -1,7 +1,7 @@
 """Numeric fit of an engine's GGX specular lobe to a torchmetal lobe (Phong, Blinn, GGX, glints).
 
 Engines (glTF, OpenPBR, UsdPreviewSurface) shade a dielectric specular layer with the GGX
-microfacet lobe; torchmetal's coat is the Phong lobe of DESIGN 2.2. There is no exact mapping, so
+microfacet lobe; torchmetal's coat is the Phong lobe of docs/design.md §2.2. There is no exact mapping, so
 the exporters fit one: over a set of (light, view) direction pairs around the mirror direction of
 the views a capture sees, find the GGX roughness ``r`` (α_GGX = r²), the per-channel reflectance at
 normal incidence ``F0_c`` and the grazing reflectance ``F90`` minimising
@@ -145,7 +145,7 @@ def sample_geometry(l: Tensor, v: Tensor) -> ShadingGeometry:
 
 
 def lobe_target(kind: str, s: Tensor, alpha: Tensor) -> Target:
-    """s_c·lobe_c(l, v) for n·l > 0, the material's specular term of DESIGN 2.2 (``kind`` "phong")
+    """s_c·lobe_c(l, v) for n·l > 0, the material's specular term of docs/design.md §2.2 (``kind`` "phong")
     or of its lobe extensions ("blinn", "ggx"), evaluated by :func:`torchmetal.lobes.lobe_value`."""
     from torchmetal.lobes import LOBES, lobe_value
 
@@ -163,7 +163,7 @@ def lobe_target(kind: str, s: Tensor, alpha: Tensor) -> Target:
 
 
 def phong_target(s: Tensor, alpha: Tensor) -> Target:
-    """s_c·max(r·v, 0)^α_c for n·l > 0 (DESIGN 2.2)."""
+    """s_c·max(r·v, 0)^α_c for n·l > 0 (docs/design.md §2.2)."""
     return lobe_target("phong", s, alpha)
 
 
@@ -200,7 +200,7 @@ def phong_cone(alpha: float, floor: float = 1e-3) -> float:
 
 def capture_views(cameras: Tensor, min_z: float = 0.05) -> Tensor:
     """View directions (V, 3) a capture saw at the sample centre, from its homogeneous cameras
-    (N, 4) (DESIGN 2.1: w = 1 a position, w = 0 a direction): pass them as ``views=`` to the
+    (N, 4) (docs/design.md §2.1: w = 1 a position, w = 0 a direction): pass them as ``views=`` to the
     writers so the lobe is fitted over the capture's own view angles. Views closer to the
     horizon than ``min_z`` are dropped; an empty result raises :class:`ExportError`."""
     c = torch.as_tensor(cameras, dtype=torch.float64).reshape(-1, 4)

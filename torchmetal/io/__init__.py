@@ -1,4 +1,4 @@
-"""File I/O: images (sRGB, PNG/NPY/EXR) and capture directories (DESIGN 2.1)."""
+"""File I/O: images (sRGB, PNG/NPY/EXR) and capture directories (docs/design.md §2.1)."""
 
 from torchmetal.io.capture import Capture, load_capture
 from torchmetal.io.capture_save import save_capture

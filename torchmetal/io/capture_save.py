@@ -1,4 +1,4 @@
-"""Writing a capture directory (DESIGN 2.1): :func:`save_capture`, atomically (written under a
+"""Writing a capture directory (docs/design.md §2.1): :func:`save_capture`, atomically (written under a
 temporary sibling name and renamed into place: an interrupted save never leaves a half-written
 capture), and its parts
 (:func:`write_capture_files`, :func:`prepare_target`, :func:`replace_dir`) for writers that add

@@ -1,4 +1,4 @@
-"""Phone photos → capture (DESIGN 2.6): a printable ChArUco board with a window for the sample,
+"""Phone photos → capture (docs/design.md §2.6): a printable ChArUco board with a window for the sample,
 detection, self-calibration, poses, rectification, exposure and white balance (EXIF, white band).
 
 ==========================  ================================================================

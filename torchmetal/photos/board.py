@@ -1,4 +1,4 @@
-"""The printable marker frame (DESIGN 2.6): a ChArUco board with a window where the sample goes.
+"""The printable marker frame (docs/design.md §2.6): a ChArUco board with a window where the sample goes.
 
 Geometry lives in :class:`Board` (what ``board.json`` stores, in millimetres on the sheet: origin
 top-left, x right, y down). The sheet itself is rasterised exactly: every shape on it (squares,
@@ -8,7 +8,7 @@ pixel's value is the area-weighted mean reflectance of the cells it covers — o
 
 Squares that the window (grown by :data:`BLANK_MARGIN_MM`) touches are left blank, so a band of
 plain paper surrounds the window: the white reference the capture balances colours on.
-Capture frame (DESIGN 2.1/2.6): origin at the window centre, x to the sheet's right, y to the
+Capture frame (docs/design.md §2.1/2.6): origin at the window centre, x to the sheet's right, y to the
 sheet's top, z out of the printed side, metres. The board frame (OpenCV's): origin at the board's
 outer top-left corner, x right, y down, z into the sheet, millimetres.
 """

@@ -1,4 +1,4 @@
-"""Phone photos of a sample in the board's window → a capture directory (DESIGN 2.1, 2.6).
+"""Phone photos of a sample in the board's window → a capture directory (docs/design.md §2.1, 2.6).
 
 ``capture_from_photos`` runs, in order:
 
@@ -218,7 +218,7 @@ def capture_from_photos(
     photos, board: Board, *, flash_offset_mm=(0.0, 0.0, 0.0), intrinsics: Intrinsics | None = None,
     resolution: int = 512, poses: dict | None = None, workers: int | None = None, progress: bool = False,
 ) -> PhotoCapture:
-    """Build a capture from phone photos of the board (DESIGN 2.6).
+    """Build a capture from phone photos of the board (docs/design.md §2.6).
 
     Args:
         photos: image paths (JPEG/PNG, 8-bit), in shot order.

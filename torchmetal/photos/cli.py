@@ -1,4 +1,4 @@
-"""``torchmetal board`` and ``torchmetal capture`` (DESIGN 2.5, 2.6). Only argparse at import."""
+"""``torchmetal board`` and ``torchmetal capture`` (docs/design.md §2.5, 2.6). Only argparse at import."""
 
 from __future__ import annotations
 
@@ -77,7 +77,7 @@ def register(sub) -> None:
     c = sub.add_parser("capture", help="phone photos of the board → a capture directory (+ report, contact sheet)",
                        description="Detects the board in every photo, calibrates the camera from the set (or reads "
                                    "--intrinsics), finds each pose and the flash, rectifies the window and writes a "
-                                   "capture (DESIGN 2.1) with report.json, intrinsics.json and contact.png.")
+                                   "capture (docs/design.md §2.1) with report.json, intrinsics.json and contact.png.")
     c.add_argument("photos", nargs="+", help="photos (JPEG with EXIF), in shot order")
     c.add_argument("--board", required=True, help="the board.json written by `torchmetal board`")
     c.add_argument("-o", "--output", required=True, help="capture directory to write")

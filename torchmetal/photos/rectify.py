@@ -1,4 +1,4 @@
-"""The window of one photo resampled onto the capture grid (DESIGN 2.1 pixel geometry), area-correct.
+"""The window of one photo resampled onto the capture grid (docs/design.md §2.1 pixel geometry), area-correct.
 
 Every capture pixel is a square on the sample plane; it is split into ``ss × ss`` sub-squares
 whose centres are projected into the photo through the calibrated camera (pose + lens
@@ -49,7 +49,7 @@ class Rectified:
 
 def window_points(board: Board, h: int, w: int, ss: int = 1) -> np.ndarray:
     """Board coordinates (h·ss·w·ss, 3) mm of the sub-pixel centres of the capture grid, row-major
-    over the (h·ss, w·ss) grid (DESIGN 2.1: row 0 is +y, the sheet's top)."""
+    over the (h·ss, w·ss) grid (docs/design.md §2.1: row 0 is +y, the sheet's top)."""
     ww, wh = board.window_size_mm
     cx, cy = board.window_centre_board
     u = (np.arange(w * ss) + 0.5) / (w * ss)

@@ -43,7 +43,7 @@ GAIN = 0.1  # photo value per unit radiance and unit exposure (t · ISO / N²)
 
 @dataclass
 class Sample:
-    """The material in the window: texture (3, H, W) linear on the window grid (DESIGN 2.1
+    """The material in the window: texture (3, H, W) linear on the window grid (docs/design.md §2.1
     pixel geometry over the window), per-channel s (3,) and α (3,)."""
 
     texture: torch.Tensor

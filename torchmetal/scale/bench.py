@@ -9,7 +9,7 @@
 Each fit runs in its own process (``python -m torchmetal.scale.bench _fit ...``), so peak memory
 is that process's alone: VmHWM (peak resident set, which counts the pages of memory-mapped files
 the process has touched) and the peak of RssAnon (its own allocations), sampled every 20 ms.
-Captures are generated tile by tile by :func:`write_plane_capture` (DESIGN 2.2's model rendered
+Captures are generated tile by tile by :func:`write_plane_capture` (docs/design.md §2.2's model rendered
 band by band into .npy memmaps), so generating them needs no more memory than a fit.
 """
 
@@ -33,7 +33,7 @@ SHOTS = 8
 
 def write_plane_capture(path: str | os.PathLike, size: int, shots: int = SHOTS, *, seed: int = 0, noise: float = 0.002,
                         band: int = 256) -> Path:
-    """A flat sample (0.1 × 0.1) under a ring of ``shots`` point lights, rendered with DESIGN 2.2's
+    """A flat sample (0.1 × 0.1) under a ring of ``shots`` point lights, rendered with docs/design.md §2.2's
     Phong model (s = 0.6, α = 40/60/80) band by band into ``images/*.npy`` (H, W, 3) float32."""
     import torch
 

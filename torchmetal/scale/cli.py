@@ -22,7 +22,7 @@ def register(sub) -> None:
     p = sub.add_parser("fit-many", help="fit many captures (one fit per capture) on a process pool or Ray",
                        description="Fit every capture with the same fit options; retries failed fits, skips "
                                    "materials already done, writes OUTDIR/summary.csv and summary.md.")
-    p.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture directories (DESIGN 2.1)")
+    p.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture directories (docs/design.md §2.1)")
     p.add_argument("-o", "--output", required=True, help="output folder: OUTDIR/<capture name>/ per material")
     p.add_argument("--engine", choices=["local", "ray"], default="local",
                    help="local: a process pool (no Ray needed); ray: Ray tasks (pip install torchmetal[ray])")

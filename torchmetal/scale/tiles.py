@@ -1,6 +1,6 @@
 """Captures read region by region: the tiled capture format and its converter.
 
-A **tiled capture** is an ordinary capture directory (DESIGN 2.1, so ``load_capture`` reads it
+A **tiled capture** is an ordinary capture directory (docs/design.md §2.1, so ``load_capture`` reads it
 too) whose per-pixel files are all ``.npy`` arrays, which numpy memory-maps: any rectangle or
 strided grid of pixels is read without loading the rest.
 

@@ -1,6 +1,6 @@
 """Synthetic captures with known ground truth (for tests, demos and benchmarks).
 
-:func:`synth_capture` renders a Phong material (DESIGN 2.2), optionally with spatially varying
+:func:`synth_capture` renders a Phong material (docs/design.md §2.2), optionally with spatially varying
 specular clusters, bumpy normals and metallic flakes, under one of a few light layouts, and
 returns the :class:`~torchmetal.io.capture.Capture` together with the truth that made it.
 Everything is drawn from seeded ``torch.Generator`` s (one per ingredient, so switching one

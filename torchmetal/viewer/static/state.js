@@ -1,4 +1,4 @@
-// View state: the URL fragment <-> the page state <-> the renderer's inputs (DESIGN 2.1 / 2.4).
+// View state: the URL fragment <-> the page state <-> the renderer's inputs (docs/design.md §2.1 / 2.4).
 //
 // Angles in degrees: azimuth from +x towards +y, elevation above the surface plane (z = 0).
 // Distances are in multiples of the surface's longer side ("extent").
