@@ -2,6 +2,7 @@
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import cv2
@@ -392,6 +393,13 @@ BAD_JSON = {
     "surface_negative_height": (lambda m: m["surface"].update(height=-2), ["expected positive finite", "-2"]),
     "surface_not_object": (lambda m: m.update(surface=[1, 1]), ["surface: expected {\"width\": w, \"height\": h}"]),
     "normals_not_string": (lambda m: m.update(normals=5), ["normals: expected a file name or null"]),
+    # issue 26 fuzz: integers beyond the float range (JSON literals of 309+ digits) raised OverflowError
+    "light_huge_integer": (_shot(0, "light", [10 ** 400, 0, 1, 1]), ["shots[0].light", "expected finite numbers", "inf"]),
+    "surface_huge_integer": (lambda m: m["surface"].update(height=10 ** 400), ["surface width/height", "expected positive finite"]),
+    "camera_beyond_float32": (_shot(1, "camera", [0, 1e39, 1, 1]), ["shots[1].camera", "within the float32 range"]),
+    "light_below_float32_resolution": (_shot(1, "light", [0, 0, 1e-300, 1]), ["shots[1]", "expected z > 0", "found z = 0"]),
+    # issue 26 fuzz: a light 2e9 away for a photo of normal brightness overflowed the fit (inf in material.json)
+    "light_too_far_for_photo": (_shot(0, "light", [2.1e9, 0, 0.3, 1]), ["shots[0] (images/000.png)", "irradiance", "too far or too weak"]),
 }
 
 
@@ -448,6 +456,8 @@ BAD_CAPTURE = {
     "color_space": (_with(color_space="rgb"), ["Capture.color_space", "rgb"]),
     "size_negative": (_with(size=(0.1, -1.0)), ["Capture.size", "expected positive finite (width, height)"]),
     "size_length": (_with(size=(0.1,)), ["Capture.size"]),
+    "images_no_pixels": (_with(images=torch.rand(3, 3, 0, 0)), ["Capture.images", "expected at least 1x1 pixels", "found 0x0"]),
+    "intensity_too_weak": (_with(intensities=torch.full((3, 3), 1e-20)), ["shot 0", "irradiance", "too far or too weak"]),
 }
 
 
@@ -457,6 +467,28 @@ def test_bad_capture_in_python(case):
     with pytest.raises(CaptureError) as e:
         build()
     one_line(e, *words)
+
+
+def test_normals_near_float64_limit_are_normalised(cap_dir):
+    """issue 26 fuzz: |n|² overflowed (a RuntimeWarning on stderr beside the result)."""
+    n = np.zeros((6, 5, 3))
+    n[..., 2] = 1e200
+    n[0, 0] = [1e200, 0, 1e200]
+    np.save(cap_dir / "normals.npy", n)
+    edit_json(cap_dir, lambda m: m.update(normals="normals.npy"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        c = load_capture(cap_dir)
+    assert torch.allclose(c.normals[:, 0, 0], torch.tensor([0.5 ** 0.5, 0, 0.5 ** 0.5]))
+    assert torch.equal(c.normals[:, 1:, :], torch.tensor([0.0, 0, 1]).view(3, 1, 1).expand(3, 5, 5))
+
+
+def test_dark_shots_are_not_exposure_checked():
+    """A zero intensity or an all-black photo says nothing about the light's distance."""
+    c = make_capture()
+    Capture(images=torch.zeros_like(c.images), lights=c.lights, intensities=torch.full((3, 3), 1e-30), cameras=c.cameras,
+            size=c.size)
+    Capture(images=c.images, lights=c.lights, intensities=torch.zeros(3, 3), cameras=c.cameras, size=c.size)
 
 
 class TestCaptureObject:

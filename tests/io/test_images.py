@@ -280,6 +280,14 @@ class TestBadFiles:
             read_image(tmp_path / "empty.png")
         one_line(e, "empty.png")
 
+    @pytest.mark.parametrize("shape", [(0, 0, 3), (0, 4, 3), (5, 0, 3)])
+    def test_no_pixels_rejected(self, tmp_path, shape):
+        """issue 26 fuzz: a 0x0 float image reached Capture.validate and raised a torch RuntimeError."""
+        np.save(tmp_path / "none.npy", np.zeros(shape, np.float32))
+        with pytest.raises(CaptureError) as e:
+            read_image(tmp_path / "none.npy")
+        one_line(e, "none.npy", "expected an image of at least 1x1 pixels", f"found {shape[1]}x{shape[0]}")
+
     def test_grayscale_rejected(self, tmp_path):
         cv2.imwrite(str(tmp_path / "g.png"), np.zeros((4, 4), np.uint8))
         with pytest.raises(CaptureError) as e:

@@ -30,11 +30,11 @@ from torch import Tensor
 
 from torchmetal.errors import CaptureError, InputError, TorchmetalError
 from torchmetal.geometry import is_flat
-from torchmetal.io.images import _cv2, decode_planes, read_raw, srgb_to_linear
+from torchmetal.io.images import _cv2, code_table, decode_planes, read_raw, srgb_to_linear
 from torchmetal.memory import is_large, release_free_memory
 
 __all__ = ["Capture", "load_capture", "check_light_camera", "read_meta", "parse_meta", "load_mask", "check_pixels",
-           "FORMAT", "VERSION", "COLOR_SPACES", "UNIT_TOL"]
+           "FORMAT", "VERSION", "COLOR_SPACES", "UNIT_TOL", "REFLECTANCE_MAX"]
 
 FORMAT = "torchmetal-capture"
 VERSION = 1
@@ -42,6 +42,8 @@ COLOR_SPACES = ("srgb", "linear")
 _SHOT_KEYS = ("image", "light", "light_intensity", "camera")
 _TOP_KEYS = ("color_space", "surface", "shots")
 UNIT_TOL = 1e-6  # normals within this of unit length are kept bit-exact
+F32_MAX = float(np.finfo(np.float32).max)
+REFLECTANCE_MAX = 1e12  # pixel / irradiance above this is not a surface (and overflows float32 when squared)
 
 
 # ------------------------------------------------------------------------------ value checks
@@ -52,6 +54,14 @@ def _short(x: object, limit: int = 60) -> str:
     return r if len(r) <= limit else r[: limit - 3] + "..."
 
 
+def _float(v: int | float) -> float:
+    """float(v), with ±inf for an integer beyond the float range (a JSON literal of 309+ digits)."""
+    try:
+        return float(v)
+    except OverflowError:
+        return math.inf if v > 0 else -math.inf
+
+
 def _numbers(values: object, n: int, label: str, error: type[TorchmetalError] = CaptureError) -> list[float]:
     """A JSON/list value that must be ``n`` finite numbers."""
     ok = isinstance(values, (list, tuple)) and len(values) == n
@@ -59,9 +69,11 @@ def _numbers(values: object, n: int, label: str, error: type[TorchmetalError] = 
     if not ok:
         found = f"{len(values)} values {_short(values)}" if isinstance(values, (list, tuple)) else _short(values)
         raise error(f"{label}: expected {n} numbers, found {found}")
-    out = [float(v) for v in values]  # type: ignore[union-attr]
+    out = [_float(v) for v in values]  # type: ignore[union-attr]
     if not all(math.isfinite(v) for v in out):
         raise error(f"{label}: expected finite numbers, found {_short(out)}")
+    if any(abs(v) > F32_MAX for v in out):  # stored and computed in float32: inf there
+        raise error(f"{label}: expected numbers within the float32 range (|v| <= {F32_MAX:.4g}), found {_short(out)}")
     return out
 
 
@@ -116,26 +128,57 @@ def check_light_camera(
 
 def _check_size(size: object, label: str) -> tuple[float, float]:
     ok = isinstance(size, (tuple, list)) and len(size) == 2
-    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in size)  # type: ignore[union-attr]
+    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(_float(v)) and v > 0 for v in size)  # type: ignore[union-attr]
     if not ok:
         raise CaptureError(f"{label}: expected positive finite (width, height), found {_short(size)}")
     return float(size[0]), float(size[1])  # type: ignore[index]
 
 
-def check_pixels(t: Tensor, label: str) -> None:
-    """Finite and >= 0, in one pass (NaN propagates to min/max); details only on failure."""
+def check_pixels(t: Tensor, label: str) -> float:
+    """Finite and >= 0, in one pass (NaN propagates to min/max); details only on failure.
+    Returns the largest value (0 for an empty tensor)."""
     if t.numel() == 0:
-        return
+        return 0.0
     lo, hi = torch.aminmax(t)
     lo, hi = float(lo), float(hi)
     if math.isfinite(lo) and math.isfinite(hi) and lo >= 0:
-        return
+        return hi
     bad = ~torch.isfinite(t)
     if bool(bad.any()):
         n = int(bad.sum())
         kind = "NaN" if bool(torch.isnan(t).any()) else "Inf"
         raise CaptureError(f"{label}: expected finite pixel values, found {n} non-finite ({kind})")
     raise CaptureError(f"{label}: expected pixel values >= 0, found minimum {lo:.4g}")
+
+
+def _check_exposure(peaks: Sequence[float], lights: Tensor, intensities: Tensor, size: tuple[float, float],
+                    labels: Sequence[str]) -> None:
+    """Each shot's brightest pixel against the least irradiance its light gives the surface.
+
+    A pixel is irradiance × reflectance; a ratio above :data:`REFLECTANCE_MAX` is no surface but a
+    light position or intensity off by orders of magnitude (and it overflows float32 once squared
+    in a fit). E = intensity / d² (d to the farthest surface corner) for a point light, intensity
+    for a directional one. Dark shots (zero intensity or all-black images) are not checked.
+    """
+    hw, hh = size[0] / 2, size[1] / 2
+    corners = torch.tensor([[hw, hh, 0.0], [-hw, hh, 0.0], [hw, -hh, 0.0], [-hw, -hh, 0.0]], dtype=torch.float64)
+    lights, intensities = lights.detach().cpu().double(), intensities.detach().cpu().double()
+    for k, peak in enumerate(peaks):
+        top = float(intensities[k].max())
+        if peak <= 0 or top <= 0:
+            continue
+        if float(lights[k, 3]) == 1.0:
+            d2 = float(((corners - lights[k, :3]) ** 2).sum(1).max())
+            irradiance = top / d2
+        else:
+            irradiance = top
+        ratio = peak / irradiance if irradiance > 0 else math.inf
+        if ratio > REFLECTANCE_MAX:
+            raise CaptureError(
+                f"{labels[k]}: expected image values at most {REFLECTANCE_MAX:.0e} x the irradiance on the surface "
+                f"(light_intensity / distance²), found {ratio:.3g} x (brightest pixel {peak:.4g}, irradiance "
+                f"{irradiance:.4g}): the light is too far or too weak for its photo"
+            )
 
 
 def _shape_error(name: str, want: str, x: object) -> CaptureError:
@@ -205,6 +248,8 @@ class Capture:
         if not x.is_floating_point():
             raise CaptureError(f"Capture.images: expected a floating-point tensor, found dtype {x.dtype}")
         n, _, h, w = x.shape
+        if h < 1 or w < 1:
+            raise CaptureError(f"Capture.images: expected at least 1x1 pixels, found {w}x{h} (width x height)")
         shapes = {
             "normals": ((3, h, w), None), "mask": ((1, h, w), torch.bool),
             "lights": ((n, 4), None), "intensities": ((n, 3), None), "cameras": ((n, 4), None),
@@ -224,8 +269,7 @@ class Capture:
             raise CaptureError(f"Capture.names: expected {n} image names, found {len(self.names)}")
         if self.color_space not in COLOR_SPACES:
             raise CaptureError(f"Capture.color_space: expected one of {list(COLOR_SPACES)}, found {self.color_space!r}")
-        for k in range(n):  # shot by shot: no full-size temporaries
-            check_pixels(x[k], f"Capture.images[{k}] ({self.names[k]})")
+        peaks = [check_pixels(x[k], f"Capture.images[{k}] ({self.names[k]})") for k in range(n)]  # shot by shot
         nrm = self.normals
         if not bool(torch.isfinite(nrm).all()):
             raise CaptureError("Capture.normals: expected finite unit vectors, found NaN/Inf")
@@ -233,8 +277,9 @@ class Capture:
         worst = float((length - 1).abs().max())
         if worst > 1e-3:
             raise CaptureError(f"Capture.normals: expected unit vectors, found a length off by {worst:.3g}")
-        check_light_camera(self.lights, self.intensities, self.cameras, error=CaptureError,
-                           labels=[f"Capture shot {k} ({self.names[k]})" for k in range(n)])
+        labels = [f"Capture shot {k} ({self.names[k]})" for k in range(n)]
+        check_light_camera(self.lights, self.intensities, self.cameras, error=CaptureError, labels=labels)
+        _check_exposure(peaks, self.lights, self.intensities, self.size, labels)
         return self
 
     # -- views ------------------------------------------------------------------------------
@@ -391,7 +436,11 @@ def _load_normals(f: Path, h: int, w: int) -> Tensor:
     if bad.any():
         i, j = np.argwhere(bad)[0]
         raise CaptureError(f"{f}: expected finite normals, found {int(bad.sum())} non-finite (first at row {i}, col {j})")
-    length = np.sqrt((n * n).sum(axis=2, keepdims=True))
+    with np.errstate(over="ignore"):
+        length = np.sqrt((n * n).sum(axis=2, keepdims=True))
+    if not np.isfinite(length).all():  # components near the float64 limit: the length of n / max |n_i|
+        big = np.abs(n).max(axis=2, keepdims=True)
+        length = big * np.sqrt(((n / big) ** 2).sum(axis=2, keepdims=True))
     zero = length[..., 0] < 1e-12
     if zero.any():
         i, j = np.argwhere(zero)[0]
@@ -453,6 +502,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     images = torch.empty((n, 3, h, w), dtype=torch.float32)  # the only full-size allocation
     saturated = torch.empty((n, 3, h, w), dtype=torch.bool)
     images_np, saturated_np = images.numpy(), saturated.numpy()  # shared memory views
+    peaks: list[float] = []  # each shot's brightest linear value
     for k, shot in enumerate(shots):
         f = root / shot.image
         raw = first if k == 0 else read_raw(f)
@@ -464,9 +514,12 @@ def load_capture(path: str | os.PathLike) -> Capture:
         # integer codes go through the lookup table (sRGB included); floats are checked as stored
         decode_planes(raw, images_np[k], saturated_np[k], srgb=color_space == "srgb" and not is_float)
         if is_float:  # integer files are finite and >= 0 by construction
-            check_pixels(images[k], str(f))
+            peaks.append(check_pixels(images[k], str(f)))
             if color_space == "srgb":
                 images[k] = srgb_to_linear(images[k])
+                peaks[-1] = float(srgb_to_linear(torch.tensor(peaks[-1], dtype=torch.float64)))
+        else:  # the tables increase with the code: the brightest pixel is the largest code's value
+            peaks.append(float(code_table(8 if raw.dtype == np.uint8 else 16, color_space == "srgb")[raw.max()]))
         del raw
     del first
 
@@ -476,10 +529,14 @@ def load_capture(path: str | os.PathLike) -> Capture:
         saturated |= _load_saturated(root / sat_name, n, h, w)
 
     f32 = lambda rows: torch.tensor(rows, dtype=torch.float64).to(torch.float32)  # noqa: E731
+    lights, intensities, cameras = (f32([getattr(s, a) for s in shots]) for a in ("light", "intensity", "camera"))
+    labels = [f"{meta_file}: shots[{k}] ({s.image})" for k, s in enumerate(shots)]
+    # again in float32 (a z of 1e-300 is 0 there), and each photo against its light, naming this file
+    check_light_camera(lights, intensities, cameras, error=CaptureError, labels=labels)
+    _check_exposure(peaks, lights, intensities, size, labels)
     cap = Capture(
-        images=images, normals=normals, mask=mask,
-        lights=f32([s.light for s in shots]), intensities=f32([s.intensity for s in shots]),
-        cameras=f32([s.camera for s in shots]), size=size, saturated=saturated,
+        images=images, normals=normals, mask=mask, lights=lights, intensities=intensities,
+        cameras=cameras, size=size, saturated=saturated,
         names=[s.image for s in shots], color_space=color_space,
     )
     if is_large(cap):  # the decoders' buffers and the checks' temporaries

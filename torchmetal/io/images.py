@@ -188,7 +188,7 @@ def read_raw(path: str | os.PathLike) -> np.ndarray:
     BGR files are returned as an RGB view (no copy); a 4th alpha channel is dropped.
 
     Raises:
-        CaptureError: missing/unreadable file, unsupported type or dtype, not 3 channels.
+        CaptureError: missing/unreadable file, unsupported type or dtype, not 3 channels, no pixels.
     """
     path = Path(path)
     if not path.is_file():
@@ -201,6 +201,8 @@ def read_raw(path: str | os.PathLike) -> np.ndarray:
     else:
         raise CaptureError(f"{path}: expected a .png, .npy or .exr image, found suffix {path.suffix!r}")
     arr = _rgb_channels(arr, path)
+    if arr.shape[0] < 1 or arr.shape[1] < 1:
+        raise CaptureError(f"{path}: expected an image of at least 1x1 pixels, found {arr.shape[1]}x{arr.shape[0]}")
     if arr.dtype not in (np.uint8, np.uint16) and not np.issubdtype(arr.dtype, np.floating):
         raise CaptureError(f"{path}: expected uint8, uint16 or float pixels, found dtype {arr.dtype}")
     return arr
