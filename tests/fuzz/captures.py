@@ -1,4 +1,4 @@
-"""Hypothesis strategies that write capture directories (DESIGN 2.1) and then break them.
+"""Hypothesis strategies that write capture directories (docs/design.md §2.1) and then break them.
 
 A case is a :class:`Recipe` (plain data, so hypothesis can shrink and print it): a valid base
 capture (a tiny synthetic one from :func:`torchmetal.synth.synth_capture`, 1–3 shots, written

@@ -3,7 +3,7 @@
 Each capture (``$TORCHMETAL_SHARED_DATA``, default ``../shared/data`` beside the repository) is
 loaded, then made ≤ 96 px two ways and re-saved in a temporary directory: the whole sample
 box-downsampled, and a native-resolution crop (lights and cameras moved with the crop's centre, so
-the geometry of DESIGN 2.1 holds and the real glints stay sharp). Each capture is fitted with two
+the geometry of docs/design.md §2.1 holds and the real glints stay sharp). Each capture is fitted with two
 option sets, one per way; every run must end with a complete material or a one-line error.
 """
 
@@ -83,7 +83,7 @@ def small(name: str, how: str):
         normals = sl(normals).contiguous() if normals is not None else None
     width, height = cap.size
     size = (width * sw / w, height * sh / h)
-    # the crop's centre on the original surface (DESIGN 2.1: row 0 is +y)
+    # the crop's centre on the original surface (docs/design.md §2.1: row 0 is +y)
     x_c = ((j0 + sw / 2) / w - 0.5) * width
     y_c = (0.5 - (i0 + sh / 2) / h) * height
     return _rebuild(cap, images, saturated, normals, mask.contiguous(), size, (x_c, y_c))

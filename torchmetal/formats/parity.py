@@ -9,7 +9,7 @@ and camera into a float render target, read back as linear radiance (no tone map
 encoding: render targets get neither).
 
 Light units. torchmetal's point light (x, y, z, 1) with radiant intensity I gives irradiance
-E = I/d² at distance d and a Lambertian radiance d·E·(n·l) for texture d (DESIGN 2.2). three.js
+E = I/d² at distance d and a Lambertian radiance d·E·(n·l) for texture d (docs/design.md §2.2). three.js
 (r155+, physically based units always) gives a ``PointLight`` of ``color·intensity`` = J (candela,
 ``decay`` 2, ``distance`` 0 = no cut-off) the incident radiance term J/d²·(n·l) and a Lambertian
 BRDF albedo/π, so its radiance is albedo/π·J/d²·(n·l). The export's convention is that the base
