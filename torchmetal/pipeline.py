@@ -90,6 +90,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
                               f"{screen['pixels']} sampled pixels, above SNR {screen['snr']})"),
                   "screen": screen, "times": {"total": time.perf_counter() - t0}}
         return FlakeStageResult(None, Particles.empty(capture.images.device), report), fit, fit.texture
+    from torchmetal.flakes.lobe_core import drop_core
     from torchmetal.flakes.null_test import glint_excess
     from torchmetal.flakes.stage import detect_capture, flake_stage
     from torchmetal.flakes.texture import texture_without_glints
@@ -101,8 +102,13 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
                               "statistics' minimum): consistent with noise"),
                   "particles": len(det.particles), "times": {"total": time.perf_counter() - t0, **det.times}}
         return FlakeStageResult(None, det.particles, report), fit, fit.texture
-    kept, counts = glint_excess(det.particles, detect_capture(capture, phong_images, mirrored=True).particles,
-                                 tuple(capture.images.shape[-2:]))
+    # the core of the coating's own highlight is left out of both sides: a lobe of the wrong shape leaves
+    # compact positive peaks there (a sharp highlight on a sphere), glints are counted everywhere else
+    mirror = detect_capture(capture, phong_images, mirrored=True)
+    positive, core_pos = drop_core(fit, capture, det.particles)
+    mirrored, core_mir = drop_core(fit, capture, mirror.particles)
+    kept, counts = glint_excess(positive, mirrored, tuple(capture.images.shape[-2:]))
+    counts["highlight_core"] = {"positive": core_pos, "mirrored": core_mir}
     if not kept:
         report = {"skipped": ("detections consistent with the Phong fit's misfit: no SNR at which they exceed the "
                               f"mirrored residual's (locations brighter in the residual {counts['positive']} vs in "
@@ -161,7 +167,7 @@ def fit_material(
             zoo flakes_b: kept, +5.7 dB and MD 12.1 → 8.3 against the clean truth), "on"/True
             always, "off"/False never.
         progress: show progress bars.
-        lobe: the specular lobe, "phong" (DESIGN 2.2), "blinn", "ggx" or "auto" (chosen on
+        lobe: the specular lobe, "phong" (docs/design.md §2.2), "blinn", "ggx" or "auto" (chosen on
             held-out shots by the first fit; the refits keep that choice).
         normals: "given" (the capture's normals.npy; flat without one), "flat" (0, 0, 1), or
             "estimate" (photometric stereo with the Phong terms,

@@ -312,3 +312,60 @@ class TestDegenerateFit:
         assert res.model.density == model_density
         assert res.model.extra["density_fitted"] == fitted_density == res.report["density"]
         assert "capacity" in res.report["density_clamped"]
+
+
+class TestBoundedEstimates:
+    """Every estimate of the glint fit stays in a box the data can speak to (colours of 1e20 came from an
+    unidentified amplitude spread extrapolated above every detection)."""
+
+    def test_moments_with_a_ceiling_match_quadrature(self):
+        for mu, v, floor, ceil in ((-0.5, 0.1, -3.0, 0.5), (-2.0, 1.5, -6.0, 0.0), (3.0, 6.0, -6.0, 2.0)):
+            x = torch.linspace(floor, ceil, 400001, dtype=torch.float64)
+            w = torch.exp(-0.5 * ((x - mu) / v) ** 2)
+            a = torch.exp(x)
+            m1 = float(torch.trapezoid(w * a, x) / torch.trapezoid(w, x))
+            m2 = float(torch.trapezoid(w * a * a, x) / torch.trapezoid(w, x))
+            got_m, got_v = glint_model.truncated_moments(mu, v, floor, ceil)
+            assert got_m == pytest.approx(m1, rel=1e-4)
+            assert got_v == pytest.approx(m2 - m1 * m1, rel=1e-3, abs=1e-12)
+            assert math.exp(floor) <= got_m <= math.exp(ceil)
+
+    def test_runaway_spread_gives_a_bounded_colour(self):
+        """A spread of 6 (e^18 without the ceiling) keeps the mean below the ceiling."""
+        m, var = glint_model.truncated_moments(0.0, 6.0, -5.0, 1.0)
+        unbounded, _ = glint_model.truncated_moments(0.0, 6.0, -5.0)
+        assert unbounded > 1e6 and m <= math.e and var <= math.e**2
+
+    def test_all_mass_outside_the_box_sits_at_the_nearer_end(self):
+        for mu in (50.0, 5000.0):
+            m, var = glint_model.truncated_moments(mu, 0.1, -5.0, 1.0)
+            assert m == pytest.approx(math.e, rel=1e-3) and 0.0 <= var < 1e-4
+
+    def test_fit_stays_in_its_box(self, data):
+        fit = S.fit_glints(data, init={"tau": 50.0, "glint_sigma": 1e-6, "log_amp": 80.0, "log_amp_std": 40.0},
+                           uncertainty=False)
+        assert S.TILT_RANGE[0] <= fit.tilt_sigma <= S.TILT_RANGE[1]
+        assert S.GLINT_RANGE[0] <= fit.glint_sigma <= S.GLINT_RANGE[1]
+        assert S.SPREAD_RANGE[0] <= fit.log_amp_std <= S.SPREAD_RANGE[1]
+        assert fit.log_amp_floor <= fit.log_amp_mean <= fit.log_amp_ceiling
+        assert fit.log_amp_ceiling == pytest.approx(float(torch.log(data.amp.double()).max()) + S.CEILING_MARGIN)
+
+    def test_degenerate_likelihood_stops_early(self, data, monkeypatch):
+        """A best point that needs more flakes than pixels ends the L-BFGS runs at once, without curvature."""
+        monkeypatch.setattr(S, "DEGENERATE_DENSITY", 1e-12)  # every point degenerate
+        fit = S.fit_glints(data)
+        assert fit.degenerate is not None and fit.evaluations == S.DEGENERATE_AFTER
+        assert all(math.isnan(v) for v in fit.std_err.values())
+
+    def test_degenerate_fit_gives_no_model_and_says_why(self, small, monkeypatch):
+        det, geo = small
+        monkeypatch.setattr(S, "DEGENERATE_DENSITY", 1e-12)
+        res = S.flake_statistics(det, geo)
+        assert res.model is None and res.report["degenerate"]["evaluations"] == S.DEGENERATE_AFTER
+
+    def test_a_model_the_checks_refuse_is_no_model_with_its_reason(self, small, monkeypatch):
+        det, geo = small
+        monkeypatch.setattr(S, "fit_colour", lambda obs, fit: ((1e21, 1e21, 1e21), ((1.0, 0, 0), (0, 1.0, 0), (0, 0, 1.0))))
+        res = S.flake_statistics(det, geo)
+        assert res.model is None and res.report["skipped"].startswith("flake statistics not identified")
+        assert "color_mean" in res.report["skipped"]

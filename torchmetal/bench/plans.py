@@ -41,6 +41,10 @@ class Plan:
     zoo_ci: bool = False  # zoo scenes at their ci_scenes() size
     zoo_scenes: tuple[str, ...] | None = None  # None: every scene of the zoo
     full_rows: bool = False  # ``--full`` given: the command section's 2048² rows too
+    robust_options: tuple[str, ...] | None = None  # option sets of the robust matrix (None: all)
+    robust_scenes: tuple[str, ...] = ("flakes_a", "flakes_b", "flakes_orange", "flakes_half", "sphere_sharp72")
+    robust_real: bool = True  # the shared real captures in the matrix and uw_gray_sphere in the share table
+    robust_share: bool = True  # the flake-stage share table over every flake-free zoo scene
 
 
 def full_plan() -> Plan:
@@ -74,6 +78,8 @@ def quick_plan() -> Plan:
         real_speculars=("global", "paper", "default"), realflakes_captures=("uw_gray_sphere",), isolate=False,
         timeout_s=120.0, threads=1,
         zoo_ci=True,  # every scene at its ci_scenes() size: ~25 s in all on 2 cores
+        robust_options=("default", "flakes on"), robust_scenes=("sphere_sharp72",), robust_real=False,
+        robust_share=False,
     )
 
 

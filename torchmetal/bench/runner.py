@@ -26,6 +26,9 @@ command   the whole ``torchmetal fit`` command (fresh process) beside the in-pro
 onnx_kinds  ONNX frame time and file size per material kind at 1024² (torchmetal.bench.kinds)
 gpu       fit 4096²×16, flake stage, renderer, ONNX CUDA provider where CUDA is present, else one
           line saying why not (torchmetal.bench.gpu)
+robust    every fit option set on the zoo's flake scenes, the sharp-highlight sphere and the shared real
+          captures: a material each, wall time against the numpy paper process; the flake stage's share
+          of the fit on flake-free captures (torchmetal.bench.robust)
 ========  ==================================================================================
 
 Outputs in ``--out`` (default ``bench-results/``): ``results.md``, ``results.csv``,
@@ -52,7 +55,7 @@ from torchmetal.bench.tables import ERR, MiB, _num, fmt, md_table, problem
 from torchmetal.bench.zoo_section import scene_sizes, zoo_jobs, zoo_markdown, zoo_scene_names
 
 SECTIONS = ("sweep", "load", "fit1024", "skip", "flakes", "onnx", "real", "realflakes", "zoo", "command", "onnx_kinds",
-            "gpu")
+            "gpu", "robust")
 
 
 # ----------------------------------------------------------------------------- sections
@@ -368,6 +371,17 @@ class Bench(SweepSection):
                                                                    self.tmp / "gpu.json")
         self.raw["gpu"] = res
         self.add(gpu.markdown(res))
+
+    def run_robust(self) -> None:
+        from torchmetal.bench import robust
+
+        p = self.plan
+        self.section("Robustness: every option set ends with a material; the flake stage's share on flake-free captures")
+        res = robust.run_section(self.tmp, self.data_dir if p.robust_real else None, _env(p.threads), p.timeout_s,
+                                 ci=p.zoo_ci, options=p.robust_options, scenes=p.robust_scenes, share=p.robust_share,
+                                 say=self.say)
+        self.raw["robust"] = res
+        self.add(robust.markdown(res))
 
     # -- output ---------------------------------------------------------------------------
 

@@ -180,16 +180,37 @@ def _tail_nodes(la: Tensor, va: Tensor, log_lo: Tensor, qa: Tensor, log_floor: f
     return (la + va * z).to(dt), log_tail - log_norm
 
 
-def truncated_moments(log_amp_mean: float, log_amp_std: float, log_floor: float) -> tuple[float, float]:
-    """Mean and variance of A ~ LogNormal(mean, std) truncated to A > exp(log_floor)."""
+def _log_ndtr_diff(a: float, b: float) -> float:
+    """log(Φ(b) − Φ(a)) for a < b, without cancellation in either tail (−inf when a ≥ b)."""
+    if not a < b:
+        return -math.inf
+    if a > 0:  # both in the upper tail: Φ(b) − Φ(a) = Φ(−a) − Φ(−b)
+        a, b = -b, -a
+    lb = float(torch.special.log_ndtr(torch.tensor(b, dtype=torch.float64)))
+    la = float(torch.special.log_ndtr(torch.tensor(a, dtype=torch.float64)))
+    return lb + math.log1p(-math.exp(min(la - lb, 0.0))) if la < lb else -math.inf
+
+
+def truncated_moments(log_amp_mean: float, log_amp_std: float, log_floor: float,
+                      log_ceiling: float = math.inf) -> tuple[float, float]:
+    """Mean and variance of A ~ LogNormal(mean, std) truncated to exp(log_floor) < A < exp(log_ceiling).
+
+    The ceiling is the brightest amplitude the detections support (:attr:`GlintFit.log_amp_ceiling`):
+    above it a log-normal's tail is extrapolation, and with an unidentified spread its moments grow as
+    exp(2·std²) without bound (a colour of 1e20 from a spread of 6). Both moments lie in [floor, ceiling]
+    and [0, (ceiling − floor)²] by construction."""
     mu, v = log_amp_mean, max(log_amp_std, 1e-12)
     zf = (log_floor - mu) / v
+    zc = (log_ceiling - mu) / v if math.isfinite(log_ceiling) else math.inf
+    den = _log_ndtr_diff(zf, zc)
+    if not math.isfinite(den):  # all the mass outside [floor, ceiling]: the nearer end
+        a = math.exp(min(max(mu, log_floor), log_ceiling))
+        return a, 0.0
 
-    def log_moment(k: int) -> float:  # log E[A^k | A > floor]
-        num = torch.special.log_ndtr(torch.tensor(k * v - zf, dtype=torch.float64))
-        den = torch.special.log_ndtr(torch.tensor(-zf, dtype=torch.float64))
-        return k * mu + 0.5 * (k * v) ** 2 + float(num - den)
-    m1 = math.exp(log_moment(1))
+    def log_moment(k: int) -> float:  # log E[A^k | floor < A < ceiling]
+        return k * mu + 0.5 * (k * v) ** 2 + _log_ndtr_diff(zf - k * v, zc - k * v) - den
+    lo, hi = math.exp(log_floor), math.exp(log_ceiling) if math.isfinite(log_ceiling) else math.inf
+    m1 = min(max(math.exp(log_moment(1)), lo), hi)
     return m1, max(math.exp(log_moment(2)) - m1 * m1, 0.0)
 
 
@@ -211,3 +232,5 @@ class GlintFit:
     iterations: int
     evaluations: int = 0
     log_amp_floor: float = -math.inf
+    log_amp_ceiling: float = math.inf  # log of the brightest amplitude the detections support
+    degenerate: str | None = None  # why the fit stopped early without a usable model (None: it did not)

@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.flakes.filters import box_mean
+from torchmetal.flakes.lobe_core import CORE_LEVEL, LOG_CORE
 from torchmetal.flakes.null_test import MIN_EXCESS, SNR_LADDER, glint_rule
 
 SCREEN_STRIDE = 2  # the pipeline renders and screens every 2nd row and column
@@ -103,12 +104,14 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | 
     shots at a time (default: up to :data:`CHUNK_ELEMENTS` sampled pixel-shots, at least one shot —
     a small capture in one pass, not many small operations).
     """
-    parts = [r for _, r in residual_groups(fit, capture, stride, chunk)]
+    parts = [r for _, r, _ in residual_groups(fit, capture, stride, chunk)]
     return parts[0] if len(parts) == 1 else torch.cat(parts)
 
 
 def residual_groups(fit, capture, stride: int = SCREEN_STRIDE, chunk: int | None = None):
-    """:func:`sampled_residual` ``chunk`` shots at a time: yields (shot range, (B, h, w) residual)."""
+    """:func:`sampled_residual` ``chunk`` shots at a time: yields (shot range, (B, h, w) residual,
+    (B, h, w) bool core of the fit's highlight or None without a specular) — the core as
+    :func:`~torchmetal.flakes.lobe_core.lobe_core_at` defines it, from the lobe the render forms anyway."""
     from torchmetal.geometry import grid_shading_terms, is_flat, pixel_axes
     from torchmetal.lobes import ggx_lobe, grid_half_terms
     from torchmetal.phong import exp_normal
@@ -129,11 +132,13 @@ def residual_groups(fit, capture, stride: int = SCREEN_STRIDE, chunk: int | None
         light, cam = capture.lights[k:k1].to(dt), capture.cameras[k:k1].to(dt)
         inten = capture.intensities[k:k1].to(dt)  # (B, 3)
         nl, q, d2 = grid_shading_terms(light, cam, xs, ys, nrm)  # (B, h, w) each
+        core = None
         if not shiny:
             spec = torch.zeros_like(nl)
         elif fit.lobe == "ggx":
             hq, nv, vh = (t.unsqueeze(1) for t in grid_half_terms(light, cam, xs, ys, nrm))
             lobe = ggx_lobe(hq, nl.unsqueeze(1), nv, vh, alpha)
+            core = (lobe.amax(1) >= CORE_LEVEL) & (nl > 0)
             spec = (inten[:, :, None, None] * (s.view(1, 3, 1, 1) if s.dim() == 1 else s) * lobe).sum(1)
             spec.masked_fill_(nl <= 0, 0.0)
         else:  # Σ_c I_c s_c (1 − q)^α_c, q = 1 − r·v (phong) or 1 − n·h (blinn), one channel at a time
@@ -145,11 +150,12 @@ def residual_groups(fit, capture, stride: int = SCREEN_STRIDE, chunk: int | None
             for c in range(3):
                 spec.addcmul_(exp_normal(log_cos * alpha[c]), s[c] * inten[:, c, None, None])
             spec.masked_fill_(dark, 0.0)
+            core = (log_cos * alpha.amin(0) >= LOG_CORE) & ~dark  # the widest channel's lobe ≥ CORE_LEVEL
         diffuse = torch.einsum("bc,chw->bhw", inten, tex)  # Σ_c I_c T_c
         shade = spec.addcmul_(diffuse, nl.clamp_min(0.0)).div_(d2)
         img = capture.images[k:k1, :, ::stride, ::stride].to(dt)  # a view for float32 photos
         photo = img[:, 0] + img[:, 1] + img[:, 2]  # cheaper than .sum(1) on a strided view
-        yield range(k, k1), photo.sub_(shade)
+        yield range(k, k1), photo.sub_(shade), core
 
 
 def sampled_valid(capture, stride: int = SCREEN_STRIDE) -> Tensor:
@@ -210,8 +216,9 @@ def screen_fit(fit, capture, stride: int = SCREEN_STRIDE, *, shots_per_pass: int
     valid = sampled_valid(capture, stride)
     hi = lo = None
     pixels = 0
-    for shots, r in residual_groups(fit, capture, stride, shots_per_pass):
-        h_k, l_k, p_k = _extremes(r, valid[shots.start:shots.stop], TILE, BACKGROUND)
+    for shots, r, core in residual_groups(fit, capture, stride, shots_per_pass):
+        ok = valid[shots.start:shots.stop]
+        h_k, l_k, p_k = _extremes(r, ok if core is None else ok & ~core, TILE, BACKGROUND)
         hi, lo = (h_k, l_k) if hi is None else (torch.maximum(hi, h_k), torch.maximum(lo, l_k))
         pixels += p_k
     return _counts(hi, lo, pixels, SNR_LADDER, MIN_EXCESS)

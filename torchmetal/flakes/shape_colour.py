@@ -56,7 +56,8 @@ def fit_colour(obs: FlakeObservations, fit: GlintFit, *, min_snr: float = 8.0) -
 
     The peak glint of a detection is A·g with g ≤ 1, so raw peaks underestimate the flake's
     colour; the glint falloff is corrected through the fitted amplitude distribution:
-    mean = E[A | A > floor] × mean chroma (chroma = colour / channel mean is independent of g).
+    mean = E[A | floor < A < ceiling] × mean chroma (chroma = colour / channel mean is independent of g;
+    the ceiling, the brightest amplitude the detections support, bounds the colour by the data).
     Chroma outside [0, 3] per channel (a detection whose mean colour is ≈ 0 or negative: a
     texture edge, not a glint) is left out.
     """
@@ -65,7 +66,7 @@ def fit_colour(obs: FlakeObservations, fit: GlintFit, *, min_snr: float = 8.0) -
     if int(sel.sum()) < 10:
         sel = plausible if int(plausible.sum()) >= 1 else torch.ones_like(sel)
     ch = obs.chroma[sel].double()
-    mean_a, var_a = truncated_moments(fit.log_amp_mean, fit.log_amp_std, fit.log_amp_floor)
+    mean_a, var_a = truncated_moments(fit.log_amp_mean, fit.log_amp_std, fit.log_amp_floor, fit.log_amp_ceiling)
     cm = ch.mean(0)
     mean = (mean_a * cm).clamp_min(0.0)
     # chroma covariance minus its measurement noise (per channel ≈ √3·σ/(amp·√area)), PSD-clipped

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from torchmetal import lbfgs
-from torchmetal.errors import InputError
+from torchmetal.errors import InputError, MaterialError
 from torchmetal.flakes.association import FlakeObservations, _particle_pixels, associate, measurable, observe
 from torchmetal.flakes.detect import Detection
 from torchmetal.flakes.glint_model import GlintData, GlintFit, _frame, log_amp_floor
@@ -35,6 +35,18 @@ from torchmetal.flakes.model import MAX_DENSITY, MIN_CELL, FlakeModel
 from torchmetal.flakes.shape_colour import fit_colour, fit_shapes
 from torchmetal.flakes.shot_geometry import Geometry
 from torchmetal.flakes.visibility import _grid
+
+
+TILT_RANGE = (0.01, 1.5)  # radians: the flake-normal slope spread the model can hold
+GLINT_RANGE = (0.003, 0.5)  # radians: a glint narrower than 0.2° is a collapse, not a measurement
+SPREAD_RANGE = (0.02, 1.5)  # log-amplitude spread: flakes of one paint are alike within a factor e^1.5
+CEILING_MARGIN = 1.0  # the amplitudes stop e× above the brightest detection (seen at most at its peak)
+DEGENERATE_DENSITY = 1.0  # flakes per pixel: a best point that needs more is degenerate …
+DEGENERATE_AFTER = 6  # … once this many evaluations have run (the start may be far off)
+
+
+class _Degenerate(Exception):
+    """Raised inside the L-BFGS loop to stop a likelihood running off to a degenerate point."""
 
 
 _PER_FLAKE = ("half", "normal", "anchor", "amp", "detected", "sigma", "observed")
@@ -135,7 +147,9 @@ def fit_glints(
     sg0 = init.get("glint_sigma", 0.03)
     # a glint peaks at A only when h meets m, so the brightest detections bound A: log â is
     # roughly uniform on [log T, log A], and its top quantile is a close start for log A
-    la0 = init.get("log_amp", float(torch.quantile(torch.log(d.amp.clamp_min(1e-12)).double(), 0.98)) + 0.1)
+    log_amp = torch.log(d.amp.clamp_min(1e-12)).double()
+    log_ceiling = float(log_amp.max()) + CEILING_MARGIN
+    la0 = init.get("log_amp", float(torch.quantile(log_amp, 0.98)) + 0.1)
     va0 = init.get("log_amp_std", 0.1)
     # the amplitude spread's prior is the one that matters: with ~100 flakes the likelihood is flat
     # in it within 0.3 nats from 0.1 to 0.6 (demo), and E[A] = exp(ℓ + v²/2), hence the colour,
@@ -164,31 +178,50 @@ def fit_glints(
         hess = torch.stack([(value_grad(t + eps * eye[i], sub)[2] - g0)[idx] / eps for i in idx.tolist()])
         return 0.5 * (hess + hess.t())
 
+    # every parameter stays in a box the data can speak to (a collapsing glint width or tilt, an amplitude
+    # distribution running off above the brightest detection: the estimates that made colours of 1e20)
+    lo = torch.tensor([math.log(TILT_RANGE[0]), math.log(GLINT_RANGE[0]), log_amp_floor(d), math.log(SPREAD_RANGE[0])],
+                      dtype=torch.float64, device=dev)
+    hi = torch.tensor([math.log(TILT_RANGE[1]), math.log(GLINT_RANGE[1]), log_ceiling, math.log(SPREAD_RANGE[1])],
+                      dtype=torch.float64, device=dev)
+    hi = torch.maximum(hi, lo)
     th0 = torch.tensor([math.log(tau0), math.log(sg0), la0, math.log(va0)], dtype=torch.float64, device=dev)
+    th0 = torch.minimum(torch.maximum(th0, lo), hi)
     best = [float("inf"), th0.clone(), None, None]  # loss, θ, expected count, gradient
     iters = 0
+    degenerate = None
     # L-BFGS may stop on one short line-search step far from the optimum: restart from the best
     # point (fresh curvature memory) until a run gains less than 0.05 in the loss
     for _ in range(restarts + 1):
         start_loss, start = best[0], best[1]
 
         def loss_grad(z: Tensor) -> tuple[float, Tensor]:
-            theta = (start + z).requires_grad_(True)
-            with torch.enable_grad():
+            z = z.detach().requires_grad_(True)
+            with torch.enable_grad():  # θ projected onto the box: no gradient pushes past a bound
+                theta = torch.minimum(torch.maximum(start + z, lo), hi)
                 loss, expected = _objective(grid, sub, theta, prior, nodes)
-                g = torch.autograd.grad(loss, theta)[0].masked_fill(~free, 0.0)
+                g = torch.autograd.grad(loss, z)[0].masked_fill(~free, 0.0)
             evals[0] += 1
             value = float(loss.detach())
             if value < best[0]:  # keep the best point visited (line searches may end off it)
                 best[:] = [value, theta.detach().clone(), float(expected.detach()), g.clone()]
+            if evals[0] >= DEGENERATE_AFTER and d.count > DEGENERATE_DENSITY * best[2]:
+                raise _Degenerate  # the best point needs more flakes than pixels: stop, no model
             return value, g
 
-        _, n = lbfgs.minimize(loss_grad, torch.zeros(4, dtype=torch.float64, device=dev), max_iter=max_iter,
-                              tolerance_grad=1e-5, tolerance_change=tol)
+        try:
+            _, n = lbfgs.minimize(loss_grad, torch.zeros(4, dtype=torch.float64, device=dev), max_iter=max_iter,
+                                  tolerance_grad=1e-5, tolerance_change=tol)
+        except _Degenerate:
+            degenerate = (f"stopped after {evals[0]} evaluations: the best point explains the detections with "
+                          f"{d.count / best[2]:.3g} flakes per pixel (> {DEGENERATE_DENSITY:g})")
+            break
         iters += n
         if start_loss - best[0] < 0.05:
             break
     loss, th, expected, grad = best
+    if degenerate is not None:
+        uncertainty = False
     prior_h = torch.diag(1.0 / prior_sd**2)
     se = torch.full((4,), float("nan"), dtype=th.dtype, device=dev)
     data_h = torch.full((4,), float("nan"), dtype=th.dtype, device=dev)
@@ -207,7 +240,7 @@ def fit_glints(
         log_amp_std=float(torch.exp(th[3])), density=d.count / expected if expected > 0 else math.inf,
         expected_fraction=expected / max(total_area, 1.0), loglik=-loss,
         std_err={nm: float(se[i]) for i, nm in enumerate(names)}, identified=ident, iterations=iters,
-        evaluations=evals[0], log_amp_floor=log_amp_floor(d),
+        evaluations=evals[0], log_amp_floor=log_amp_floor(d), log_amp_ceiling=log_ceiling, degenerate=degenerate,
     )
 
 
@@ -279,11 +312,14 @@ def flake_statistics(
     gfit = fit_glints(data, max_flakes=max_flakes)
     times["likelihood"] = time.perf_counter() - t2
     t3 = time.perf_counter()
-    if not (math.isfinite(gfit.density) and gfit.density <= 1.0):
+    if gfit.degenerate is not None or not (math.isfinite(gfit.density) and gfit.density <= DEGENERATE_DENSITY):
         # the likelihood ran off to a spike or tail that explains the detections with almost no
         # flakes expected anywhere (more flakes than pixels): no trustworthy model (reported, not rendered)
-        report["skipped"] = (f"glint likelihood degenerate (density {gfit.density:.3g}/px > 1, tilt σ "
-                             f"{gfit.tilt_sigma:.3g}, glint σ {gfit.glint_sigma:.3g}): no flake model")
+        report["skipped"] = (f"glint likelihood degenerate (density {gfit.density:.3g}/px > {DEGENERATE_DENSITY:g}, "
+                             f"tilt σ {gfit.tilt_sigma:.3g}, glint σ {gfit.glint_sigma:.3g}"
+                             f"{'; ' + gfit.degenerate if gfit.degenerate else ''}): no flake model")
+        report["degenerate"] = {"density": gfit.density, "tilt_sigma": gfit.tilt_sigma,
+                                "glint_sigma": gfit.glint_sigma, "evaluations": gfit.evaluations}
         report["times"] = times
         return StatsResult(None, obs, flake_id, report)
     shapes = fit_shapes(obs)
@@ -299,8 +335,8 @@ def flake_statistics(
         "std_err": gfit.std_err, "identified": gfit.identified, "iterations": gfit.iterations,
         "multi_shot_flakes": int((obs.detected.sum(1) > 1).sum()), "times": times,
     })
-    model = FlakeModel(
-        density=density, area_log_mean=shapes["area_log_mean"], area_log_std=min(shapes["area_log_std"], 5.0),
+    model = _model_or_reason(
+        report, density=density, area_log_mean=shapes["area_log_mean"], area_log_std=min(shapes["area_log_std"], 5.0),
         aspect_mean=shapes["aspect_mean"], aspect_std=shapes["aspect_std"], color_mean=cmean, color_cov=ccov,
         tilt_sigma=min(gfit.tilt_sigma, 1.5), glint_sigma=min(max(gfit.glint_sigma, 1e-4), 1.5),
         shape_lines=shapes["shape_lines"], seed=seed,
@@ -309,3 +345,13 @@ def flake_statistics(
                "std_err": gfit.std_err, "identified": gfit.identified},
     )
     return StatsResult(model, obs, flake_id, report)
+
+
+def _model_or_reason(report: dict, **values) -> FlakeModel | None:
+    """The :class:`FlakeModel` of ``values``, or None with ``report["skipped"]`` saying which value the
+    model refuses (every estimate is bounded by construction; this is the last guard, not the fix)."""
+    try:
+        return FlakeModel(**values)
+    except MaterialError as e:
+        report["skipped"] = f"flake statistics not identified: {e}"
+        return None

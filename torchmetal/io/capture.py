@@ -1,4 +1,4 @@
-"""Capture directories (DESIGN 2.1) ↔ :class:`Capture` tensors.
+"""Capture directories (docs/design.md §2.1) ↔ :class:`Capture` tensors.
 
 ```
 capture/
@@ -477,7 +477,7 @@ def _load_saturated(f: Path, n: int, h: int, w: int) -> Tensor:
 
 
 def load_capture(path: str | os.PathLike) -> Capture:
-    """Read a capture directory (DESIGN 2.1).
+    """Read a capture directory (docs/design.md §2.1).
 
     Images are read one at a time into a preallocated (N, 3, H, W) float32 tensor. 8/16-bit
     files are decoded straight from their integer codes by lookup table (for sRGB, the curve

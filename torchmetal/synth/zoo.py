@@ -46,6 +46,13 @@ SCENES: dict[str, Scene] = {s.name: s for s in [
     Scene("flakes_b", size=256, shots=16, layout="ring", flakes=_FLAKES_B, s=0.3, alpha=40, normals="bumpy", seed=14),
     # glitter on the left half only: a density map must put the sparkles there (issue 26)
     Scene("flakes_half", size=256, shots=16, layout="hemisphere", flakes=_FLAKES_HALF, s=0.4, alpha=60, seed=17),
+    # a sharp (GGX) lobe on curved normals under many directional lights, 16-bit, no flakes: a Phong fit's
+    # misfit at each highlight's core leaves positive peaks that a plain screen and null test take for glints
+    Scene("sphere_sharp72", size=150, shots=66, held=6, layout="dome", camera="ortho", normals="sphere",
+          lobe="ggx", encoding="linear16", s=0.8, alpha=700, seed=16),
+    # flakes on a textured orange base (a photo tinted to mean albedo (0.6, 0.3, 0.1))
+    Scene("flakes_orange", size=256, shots=16, layout="hemisphere", texture="photo:coffee", tint=(0.6, 0.3, 0.1),
+          flakes=_FLAKES_A, s=0.4, alpha=60, seed=17),
     Scene("photo_bumpy_noise2", size=256, shots=12, texture="photo:chelsea", normals="bumpy", noise=0.02,
           layout="ring", s=0.5, alpha=100, seed=15),
 ]}

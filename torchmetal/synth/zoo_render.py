@@ -4,11 +4,11 @@ The scenes themselves are listed in :mod:`torchmetal.synth.zoo`.
 
 Everything here is numpy (no torchmetal geometry, Phong or flake field), so a bug shared by the
 fit and its own synthetic generator cannot hide. A :class:`Scene` says what the capture is like;
-:func:`make_case` renders it deterministically from its seed and writes a DESIGN 2.1 capture
+:func:`make_case` renders it deterministically from its seed and writes a docs/design.md §2.1 capture
 directory (the files a user would bring: 8-bit sRGB or 16-bit linear PNGs, or float NPY), plus
 held-out shots kept *outside* the capture with their noise-free, unclipped linear renders.
 
-Truth lobes: ``phong`` (DESIGN 2.2), ``blinn`` (s·(n·h)^{4α}, about the same width) and ``ggx``
+Truth lobes: ``phong`` (docs/design.md §2.2), ``blinn`` (s·(n·h)^{4α}, about the same width) and ``ggx``
 (Trowbridge–Reitz D(n·h) with a² = 2/(α+2), normalised to peak s). Flakes are elliptical discs
 (Poisson positions, log-normal area, uniform orientation) with Rayleigh-distributed tilt about the
 surface normal under each flake and a
@@ -59,8 +59,9 @@ class Scene:
     layout: str = "hemisphere"
     camera: str = "jitter"
     texture: str = "procedural"  # procedural | highfreq | photo:<skimage name>
-    normals: str = "flat"  # flat | bumpy
+    normals: str = "flat"  # flat | bumpy | sphere (a spherical cap: 60° tilt at the corners)
     lobe: str = "phong"
+    tint: tuple[float, float, float] | None = None  # per-channel mean of the texture (None: as drawn)
     s: float = 0.5
     alpha: float = 60.0
     second: tuple[float, float] | None = None
@@ -78,7 +79,7 @@ class Scene:
 
     @property
     def phong_truth(self) -> bool:
-        """True when DESIGN 2.2's model (global Phong, no flakes) is exactly the truth."""
+        """True when docs/design.md §2.2's model (global Phong, no flakes) is exactly the truth."""
         return self.lobe == "phong" and self.second is None and self.flakes is None
 
     def with_(self, **kw) -> "Scene":
@@ -151,8 +152,13 @@ def make_normals(kind: str, n: int, rng: np.random.Generator, max_slope: float =
         out = np.zeros((3, n, n))
         out[2] = 1.0
         return out
+    if kind == "sphere":  # the cap of a sphere whose slope reaches 60° at the corners (curved, like a ball)
+        p = surface_points(n)
+        radius = math.sqrt(2.0) * 0.5 * WIDTH / math.sin(math.radians(60.0))
+        z = np.sqrt(np.clip(radius**2 - p[0] ** 2 - p[1] ** 2, 0.0, None))
+        return _unit(np.stack([p[0], p[1], z]))
     if kind != "bumpy":
-        raise ValueError(f"normals: expected flat or bumpy, found {kind!r}")
+        raise ValueError(f"normals: expected flat, bumpy or sphere, found {kind!r}")
     h = _smooth(rng, 1, n, n, 10)[0] + 0.5 * _smooth(rng, 1, n, n, 20)[0]
     gy, gx = np.gradient(h)
     scale = max_slope / max(float(np.abs(np.stack([gx, gy])).max()), 1e-12)
@@ -162,7 +168,7 @@ def make_normals(kind: str, n: int, rng: np.random.Generator, max_slope: float =
 
 
 def surface_points(n: int) -> np.ndarray:
-    """(3, n, n) DESIGN 2.1 pixel centres on the z = 0 plane."""
+    """(3, n, n) docs/design.md §2.1 pixel centres on the z = 0 plane."""
     j = (np.arange(n) + 0.5) / n - 0.5
     x = np.broadcast_to(j[None, :] * WIDTH, (n, n))
     y = np.broadcast_to(-j[:, None] * WIDTH, (n, n))
@@ -433,6 +439,8 @@ def decode(stored: np.ndarray, encoding: str) -> tuple[np.ndarray, np.ndarray]:
 def make_truth(scene: Scene) -> Truth:
     n = scene.size
     tex = make_texture(scene.texture, n, _rng(scene.seed, 0))
+    if scene.tint is not None:  # each channel scaled to the tint's mean albedo
+        tex = tex * (np.asarray(scene.tint, dtype=np.float64) / tex.mean((1, 2)))[:, None, None]
     normals = make_normals(scene.normals, n, _rng(scene.seed, 1))
     s = np.full((3, n, n), scene.s)
     alpha = np.full((3, n, n), scene.alpha)
