@@ -10,6 +10,7 @@ material/
   flakes_*.npy           observed flakes (torchmetal.flakes.observed), named in material.json
   flakes_density_map.npy, flakes_color_map.npy   (gh, gw) / (gh, gw, 3) float32 flake-density map and
                          per-block colour means (torchmetal.flakes.density_map), named in material.json
+  flakes_area_map.npy    (gh, gw) float32 per-block flake log-area offsets, named in material.json
   renderer.onnx          when exported
 ```
 Writes are atomic: everything goes to a temporary sibling directory that replaces the target in
@@ -182,7 +183,8 @@ def material_to_json(m: Material) -> dict:
     }
 
 
-FLAKE_MAP_FILES = {"density_map": "flakes_density_map.npy", "color_map": "flakes_color_map.npy"}
+FLAKE_MAP_FILES = {"density_map": "flakes_density_map.npy", "color_map": "flakes_color_map.npy",
+                   "area_map": "flakes_area_map.npy"}
 
 
 def _flakes_json(f: FlakeModel | None) -> dict | None:
@@ -205,7 +207,7 @@ def _load_flakes(root: Path, entry: dict | None) -> FlakeModel | None:
     if not isinstance(maps, dict) or not set(maps) <= set(FLAKE_MAP_FILES):
         raise MaterialError(f"flakes.maps: expected a dict with keys among {sorted(FLAKE_MAP_FILES)}, found {maps!r}")
     for key, name in maps.items():
-        d[key] = _load_array(root, str(name), "(gh, gw)" if key == "density_map" else "(gh, gw, 3)")
+        d[key] = _load_array(root, str(name), "(gh, gw, 3)" if key == "color_map" else "(gh, gw)")
     return FlakeModel.from_dict(d)
 
 

@@ -209,3 +209,138 @@ def test_half_glitter_zoo_scene(tmp_path):
     f = material_flake_field(fl, m.observed_flakes, m.height, m.width, m.flat_normals(), m.size)
     edge = int(np.ceil(m.width * ((g + 1) // 2) / g))  # right of the blocks that touch the glitter
     assert float(f.weight[0, :, :edge].sum()) > 0 and float(f.weight[0, :, edge:].sum()) == 0.0
+
+
+# ----------------------------------------------------------------------------- per-block flake size
+
+import math  # noqa: E402
+
+from torchmetal.flakes.field import field_cell  # noqa: E402
+
+AREA_MAPPED = replace(MAPPED, area_map=torch.tensor([[math.log(2.0), 0.0], [-0.4, 0.2]]))
+
+
+def test_zero_area_map_is_the_same_field_bit_for_bit():
+    """The area draw with a (zero) area map uses the same hash bits as without one: where the cell is
+    unchanged the field is bit for bit the same (a model without an area map takes the unchanged path)."""
+    m = FlakeModel(density=0.003, seed=5, density_map=torch.tensor([[1.0, 0.0], [2.0, 0.5]]))
+    z = replace(m, area_map=torch.zeros(2, 2))
+    assert field_cell(z) == field_cell(m)
+    for dtype, shape in ((torch.float32, (97, 130)), (torch.float64, (50, 41))):
+        n = torch.zeros(3, *shape, dtype=dtype)
+        n[2] = 1.0
+        assert _fields_equal(flake_field(m, *shape, n), flake_field(z, *shape, n))
+
+
+def test_area_map_draws_each_block_its_size():
+    m = FlakeModel(density=0.01, seed=3, density_map=torch.ones(1, 2), area_map=torch.tensor([[math.log(4.0), 0.0]]),
+                   color_cov=((0.0,) * 3,) * 3)
+    f = flake_field(m, 256, 256)
+    w = f.weight[0]
+    ratio = float(w[:, :128].sum()) / float(w[:, 128:].sum())  # the same flake count on both halves (± Poisson)
+    assert 3.2 < ratio < 4.9, ratio
+    assert field_cell(m) > field_cell(replace(m, area_map=None))  # room for the larger flakes
+
+
+@pytest.mark.parametrize("kw,expect", [
+    (dict(density=0.01, area_map=[[0.0]]), "density_map"),
+    (dict(density=0.01, density_map=[[1.0, 1.0]], area_map=[[0.0]]), "shape (1, 2)"),
+    (dict(density=0.01, density_map=[[1.0, 1.0]], area_map=[[0.0, float("inf")]]), "finite log-area offsets"),
+    (dict(density=0.01, density_map=[[1.0, 1.0]], area_map=[[0.0, 7.0]]), "finite log-area offsets"),
+    (dict(density=0.01, density_map=[[1.0, 1.0]], area_map=[0.0, 0.0]), "2 dimensions"),
+])
+def test_bad_area_maps_are_one_line_errors(kw, expect):
+    with pytest.raises(MaterialError) as e:
+        FlakeModel(**kw)
+    assert expect in str(e.value) and "\n" not in str(e.value) and "expected" in str(e.value)
+
+
+def test_material_round_trip_keeps_the_area_map(tmp_path):
+    save_material(_material(AREA_MAPPED), tmp_path / "m")
+    entry = json.loads((tmp_path / "m" / "material.json").read_text())["flakes"]
+    assert entry["maps"]["area_map"] == "flakes_area_map.npy" and "area_map" not in {k for k in entry if k != "maps"}
+    back = load_material(tmp_path / "m").flakes
+    assert torch.equal(back.area_map, AREA_MAPPED.area_map)
+    assert _fields_equal(flake_field(back, 40, 48), flake_field(AREA_MAPPED, 40, 48))
+    np.save(tmp_path / "m" / "flakes_area_map.npy", np.zeros((3, 3), np.float32))
+    with pytest.raises(MaterialError, match="area_map: expected shape") as e:
+        load_material(tmp_path / "m")
+    assert "\n" not in str(e.value)
+
+
+def test_onnx_parity_with_an_area_map(tmp_path):
+    from torchmetal.onnx_export import PARITY_TOL, export_onnx, verify_onnx
+    from torchmetal.renderer import MaterialRenderer
+
+    m = _material(AREA_MAPPED)
+    r = MaterialRenderer(m)
+    path = export_onnx(m, tmp_path / "r.onnx", check=False)
+    err = verify_onnx(path, r)
+    assert err <= PARITY_TOL and err <= 1e-4
+
+
+def _sized_particles(big: float, small: float, flakes: int = 240, seed: int = 1, n_shots: int = 4):
+    """Flakes all over a 64×64 sample; flux/peak area ``big`` in the top half, ``small`` below (5 % jitter)."""
+    g = torch.Generator().manual_seed(seed)
+    cy, cx = torch.rand(flakes, generator=g) * 64, torch.rand(flakes, generator=g) * 64
+    one = torch.ones(flakes)
+    area = torch.where(cy < 32, torch.full_like(cy, big), torch.full_like(cy, small))
+    area = area * torch.exp(0.05 * torch.randn(flakes, generator=g))
+    rgb = torch.tensor([0.5, 0.5, 0.5]).expand(flakes, 3).clone()
+    p = Particles(shot=torch.arange(flakes) % n_shots, area=area, cy=cy, cx=cx, major=2 * one, minor=2 * one,
+                  angle=0 * one, rgb=rgb, lab=torch.zeros(flakes, 3), peak=rgb, amp=one, snr=40 * one, flux=area,
+                  sigma=0.02 * one)
+    return p, torch.arange(flakes)
+
+
+def test_estimate_area_map_where_sizes_differ():
+    cap = _capture()
+    model = FlakeModel(density=0.01, tilt_sigma=0.3)
+    p, fid = _sized_particles(12.0, 3.0)
+    dm = estimate_map(cap, model, p, fid, grid=(2, 2), mode="area")
+    rep = dm.report["area"]
+    assert rep["kept"] and rep["p"] < 1e-6 and not dm.uniform and dm.area is not None
+    top, bottom = dm.area[0].mean(), dm.area[1].mean()
+    assert float(top - bottom) == pytest.approx(math.log(4.0), abs=0.05)  # many flakes: hardly shrunk
+    n = torch.tensor(rep["counts"])
+    assert float((n * dm.area.double()).sum()) == pytest.approx(0.0, abs=1e-4)  # flake-weighted mean 0
+    m2 = with_map(model, dm)
+    assert torch.equal(m2.area_map, dm.area)
+    same = estimate_map(cap, model, *_sized_particles(6.0, 6.0), grid=(2, 2), mode="area")
+    assert not same.report["area"]["kept"] and same.area is None and "within their standard errors" in same.report["area"]["reason"]
+
+
+def test_area_map_shrinks_blocks_with_few_flakes():
+    cap = _capture()
+    model = FlakeModel(density=0.01, tilt_sigma=0.3)
+    p, fid = _sized_particles(12.0, 3.0)
+    lone = (p.cy >= 32) & (p.cx >= 32)  # the bottom-right block: keep 3 of its flakes, made big
+    keep = ~lone | (torch.cumsum(lone.long(), 0) <= 3)
+    p, fid = p.select(keep), torch.arange(int(keep.sum()))
+    big = (p.cy >= 32) & (p.cx >= 32)
+    p.flux[big] = 12.0
+    p.area[big] = 12.0
+    dm = estimate_map(cap, model, p, fid, grid=(2, 2), mode="area")
+    assert dm.area is not None
+    full = float(dm.area[0].mean())  # the big top blocks
+    assert 0.0 < float(dm.area[1, 1]) < full  # 3 big flakes: shrunk toward the global size
+
+
+def test_bake_follows_a_half_zero_map():
+    """glTF/USD preview bake: flake texels only where the density map is > 0 (left half: a flake whose cell
+    centre is left of the edge may reach one cell past it), at k = 1 and 2."""
+    from torchmetal.formats.engine import engine_material
+
+    fl = FlakeModel(density=0.02, seed=2, glint_sigma=0.05, density_map=torch.tensor([[2.0, 0.0]]),
+                    area_map=torch.tensor([[0.3, 0.0]]))
+    m = _material(fl, 40, 48)
+    plain = engine_material(replace(m, flakes=None))
+    for k in (1, 2):
+        em = engine_material(m, flakes="base", texels_per_pixel=k)
+        base = plain.f0.repeat_interleave(k, 1).repeat_interleave(k, 2)
+        diff = (em.f0 != base).any(0)
+        half = 24 * k
+        c = field_cell(replace(fl, density=fl.density / (k * k), area_log_mean=fl.area_log_mean + 2 * math.log(k)))
+        assert bool(diff[:, :half].any()) and not bool(diff[:, half + c:].any())
+        assert int(diff[:, :half].sum()) > 20 * int(diff[:, half:].sum())
+        assert em.extras["flake_bake"]["flakes"] > 0

@@ -56,7 +56,7 @@ def _split(counts: torch.Tensor, inside: torch.Tensor) -> dict:
 
 def _candidates(material) -> dict:
     m = material.flakes
-    uniform = replace(material, flakes=replace(m, density_map=None, color_map=None)) if m is not None else material
+    uniform = replace(material, flakes=replace(m, density_map=None, color_map=None, area_map=None)) if m is not None else material
     return {"uniform": uniform, "map": material}
 
 

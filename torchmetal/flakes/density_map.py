@@ -30,7 +30,21 @@ Colour: each flake's mean detected colour (the particles' normalised residual ``
 at least ``COLOR_MIN`` flakes are compared with a χ² test of their means against the pooled
 within-block covariance (df 3·(R − 1)); when they differ at p < ``COLOR_P`` the colour map is the
 model's colour mean scaled channel by channel by each block's (shrunk, ``COLOR_PRIOR``
-pseudo-flakes of the global mean) colour over the global one. Sizes stay global.
+pseudo-flakes of the global mean) colour over the global one.
+
+Size (:func:`flake_areas`, :func:`_area_map`): each flake's log flux/peak area y_j on its brightest
+detection (its particle's flux/amp; flakes with SNR ≥ ``AREA_SNR`` when at least ``MIN_FLAKES`` do, as
+:func:`~torchmetal.flakes.shape_colour.fit_shapes` selects), with fit_shapes's noise model
+ν_j = n_pix/(SNR²·area²), n_pix = area + 3√area + 4, and the intrinsic spread s² = the pooled
+within-block variance of y minus the median ν. Per block the weighted mean m_r (weights
+1/(s² + ν_j)) has standard error 1/W_r; blocks with at least ``AREA_MIN`` flakes are compared by
+Cochran's Q = Σ W_r (m_r − m̄)², χ² with R − 1 df. When they differ at p < ``AREA_P`` the area map
+holds each block's offset from the global log-mean, shrunk toward 0 by the DerSimonian–Laird
+between-block variance τ² = max(0, (Q − df)/(ΣW − ΣW²/ΣW)): offset_r = (m_r − m̄)·τ²/(τ² + 1/W_r)
+(a block with few flakes stays near the global size; none: 0), recentred to a flake-weighted mean
+of 0 (``area_log_mean`` stays the global log-mean). It is relative: the measurement's common bias
+(the particle's flux misses the glint's wings below the detection threshold) cancels. The log-area
+spread ``area_log_std`` stays the global one.
 
 Whether the map is used at all is decided on left-out shots: :mod:`torchmetal.flakes.density_choice`.
 """
@@ -46,7 +60,7 @@ from torch import Tensor
 
 from torchmetal.errors import InputError
 from torchmetal.flakes.field import map_blocks
-from torchmetal.flakes.model import MAX_COLOR, MAX_DENSITY, FlakeModel
+from torchmetal.flakes.model import MAX_AREA_OFFSET, MAX_COLOR, MAX_DENSITY, FlakeModel
 from torchmetal.geometry import normalize, shading_geometry
 
 MIN_COUNT = 8  # flakes per block expected under the uniform model (the grid's resolution)
@@ -58,18 +72,23 @@ SAMPLES = 48  # detectability points per side (rounded to a multiple of the grid
 COLOR_MIN = 3
 COLOR_P = 0.01
 COLOR_PRIOR = 5.0
+AREA_MIN = 3  # flakes per block in the area test
+AREA_P = 0.01
+AREA_SNR = 8.0  # fit_shapes's min_snr
 
 
 @dataclass
 class DensityMap:
     """density (gh, gw) float32 relative to the model's density (as rendered: capped at capacity);
-    color (gh, gw, 3) float32 colour means or None; uniform: no overdispersion (density all ones);
-    report: counts, expectations, estimates and tests."""
+    color (gh, gw, 3) float32 colour means or None; uniform: nothing to change (no overdispersion
+    and no area map: density all ones); report: counts, expectations, estimates and tests;
+    area (gh, gw) float32 log-area offsets or None."""
 
     density: Tensor
     color: Tensor | None
     uniform: bool
     report: dict = field(default_factory=dict)
+    area: Tensor | None = None
 
     @property
     def grid(self) -> tuple[int, int]:
@@ -100,6 +119,75 @@ def flake_positions(particles, flake_id: Tensor, shots: list[int] | None = None)
     n = torch.bincount(inv.cpu(), minlength=j).double().view(-1, 1)
     mean = sums / n
     return mean[:, :2], mean[:, 2:]
+
+
+def flake_areas(particles, flake_id: Tensor, shots: list[int] | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Log flux/peak area (J,), its measurement noise variance ν (J,) (:func:`~torchmetal.flakes.
+    shape_colour.fit_shapes`'s model) and SNR (J,) of each associated flake on its brightest
+    detection among ``shots`` (None: all), float64, in :func:`flake_positions`'s order."""
+    from torchmetal.flakes.regions import segment_argmax
+
+    keep = flake_id >= 0
+    if shots is not None:
+        keep &= torch.isin(particles.shot, torch.tensor(shots, dtype=particles.shot.dtype, device=particles.shot.device))
+    rows = torch.nonzero(keep, as_tuple=True)[0]
+    if rows.numel() == 0:
+        z = torch.zeros(0, dtype=torch.float64)
+        return z, z, z
+    ids, inv = torch.unique(flake_id[rows], return_inverse=True)
+    snr_all = particles.snr[rows].double()
+    best = rows[segment_argmax(inv, snr_all, ids.numel())]
+    amp = particles.amp[best].double().cpu()
+    area = (particles.flux[best].double().cpu() / amp.clamp_min(1e-12)).clamp_min(0.25)
+    snr = particles.snr[best].double().cpu().clamp_min(1e-6)
+    npix = area + 3 * torch.sqrt(area) + 4
+    return torch.log(area), npix / (snr**2 * area**2), snr
+
+
+def _area_map(block: Tensor, y: Tensor, nu: Tensor, snr: Tensor, grid: tuple[int, int]) -> tuple[Tensor | None, dict]:
+    """Per-block log-area offsets (gh, gw) when the blocks' mean log areas differ beyond their
+    standard errors (module docstring), else None; and the test's report."""
+    from scipy.stats import chi2
+
+    r = grid[0] * grid[1]
+    sel = snr >= AREA_SNR
+    if int(sel.sum()) < MIN_FLAKES:
+        sel = torch.ones_like(sel)
+    block, y, nu = block[sel], y[sel], nu[sel]
+    n = torch.bincount(block, minlength=r).double()
+    big = n >= AREA_MIN
+    rep = {"flakes": int(sel.sum()), "blocks_tested": int(big.sum()), "kept": False}
+    if int(big.sum()) < 2:
+        rep["reason"] = f"fewer than 2 blocks with {AREA_MIN}+ flakes"
+        return None, rep
+    plain = torch.zeros(r, dtype=torch.float64).index_add_(0, block, y) / n.clamp_min(1)
+    dof = int(n[n >= 1].sum()) - int((n >= 1).sum())
+    if dof < 2:
+        rep["reason"] = "too few flakes for the within-block spread"
+        return None, rep
+    within = float(((y - plain[block]) ** 2).sum()) / dof
+    s2 = max(within - float(nu.median()), 1e-4)
+    w = 1.0 / (s2 + nu)
+    wsum = torch.zeros(r, dtype=torch.float64).index_add_(0, block, w)
+    m = torch.zeros(r, dtype=torch.float64).index_add_(0, block, w * y) / wsum.clamp_min(1e-300)
+    wb = wsum[big]
+    grand = float((wb * m[big]).sum() / wb.sum())
+    q = float((wb * (m[big] - grand) ** 2).sum())
+    df = int(big.sum()) - 1
+    p = float(chi2.sf(q, df))
+    tau2 = max(0.0, (q - df) / float(wb.sum() - (wb * wb).sum() / wb.sum()))
+    rep.update({"within_var": within, "intrinsic_var": s2, "noise_var_median": float(nu.median()), "Q": q, "df": df,
+                "p": p, "between_var": tau2, "log_mean": m.view(grid).tolist(), "counts": n.view(grid).tolist()})
+    if not p < AREA_P:
+        rep["reason"] = f"block areas within their standard errors (Q {q:.1f}, df {df}, p {p:.3g} >= {AREA_P})"
+        return None, rep
+    has = n >= 1
+    off = torch.where(has, (m - grand) * tau2 / (tau2 + 1.0 / wsum.clamp_min(1e-300)), torch.zeros_like(m))
+    off = off - float((n * off).sum() / n.sum())  # flake-weighted mean 0: area_log_mean stays the global one
+    off = off.clamp(-MAX_AREA_OFFSET, MAX_AREA_OFFSET)
+    rep.update({"kept": True, "area_map": off.view(grid).tolist(),
+                "reason": f"block areas differ (Q {q:.1f}, df {df}, p {p:.3g} < {AREA_P})"})
+    return off.view(grid).float(), rep
 
 
 def block_pixels(height: int, width: int, grid: tuple[int, int]) -> Tensor:
@@ -223,16 +311,21 @@ def estimate_map(capture, model: FlakeModel, particles, flake_id: Tensor, shots:
     report = {"mode": mode, "grid": list(grid), "flakes": j, "shots": shots, "counts": n.tolist(), "expected": e.tolist(),
               "raw": (n / e.clamp_min(1e-12)).tolist(), "dispersion": phi, "zero_blocks": int(zero.sum()),
               "capped_blocks": int((lam * fitted / max(model.density, 1e-30) > cap).sum()) if model.density > 0 else 0}
+    la, nu, snr = flake_areas(particles, flake_id, shots)
+    amap, report["area"] = _area_map(block, la, nu, snr, grid)
     if phi <= 0.0:
         report["reason"] = "block counts no more dispersed than Poisson around the uniform model"
-        return DensityMap(torch.ones(grid), None, True, report)
+        if amap is None:
+            return DensityMap(torch.ones(grid), None, True, report)
+        report["density_map"] = torch.ones(grid).tolist()  # sizes differ: a map of ones carries their grid
+        return DensityMap(torch.ones(grid), None, False, report, amap)
     cmap, report["color"] = _colour_map(model, block, col, grid)
     report["density_map"] = rendered.tolist()
-    return DensityMap(rendered.float(), cmap, False, report)
+    return DensityMap(rendered.float(), cmap, False, report, amap)
 
 
 def with_map(model: FlakeModel, dm: DensityMap | None) -> FlakeModel:
-    """``model`` with the map's density (and colour) when it is not uniform, else ``model``."""
+    """``model`` with the map's density (and colour, and area offsets) when it is not uniform, else ``model``."""
     if dm is None or dm.uniform:
         return model
-    return replace(model, density_map=dm.density, color_map=dm.color)
+    return replace(model, density_map=dm.density, color_map=dm.color, area_map=dm.area)

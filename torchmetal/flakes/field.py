@@ -7,7 +7,8 @@ in int64 (masked to 32 bits) is bit-identical on every device and runtime — no
 
 With a density map (:attr:`FlakeModel.density_map`, glitter on part of the sample) a cell's
 presence threshold is the local density, read at the map block of the cell's centre, and its colour
-mean the block's (``color_map``); the hash bits are the same, so a uniform map of ones draws today's
+mean the block's (``color_map``) and its area log-mean ``area_log_mean`` plus the block's offset
+(``area_map``); the hash bits are the same, so a uniform map of ones (and no area map) draws today's
 field bit for bit, and the cell is sized for the densest block (:func:`field_cell`).
 
 The field depends on the material only, not on the light, so it is built once (and baked into
@@ -36,6 +37,7 @@ from torchmetal.geometry import ShadingGeometry, normalize, shading_geometry
 
 _MASK32 = 0xFFFFFFFF
 _TARGET_OCCUPANCY = 0.25  # fraction of cells holding a flake when the density allows it
+_AREA_Q90 = 1.2816  # standard normal 90th percentile: with an area map the cell holds the largest block's 90 % flake
 
 
 def hash32(x: Tensor) -> Tensor:
@@ -83,10 +85,18 @@ def cell_size(density: float) -> int:
 
 def field_cell(model: FlakeModel) -> int:
     """Cell edge of ``model``'s field: sized for its densest block (the global density without a map;
-    a uniform map of ones gives the same cell, so the same field bit for bit)."""
+    a uniform map of ones gives the same cell, so the same field bit for bit); with an area map, also
+    at least the major axis of the largest block's 90th-percentile flake, as far as the densest
+    block's presence probability stays ≤ 1."""
     if model.density_map is None:
         return cell_size(model.density)
-    return cell_size(model.density * float(model.density_map.max()))
+    peak = model.density * float(model.density_map.max())
+    c = cell_size(peak)
+    if model.area_map is not None and peak > 0:  # room for the largest block's flakes (a flake never leaves its cell)
+        big = math.exp(model.area_log_mean + float(model.area_map.max()) + _AREA_Q90 * model.area_log_std)
+        need = math.ceil(2.0 * math.sqrt(big / (math.pi * min(max(model.aspect_mean, 0.2), 1.0))))
+        c = max(c, min(need, math.floor(math.sqrt(1.0 / peak))))  # never past one flake per cell at the peak
+    return c
 
 
 def map_blocks(gh: int, gw: int, rows: Tensor, cols: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
@@ -94,10 +104,12 @@ def map_blocks(gh: int, gw: int, rows: Tensor, cols: Tensor, height: int, width:
     return (rows * gh // height).clamp(0, gh - 1), (cols * gw // width).clamp(0, gw - 1)
 
 
-def _cell_maps(model: FlakeModel, c: int, gi: Tensor, gj: Tensor, height: int, width: int, dtype) -> tuple[Tensor, Tensor | None]:
+def _cell_maps(model: FlakeModel, c: int, gi: Tensor, gj: Tensor, height: int, width: int,
+               dtype) -> tuple[Tensor, Tensor | None, Tensor | None]:
     """Per hash cell (the grid ``gi``, ``gj``): presence probability (dtype; computed in float64 as
-    the scalar path's Python float is) and colour mean (3, gi, gj) or None, both read at the block
-    of the cell's centre pixel."""
+    the scalar path's Python float is), colour mean (3, gi, gj) or None and area log-mean (gi, gj)
+    (dtype; ``area_log_mean`` + the block's offset, in float64) or None, all read at the block of the
+    cell's centre pixel."""
     dm = model.density_map.to(gi.device, torch.float64)
     rows = (gi * c + c // 2).clamp(max=height - 1)
     cols = (gj * c + c // 2).clamp(max=width - 1)
@@ -106,7 +118,10 @@ def _cell_maps(model: FlakeModel, c: int, gi: Tensor, gj: Tensor, height: int, w
     mean = None
     if model.color_map is not None:
         mean = model.color_map.to(gi.device, dtype)[bi, bj].permute(2, 0, 1)
-    return presence, mean
+    log_mean = None
+    if model.area_map is not None:
+        log_mean = (model.area_log_mean + model.area_map.to(gi.device, torch.float64)[bi, bj]).to(dtype)
+    return presence, mean, log_mean
 
 
 @dataclass
@@ -167,14 +182,17 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
 
     if model.density_map is None:
         presence = min(1.0, model.density * c * c)
-        cell_mean = None
+        cell_mean = cell_log_area = None
         present = u(0) < presence
     else:  # the local density: same hash bits, a per-cell threshold
-        cell_presence, cell_mean = _cell_maps(model, c, gi, gj, height, width, dtype)
+        cell_presence, cell_mean, cell_log_area = _cell_maps(model, c, gi, gj, height, width, dtype)
         presence = float(cell_presence.max())
         present = hash_uniform(gi, gj, model.seed, 0, dtype)[ci, cj] < cell_presence[ci, cj]
     z_area, z_aspect = _normal_pair(u(3), u(4))
-    area = torch.exp(model.area_log_mean + model.area_log_std * z_area)
+    if cell_log_area is None:
+        area = torch.exp(model.area_log_mean + model.area_log_std * z_area)
+    else:  # the block's area log-mean: same hash bits
+        area = torch.exp(cell_log_area[ci, cj] + model.area_log_std * z_area)
     aspect = (model.aspect_mean + model.aspect_std * z_aspect).clamp(0.2, 1.0)
     a = torch.sqrt(area / (math.pi * aspect))  # semi-major axis (px)
     b = aspect * a

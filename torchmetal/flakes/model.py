@@ -19,7 +19,8 @@ MAX_DENSITY = 1.0 / (MIN_CELL * MIN_CELL)  # … so this is the densest field it
 MAX_COLOR = 1.0e4  # glint reflectance bound: a mirror flake's peak is ~1/(π·glint σ²) ≈ 350 at σ = 0.03 rad
 
 
-MAP_FIELDS = ("density_map", "color_map")  # array fields: not in to_dict, files in the material directory
+MAP_FIELDS = ("density_map", "color_map", "area_map")  # array fields: not in to_dict, files in the material directory
+MAX_AREA_OFFSET = 5.0  # |log-area offset| of a block: e^5 ≈ 150× the global median area at most
 
 
 def _as_map(x, name: str, dims: int) -> torch.Tensor:
@@ -75,6 +76,9 @@ class FlakeModel:
             :mod:`torchmetal.flakes.density_map`); None = uniform. ``density``·max ≤ MAX_DENSITY.
         color_map: optional (gh, gw, 3) float32 colour mean per block of ``density_map`` (replaces
             ``color_mean`` there; the covariance stays global); None = ``color_mean`` everywhere.
+        area_map: optional (gh, gw) float32 log-area offset per block of ``density_map``: the block's
+            areas are LogNormal(``area_log_mean`` + offset, ``area_log_std``) (relative, like the
+            density map, so rescaling ``area_log_mean`` rescales every block); None = 0 everywhere.
     """
 
     density: float
@@ -91,6 +95,7 @@ class FlakeModel:
     extra: dict = field(default_factory=dict)
     density_map: torch.Tensor | None = field(default=None, compare=False, repr=False)
     color_map: torch.Tensor | None = field(default=None, compare=False, repr=False)
+    area_map: torch.Tensor | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         checks = {
@@ -117,10 +122,12 @@ class FlakeModel:
         self._check_maps()
 
     def _check_maps(self) -> None:
-        """density_map (gh, gw) finite ≥ 0 within the field's capacity; color_map (gh, gw, 3) on its grid."""
+        """density_map (gh, gw) finite ≥ 0 within the field's capacity; color_map (gh, gw, 3) and
+        area_map (gh, gw) on its grid."""
         if self.density_map is None:
-            if self.color_map is not None:
-                raise MaterialError("FlakeModel.color_map: expected a density_map to give its grid, found none")
+            for name in ("color_map", "area_map"):
+                if getattr(self, name) is not None:
+                    raise MaterialError(f"FlakeModel.{name}: expected a density_map to give its grid, found none")
             return
         self.density_map = _as_map(self.density_map, "density_map", 2)
         dm = self.density_map
@@ -131,6 +138,15 @@ class FlakeModel:
         if peak > MAX_DENSITY * (1.0 + 1e-5):
             raise MaterialError(f"FlakeModel.density_map: expected density x max(map) <= {MAX_DENSITY:.6g} (the field's "
                                 f"capacity), found {peak:.6g}")
+        if self.area_map is not None:
+            self.area_map = _as_map(self.area_map, "area_map", 2)
+            am = self.area_map
+            if tuple(am.shape) != tuple(dm.shape):
+                raise MaterialError(f"FlakeModel.area_map: expected shape {tuple(dm.shape)} (the density map's grid), "
+                                    f"found {tuple(am.shape)}")
+            if not bool(torch.isfinite(am).all()) or float(am.abs().max()) > MAX_AREA_OFFSET:
+                raise MaterialError(f"FlakeModel.area_map: expected finite log-area offsets in [-{MAX_AREA_OFFSET:g}, "
+                                    f"{MAX_AREA_OFFSET:g}], found min {float(am.min()):g}, max {float(am.max()):g}")
         if self.color_map is None:
             return
         self.color_map = _as_map(self.color_map, "color_map", 3)
