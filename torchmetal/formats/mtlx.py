@@ -15,6 +15,14 @@ normals), and the base specular becomes the flakes: ``flake2d`` (inputs from
 and 0 elsewhere; ``specular_roughness``/``specular_ior``/``specular_color`` come from the GGX fit
 of one glint (:func:`~torchmetal.formats.lobe_fit.fit_glint`) at the mean glint colour.
 The flake statistics and the mapping are stored in the document's ``doc`` string as JSON.
+
+A flake-density map (:attr:`~torchmetal.flakes.model.FlakeModel.density_map`) drives ``coverage``
+with a gh×gw grey image (``flake_coverage.png``, closest filtering, times its maximum): at flake2d's one
+cell ``size`` the flakes per texel follow the cell probability p, so block r gets the coverage whose
+probability is p·λ_r (0 where the map is 0). ``flake2d.density_map`` in the stored JSON gives the
+relative density each block gets after the 8-bit texture (and the mean over the sample against the
+model's); ``flake2d.not_carried`` lists what flake2d cannot hold: per-block flake sizes
+(``area_map``: one ``size``) and colours (``color_map``: the glint colour is the mean colour).
 """
 
 from __future__ import annotations
@@ -105,7 +113,20 @@ def mtlx_plan(material, views=None) -> tuple[EngineMaterial, dict, dict[str, np.
         fi = flake2d_inputs(model, em.width)
         flake = {"size": fi.size, "roughness": fi.roughness, "coverage": fi.coverage,
                  "aspect": em.height / em.width, "mapping": vars(fi), "glint_fit": glint.to_dict(),
-                 "statistics": model.to_dict()}
+                 "statistics": model.to_dict(), "not_carried": []}
+        if model.density_map is not None:
+            planes, flake["coverage_scale"], flake["density_map"] = coverage_map(model, fi, em.height, em.width)
+            textures["flake_coverage"] = gray(planes[:, :, None])
+        if model.area_map is not None:
+            ratio = torch.exp(model.area_map)
+            flake["not_carried"].append({
+                "what": "area_map", "why": "flake2d has one flake size",
+                "block_median_area_ratio": [float(ratio.min()), float(ratio.max())]})
+        if model.color_map is not None:
+            cm = model.color_map.mean(-1) / max(sum(model.color_mean) / 3.0, 1e-12)
+            flake["not_carried"].append({
+                "what": "color_map", "why": "the glint colour (specular_color) is the mean colour everywhere",
+                "block_brightness_ratio": [float(cm.min()), float(cm.max())]})
     if normal:
         ins["geometry_coat_normal" if flake else "geometry_normal"] = ("normal_map",)
         if flake:
@@ -113,6 +134,31 @@ def mtlx_plan(material, views=None) -> tuple[EngineMaterial, dict, dict[str, np.
     plan = {"inputs": ins, "flake2d": flake, "lobe_fit": em.extras.get("lobe_fit"),
             "light_convention": em.extras.get("light_convention")}
     return em, plan, textures
+
+
+def coverage_map(model, fi, height: int, width: int) -> tuple[np.ndarray, float, dict]:
+    """flake2d ``coverage`` per block of ``model.density_map`` (module docstring): the (gh, gw) texture
+    planes in [0, 1] (8-bit values), their scale (the largest coverage), and the report: the model's
+    relative density per block, the one flake2d gets from the 8-bit coverage, and their pixel-weighted
+    means over the sample (``mean_relative_density`` [model, flake2d])."""
+    from torchmetal.flakes.density_map import block_pixels
+    from torchmetal.formats.flake2d import density_to_probability
+
+    lam = model.density_map.double().numpy()
+    p_max = float(density_to_probability(1.0))
+    xs = np.linspace(0.0, 1.0, 20001)
+    curve = density_to_probability(xs)
+    p_r = np.minimum(fi.probability * lam, p_max)
+    cov = np.interp(p_r, curve, xs)
+    scale = float(cov.max())
+    planes = np.round(cov / scale * 255.0) / 255.0 if scale > 0 else np.zeros_like(cov)
+    got = density_to_probability(planes * scale) / fi.probability
+    wpx = block_pixels(height, width, tuple(lam.shape)).numpy()
+    mean = [float((lam * wpx).sum() / wpx.sum()), float((got * wpx).sum() / wpx.sum())]
+    return planes, scale, {"relative_density": lam.tolist(), "flake2d_relative_density": got.tolist(),
+                           "max_abs_error": float(np.abs(got - lam).max()), "mean_relative_density": mean,
+                           "mean_density_ratio": mean[1] / mean[0] if mean[0] > 0 else None,
+                           "capped_blocks": int((fi.probability * lam > p_max).sum())}
 
 
 _TYPES = {"base_color": "color3", "specular_color": "color3", "coat_color": "color3",
@@ -135,7 +181,7 @@ def build_document(plan: dict, files: dict[str, str]):
             o.setOutputString(output)
         return o
 
-    def image(name: str, typ: str, srgb: bool):
+    def image(name: str, typ: str, srgb: bool, closest: bool = False):
         node = ng.addNode("image", f"{name}_image", typ)
         node.setInputValue("file", files[name], "filename")
         if srgb:
@@ -143,6 +189,8 @@ def build_document(plan: dict, files: dict[str, str]):
         node.addInput("texcoord", "vector2").setConnectedNode(uv)
         node.setInputValue("uaddressmode", "clamp", "string")
         node.setInputValue("vaddressmode", "clamp", "string")
+        if closest:
+            node.setInputValue("filtertype", "closest", "string")
         return node
 
     ins = plan["inputs"]
@@ -161,6 +209,12 @@ def build_document(plan: dict, files: dict[str, str]):
             coords.setInputValue("in2", mx.Vector2(1.0, float(flake["aspect"])), "vector2")
         flake_node = ng.addNode("flake2d", "flakes", "multioutput")
         for k in ("size", "roughness", "coverage"):
+            if k == "coverage" and "coverage_scale" in flake:  # the density map: coverage per block
+                cov = ng.addNode("multiply", "flake_coverage_scaled", "float")
+                cov.addInput("in1", "float").setConnectedNode(image("flake_coverage", "float", False, closest=True))
+                cov.setInputValue("in2", float(flake["coverage_scale"]), "float")
+                flake_node.addInput("coverage", "float").setConnectedNode(cov)
+                continue
             flake_node.setInputValue(k, float(flake[k]), "float")
         flake_node.addInput("texcoord", "vector2").setConnectedNode(coords)
         if normal_node is not None:
@@ -269,7 +323,8 @@ def write(material, path: str | os.PathLike, *, views=None, capture=None) -> Pat
 
 def read(path: str | os.PathLike) -> dict:
     """Read back a file written by :func:`write`: ``{"inputs": {name: value | {"file", "scale"}},
-    "flake2d": {size, roughness, coverage} | None, "torchmetal": the stored JSON}``."""
+    "flake2d": {size, roughness, coverage (a value, or {"file", "scale"} with a density map)} | None,
+    "torchmetal": the stored JSON}``."""
     mx = _mx()
     path = Path(path)
     doc = mx.createDocument()
@@ -301,7 +356,15 @@ def read(path: str | os.PathLike) -> dict:
             res["inputs"][inp.getName()] = list(v.asTuple()) if hasattr(v, "asTuple") else float(v)
     flakes = ng.getNodes("flake2d") if ng is not None else []
     if flakes:
-        res["flake2d"] = {k: float(flakes[0].getInputValue(k)) for k in ("size", "roughness", "coverage")}
+        res["flake2d"] = {}
+        for k in ("size", "roughness", "coverage"):
+            src = flakes[0].getInput(k).getConnectedNode() if flakes[0].getInput(k) is not None else None
+            if src is None:
+                res["flake2d"][k] = float(flakes[0].getInputValue(k))
+            else:  # the density map's coverage: image × scale
+                img = src.getInput("in1").getConnectedNode()
+                res["flake2d"][k] = {"file": str(path.parent / img.getInputValue("file")),
+                                     "scale": float(src.getInputValue("in2"))}
     mat = doc.getNodes("surfacematerial") or [n for n in doc.getNodes() if n.getCategory() == "surfacematerial"]
     res["torchmetal"] = json.loads(mat[0].getDocString()).get("torchmetal") if mat and mat[0].getDocString() else None
     return res
