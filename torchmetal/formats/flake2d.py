@@ -229,25 +229,46 @@ class Flake2dInputs:
     probability: float
     covered_fraction: float  # target fraction (torchmetal)
     slope_error: float
+    drawn: bool = False  # the target is the flake field's drawn coverage (flakes clamped to their cells)
+
+
+MAX_COVERED = 0.95  # flake2d's Boolean model cannot cover more
+
+
+def drawn_coverage(model, side: int = 192) -> tuple[float, float]:
+    """Covered fraction and flakes per texel of torchmetal's own flake field on a ``side``² patch (a
+    uniform density: the map, if any, scales coverage per block elsewhere)."""
+    from dataclasses import replace
+
+    from torchmetal.flakes.field import flake_field
+
+    f = flake_field(replace(model, density_map=None, color_map=None, area_map=None), side, side)
+    return float((f.weight >= 0.5).float().mean()), f.count / float(side * side)
 
 
 def flake2d_inputs(model, width_px: int) -> Flake2dInputs:
-    """flake2d ``size``/``roughness``/``coverage`` for a FlakeModel on a texture ``width_px`` wide."""
+    """flake2d ``size``/``roughness``/``coverage`` for a FlakeModel on a texture ``width_px`` wide.
+
+    The target is the model's covered fraction, density × mean area (torchmetal's flakes never overlap);
+    where that reaches :data:`MAX_COVERED` (a dense layer of flakes wider than the field's cells, which the
+    field draws clamped to them: the real card at capacity), it is the coverage the field actually draws."""
     if model.density <= 0:
         raise ExportError(f"flakes: expected a density > 0 for flake2d, found {model.density!r}")
     mean_area = math.exp(model.area_log_mean + 0.5 * model.area_log_std ** 2)
-    target = model.density * mean_area  # torchmetal's flakes never overlap
-    if not 0.0 < target < 0.95:
+    target, density, drawn = model.density * mean_area, model.density, False
+    if target >= MAX_COVERED:
+        (target, density), drawn = drawn_coverage(model), True
+    if not 0.0 < target < MAX_COVERED:
         raise ExportError(f"flakes: expected a covered fraction in (0, 0.95) for flake2d, found {target:.3f}")
     area, shows = isolated_flake_stats()
     p = -math.log(1.0 - target) / area  # Boolean model: covered = 1 − exp(−p·area)
     if p > float(density_to_probability(1.0)):
         raise ExportError(f"flakes: expected a coverage flake2d can draw, found a covered fraction {target:.3f}")
-    size_px = math.sqrt(p * shows / model.density)  # visible flakes per texel = the model's density
+    size_px = math.sqrt(p * shows / density)  # visible flakes per texel = the model's (drawn) density
     xs = np.linspace(0.0, 1.0, 20001)  # the coverage input whose probability is p (increasing curve)
     coverage = float(np.interp(p, density_to_probability(xs), xs))
     rough, err = fit_flake_roughness(model.tilt_sigma)
-    return Flake2dInputs(size_px / width_px, rough, coverage, p, target, err)
+    return Flake2dInputs(size_px / width_px, rough, coverage, p, target, err, drawn)
 
 
 def glint_statistics(model, inputs: Flake2dInputs, width_px: int, tilts_deg=(0.0, 5.0, 10.0, 20.0),
