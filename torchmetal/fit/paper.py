@@ -11,12 +11,23 @@ Iteration i:
         per-channel acceptance, closed-form 2×2 steps);
   4.1.4 texture T^i = mean_k (image − specular)/(E·n·l) over the valid observations;
   4.1.5 Err_i = Σ (image − render)²; stop when |Err_{i−1} − Err_i| ≤ tol·Err_{i−1}.
-Deviations, all documented: control points come from bins (the paper's "same r·v" sets are
+Deviations, all documented (issue 27 for the last three): control points come from bins (the paper's "same r·v" sets are
 empty for real data; every non-empty bin is a control point, as in the numpy reference — with a
 higher ``min_count`` the few observations near the mirror direction of a sharp lobe are lost and
 α = 5000 comes out up to 0.4% low); the 4.1.6 LM starts from the best of a coarse α grid; s is free inside
 the LM and clamped to ≥ 0 after it; ε is relative; observations within ~1° of grazing
-(n·l < 0.02) are left out of the ratios that divide by n·l.
+(n·l < 0.02) are left out of the ratios that divide by n·l; the LM weights each control point by
+its observation count (a bin mean of m observations stands for m squares of Err: with equal weights
+the few observations of the sparse bins far from the mirror direction weigh as much as the
+thousands near it, and on flash-at-the-lens captures they pick 4.1.6's α = 1 solution, where
+(r·v)^α − z·(r·v*)^α ≈ α·(L − L*) is a line); T⁰ and T^i are reflectances, ≥ 0 (4.1.4 projected:
+the material keeps no negative texture, so the specular is fitted to the texture it will be rendered
+with — unprojected, a global s too strong for the dark parts of a spatially varying sample leaves
+them negative, and the clamp at the end brought that specular back); and the iteration stops at its
+lowest Err when PATIENCE iterations bring no new lowest — the alternation is not a descent method,
+and past its minimum it drifted along the diffuse-like direction (with the flash at the lens
+(r·v)^α ≈ (n·l)^{4α}: s up, α → 1, texture down) with Err rising by ~10⁻³ per iteration, which the
+|ΔErr| ≤ tol·Err rule never stopped (yellow_box: α = 1, s = 0.63/0.94/0.19 after 100 iterations).
 
 One chunked pass per iteration computes T^i, Err_i and the next control points together. Chunks
 whose lobe is below e⁻⁴⁰ in every shot (for α above a floor) have a texture that does not depend
@@ -43,6 +54,7 @@ MIN_COUNT = 1
 ALPHA0 = 20.0
 ALPHA_GRID = (1.0, 4.0, 16.0, 64.0, 256.0, 1024.0, 4096.0)  # 4.1.6's LM starts from the best of these and α⁰
 DIVERGED = 10.0  # Err above 10× the best so far (plus 1e-6 of Σ y²): the iteration ran away
+PATIENCE = 5  # iterations without a new lowest Err before the iteration stops (at its best iterate)
 NL_MIN = 0.02  # the paper divides by n·l: observations within ~1° of grazing are left out of its ratios
 
 
@@ -101,12 +113,13 @@ class BinSums:
         return self
 
     def control_points(self, min_count: int = MIN_COUNT) -> tuple[Tensor, ...]:
-        """(3, nb) mask of used bins and the bin means: target, L (and z, L*)."""
+        """(3, nb) weights (observation count of the used bins, 0 elsewhere) and the bin means: target,
+        L (and z, L*). The LM weights each control point by its count (module docstring)."""
         s = self.sums.view(self.sums.shape[0], 3, self.nb)
         cnt = s[0]
         use = cnt >= min_count
         den = cnt.clamp_min(1.0)
-        return (use,) + tuple(s[i] / den for i in range(1, s.shape[0]))
+        return (torch.where(use, cnt, torch.zeros_like(cnt)),) + tuple(s[i] / den for i in range(1, s.shape[0]))
 
 
 def _lobe(L: Tensor, alpha: Tensor) -> Tensor:
@@ -129,12 +142,12 @@ def control_model(cp: tuple[Tensor, ...], alpha: Tensor) -> tuple[Tensor, Tensor
 
 
 def visible(m: Tensor, e: Tensor) -> Tensor:
-    """(3,) bool: the lobe e (3, nb) reaches e⁻⁴⁰ on some used control point (m (3, nb) 0/1).
+    """(3,) bool: the lobe e (3, nb) reaches e⁻⁴⁰ on some used control point (m (3, nb) weights, > 0 when used).
 
     Below that it counts as zero (as everywhere in the fit): s is not identifiable, and s = Σc̄·e/Σe²
     would be absurdly large (1e68 on a lobe of e⁻¹⁹⁰).
     """
-    return (m * e.abs()).amax(-1) > math.exp(ACTIVE_LOG)
+    return ((m > 0) * e.abs()).amax(-1) > math.exp(ACTIVE_LOG)
 
 
 def grid_start(cp: tuple[Tensor, ...], alphas: tuple[float, ...] = ALPHA_GRID) -> tuple[Tensor, Tensor]:
@@ -266,7 +279,7 @@ def initial_approximation(
     s0, beta0 = fit_control_points(cp, *grid_start(cp, (alpha0, *ALPHA_GRID)))
     al = torch.exp(beta0).to(obs.dtype).view(3, 1)
     x = s0.to(obs.dtype).view(3, 1) * torch.exp(al * lstar) / nlstar
-    t0 = torch.where(obs.saa > 0, tmin - x, obs.fallback)
+    t0 = torch.where(obs.saa > 0, tmin - x, obs.fallback).clamp_min(0.0)
     return t0, s0, beta0
 
 
@@ -315,6 +328,7 @@ def paper_pass(
             n = ok.sum(0)
             t = (torch.where(ok, y - spec, zero) / torch.where(ok, a, torch.ones_like(a))).sum(0) / n.clamp_min(1)
             t = torch.where(n > 0, t, obs.fallback[:, p0:p1])
+            t = t.clamp_min(0.0)  # a texture is a reflectance: the projected 4.1.4 (module docstring)
             tex[:, p0:p1] = t
         else:
             t = tex[:, p0:p1]
@@ -369,7 +383,7 @@ def paper_scheme(
     history = [{"stage": "init", "iter": 0, "rmse": math.sqrt(err / n_obs), "active": frac}]
     if on_iter is not None:
         on_iter("init", 0, history[-1]["rmse"], frac)
-    status, it = "max_iters", 0
+    status, it, rising = "max_iters", 0, 0
     best = (tex, s, beta, err)
     energy = float(obs.energy().sum())
     for it in range(1, max_iters + 1):
@@ -389,10 +403,18 @@ def paper_scheme(
         change = abs(err - err_new)
         err = err_new
         if err <= best[3]:
-            best = (tex, s, beta, err)
+            best, rising = (tex, s, beta, err), 0
+        else:
+            rising += 1
         if change <= tol * max(err, 1e-300):
             status = "converged"
             break
+        if rising >= PATIENCE:
+            # past its Err minimum the alternation drifts along the diffuse-like direction (module docstring)
+            status = "converged"
+            break
+    if err > best[3]:
+        tex, s, beta, err = best
     alpha = torch.exp(beta)
     return PaperFit(texture=tex, s=s, alpha=alpha.clamp(ALPHA_MIN, ALPHA_MAX), err=err, iterations=it, status=status,
                     history=history)
