@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torchmetal.errors import InputError
-from torchmetal.metrics import md, mse, psnr, sparkle_count, srgb_encode
+from torchmetal.metrics import chroma_artifact_share, md, mse, psnr, sparkle_count, srgb_encode
 
 
 def _srgb_by_hand(x: np.ndarray) -> np.ndarray:
@@ -214,3 +214,29 @@ class TestSparkleCount:
             sparkle_count(torch.full((3, 5, 6), float("nan")))
         with pytest.raises(InputError, match="k"):
             sparkle_count(torch.zeros(3, 5, 6), k=0)
+
+
+class TestChromaArtifactShare:
+    def test_counts_blocks_whose_colour_differs_not_their_brightness(self):
+        grey = torch.full((3, 32, 32), 0.2, dtype=torch.float64)
+        assert chroma_artifact_share(grey, grey) == 0.0
+        assert chroma_artifact_share(grey * 3.0, grey) == 0.0  # brighter, same hue: no chroma distance
+        gold = grey.clone()
+        gold[:, :8, :16] = torch.tensor([0.6, 0.4, 0.05], dtype=torch.float64).view(3, 1, 1)  # 2 of 16 blocks
+        assert chroma_artifact_share(gold, grey) == pytest.approx(2 / 16)
+        slight = grey.clone()
+        slight[0] *= 1.02  # a tint well below ΔC 15
+        assert chroma_artifact_share(slight, grey) == 0.0
+
+    def test_block_means_mask_and_partial_edges(self):
+        g = torch.Generator().manual_seed(0)
+        ref = torch.full((1, 3, 20, 16), 0.3, dtype=torch.float64)
+        noisy = ref + 0.1 * (torch.rand(ref.shape, generator=g, dtype=torch.float64) - 0.5)  # averages out per block
+        assert chroma_artifact_share(noisy, ref) == 0.0  # 2×2 whole blocks; the 4 edge rows are left out
+        pred = ref.clone()
+        pred[:, 1, :8, :8] = 0.05  # a magenta block
+        mask = torch.ones(20, 16, dtype=torch.bool)
+        assert chroma_artifact_share(pred, ref) == pytest.approx(0.25)
+        mask[0, 0] = False  # the block is no longer wholly inside
+        assert chroma_artifact_share(pred, ref, mask=mask) == 0.0
+        assert math.isnan(chroma_artifact_share(torch.zeros(3, 4, 4), torch.zeros(3, 4, 4)))

@@ -15,6 +15,7 @@ function                         what it measures
 :func:`srgb_encode`              linear → sRGB (IEC 61966-2-1 OETF), torch or numpy
 :func:`md`                       the paper's Metallic Difference (:mod:`torchmetal.flakes.md`)
 :func:`sparkle_count`            connected bright blobs in a residual above k robust σ
+:func:`chroma_artifact_share`    share of 8×8 blocks whose CIELAB chroma differs by > 15
 ===============================  ==============================================================
 
 Inputs are torch tensors or numpy arrays in any layout (``(…, 3, H, W)`` or ``(…, H, W, 3)``);
@@ -33,7 +34,7 @@ from torch import Tensor
 
 from torchmetal.errors import InputError
 
-__all__ = ["psnr", "mse", "srgb_encode", "md", "sparkle_count"]
+__all__ = ["psnr", "mse", "srgb_encode", "md", "sparkle_count", "chroma_artifact_share"]
 
 _MAD_TO_SIGMA = 1.4826  # σ of a normal distribution = 1.4826 · its median absolute deviation
 
@@ -285,3 +286,45 @@ def sparkle_count(residual: Tensor | np.ndarray, *, k: float = 5.0, mask: Any = 
     bright = ((x.amax(0) - med) > k * sigma) & m
     n, _ = cv2.connectedComponents(bright.numpy().astype(np.uint8), connectivity=8)
     return int(n) - 1
+
+
+def chroma_artifact_share(pred: Tensor | np.ndarray, ref: Tensor | np.ndarray, *, block: int = 8,
+                          threshold: float = 15.0, mask: Any = None) -> float:
+    """Fraction of ``block``×``block``-pixel blocks where ``pred`` and ``ref`` differ in colour: CIELAB
+    chroma distance √(Δa*² + Δb*²) > ``threshold`` between the blocks' mean colours.
+
+    Each block's mean linear colour is sRGB-encoded (clipped to [0, 1]) and converted with
+    ``kornia.color.rgb_to_lab`` (D65); lightness is left out, so a render that is only too bright or
+    too dark scores 0 — the metric counts colour casts (a gold highlight where the photo is grey, a
+    missing teal). Blocks that do not fit whole at the right and bottom edges are left out.
+
+    Args:
+        pred, ref: linear RGB images, (3, H, W) or (B, 3, H, W) (tensor or numpy).
+        block: block size in pixels.
+        threshold: chroma distance above which a block counts (≈ clearly visible; ΔE 2.3 is a JND).
+        mask: optional (H, W) or broadcastable bool; a block counts only where it is wholly inside.
+
+    Returns:
+        the share in [0, 1] (NaN when no block qualifies).
+    """
+    from kornia.color import rgb_to_lab  # on use: this module's import stays torch + numpy
+
+    p, r, m = _prepare(pred, ref, mask, clip=False, fn="chroma_artifact_share")
+    if p.dim() == 3:
+        p, r = p.unsqueeze(0), r.unsqueeze(0)
+        m = None if m is None else m.unsqueeze(0)
+    if p.dim() != 4 or p.shape[1] != 3:
+        raise InputError(f"chroma_artifact_share: expected (3, H, W) or (B, 3, H, W) images, found {tuple(p.shape)}")
+    h, w = (p.shape[-2] // block) * block, (p.shape[-1] // block) * block
+    if h == 0 or w == 0:
+        return math.nan
+    pool = lambda x: torch.nn.functional.avg_pool2d(x[..., :h, :w], block)  # noqa: E731
+    lab_p = rgb_to_lab(srgb_encode(pool(p).clamp(0.0, 1.0)).float())
+    lab_r = rgb_to_lab(srgb_encode(pool(r).clamp(0.0, 1.0)).float())
+    dist = (lab_p[:, 1:] - lab_r[:, 1:]).double().square().sum(1).sqrt()  # (B, h/b, w/b)
+    keep = torch.ones_like(dist, dtype=torch.bool)
+    if m is not None:
+        mm = m.expand(p.shape[0], -1, -1, -1).all(1, keepdim=True).double()
+        keep = pool(mm)[:, 0] > 0.999
+    n = int(keep.sum())
+    return float((dist > threshold)[keep].sum()) / n if n else math.nan

@@ -250,7 +250,8 @@ class Bench(SweepSection):
             d = self.data_dir / name
             if (d / "capture.json").is_file():
                 jobs.append(("real", {"dir": str(d), "downsample": p.real_downsample, "max_shots": p.real_max_shots,
-                                      "speculars": list(p.real_speculars)}))
+                                      "speculars": list(p.real_speculars), "gallery": str(self.out / "real_gallery"),
+                                      "gallery_shots": 3}))
                 names.append(name)
         if not jobs:
             self.add(f"not available: no capture in {self.data_dir}")
@@ -259,28 +260,36 @@ class Bench(SweepSection):
         self.raw["real"] = res
         rows = []
         verdicts = []
+        galleries: list[str] = []
         for name, r in zip(names, res):
             msg = problem(r)
             if msg:
-                rows.append([name, msg, "", "", ""])
+                rows.append([name, msg, "", "", "", ""])
                 continue
             for spec in p.real_speculars:
                 v = r.get(spec)
                 if not v:
                     continue
                 rows.append([f"{name} ({r['size'][0]}×{r['size'][1]}, {r['shots']} shots)", spec, fmt(v["mean"], ".2f"),
-                             " ".join(fmt(x, ".2f") for x in v["psnr"]), fmt(v["seconds"], ".1f")])
+                             " ".join(fmt(x, ".2f") for x in v["psnr"]), fmt(v.get("chroma_mean"), ".1%"),
+                             fmt(v["seconds"], ".1f")])
+                galleries += [Path(g).name for g in v.get("gallery", [])]
             if r.get("default") and r.get("paper"):
                 d, q = r["default"]["mean"], r["paper"]["mean"]
                 worse = sum(a < b for a, b in zip(r["default"]["psnr"], r["paper"]["psnr"]))
                 verdicts.append(f"{name}: default {d:.2f} dB, paper {q:.2f} dB → default ≥ paper: "
                                 f"{'yes' if d >= q else 'NO'} (mean); worse on {worse} of {len(r['paper']['psnr'])} "
                                 "left-out shots")
-        self.add(md_table(["capture", "fit", "mean PSNR dB", "per left-out shot (dB)", "seconds"], rows))
+        self.add(md_table(["capture", "fit", "mean PSNR dB", "per left-out shot (dB)", "chroma artifacts", "seconds"], rows))
         self.add("\n*fit*: global / clustered are `fit_phong` (refine scheme) with that specular; default is "
                  "`fit_material` as `torchmetal fit` runs it (flakes, lobe, normals and maps decided by it) and paper "
                  "the paper's scheme (`--scheme paper --flakes off`), both rendered by the material's renderer. "
-                 "PSNR: linear, peak 1, mask pixels not saturated.")
+                 "PSNR: linear, peak 1, mask pixels not saturated. *chroma artifacts*: share of 8×8-px blocks of the "
+                 "left-out shots where photo and render differ by a CIELAB chroma distance > 15 (sRGB block means, "
+                 "`torchmetal.metrics.chroma_artifact_share`), mean over the shots.")
+        if galleries:
+            self.add(f"\nGallery (default pipeline; photo | render | error ×4, sRGB): `real_gallery/` — "
+                     f"{', '.join(galleries)}")
         for line in verdicts:
             self.add(f"\n{line}")
         if p.real_downsample > 1 or p.real_max_shots:

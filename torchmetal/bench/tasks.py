@@ -393,24 +393,85 @@ def task_real(cfg: dict) -> dict:
     """Leave-one-out PSNR on a real capture directory for each of ``cfg["speculars"]``: "global" and
     "clustered" are :func:`fit_phong` (the refine scheme) with that specular; a name of
     :data:`torchmetal.bench.zoo.METHODS` ("default", "paper") is :func:`fit_material` with those options,
-    rendered as the material renders (sparkles included)."""
+    rendered as the material renders (sparkles included). Beside each PSNR, the chroma-artifact share
+    (:func:`torchmetal.metrics.chroma_artifact_share`) of every left-out shot.
+
+    With ``cfg["gallery"]`` (a directory), the default pipeline's first ``cfg["gallery_shots"]`` (3)
+    left-out shots are written there as ``{capture}_shot{k}.png``: photo | render | error (|Δ| of the
+    sRGB values ×4), sRGB, each panel box-downsampled to ≤ 512 px wide."""
     load_capture = _need("torchmetal.io.capture", "load_capture")
-    leave_one_out, leave_one_out_with = _need("torchmetal.fit.holdout", "leave_one_out", "leave_one_out_with")
+    leave_one_out_with = _need("torchmetal.fit.holdout", "leave_one_out_with")
+    chroma_artifact_share = _need("torchmetal.metrics", "chroma_artifact_share")
     cap = load_capture(cfg["dir"])
     if cfg.get("max_shots") and cap.num_shots > int(cfg["max_shots"]):
         cap = cap.subset(list(range(int(cfg["max_shots"]))))
     if cfg.get("downsample"):
         cap = _downsample(cap, int(cfg["downsample"]))
-    out = {"name": Path(cfg["dir"]).name, "shots": int(cap.images.shape[0]), "size": list(cap.images.shape[-2:])}
+    name = Path(cfg["dir"]).name
+    out = {"name": name, "shots": int(cap.images.shape[0]), "size": list(cap.images.shape[-2:])}
+    gallery = Path(cfg["gallery"]) if cfg.get("gallery") else None
     for spec in cfg.get("speculars", ["global", "clustered"]):
         t0 = time.perf_counter()
-        if spec in ("global", "clustered"):
-            vals = leave_one_out(cap, specular=spec)
-        else:
-            vals = leave_one_out_with(cap, _material_fit_render(spec))
-        vals = [float(v) for v in vals]
-        out[spec] = {"psnr": vals, "mean": float(np.mean(vals)), "seconds": time.perf_counter() - t0}
+        fr = _phong_fit_render(spec) if spec in ("global", "clustered") else _material_fit_render(spec)
+        renders: list = []
+
+        def keep(train, one, fr=fr, renders=renders):
+            pred = fr(train, one)
+            renders.append(pred.detach().float().cpu())
+            return pred
+
+        vals = [float(v) for v in leave_one_out_with(cap, keep)]
+        seconds = time.perf_counter() - t0
+        chroma = []
+        for k, pred in enumerate(renders):
+            one = cap.subset([k])
+            v = valid_mask(one)[0].all(0)
+            chroma.append(chroma_artifact_share(pred[0], one.images[0].float(), mask=v) if bool(v.any()) else float("nan"))
+        out[spec] = {"psnr": vals, "mean": float(np.mean(vals)), "seconds": seconds, "chroma": chroma,
+                     "chroma_mean": float(np.nanmean(chroma)) if any(c == c for c in chroma) else float("nan")}
+        if gallery is not None and spec == "default":
+            out[spec]["gallery"] = [str(_gallery_png(gallery / f"{name}_shot{k}.png", cap.images[k], renders[k][0]))
+                                    for k in range(min(len(renders), int(cfg.get("gallery_shots", 3))))]
     return out
+
+
+def _phong_fit_render(specular: str):
+    """fit_render of :func:`~torchmetal.fit.holdout.leave_one_out` (``fit_phong`` with this specular)."""
+    import torch
+
+    from torchmetal.fit.api import fit_phong
+
+    def fit_render(train, one):
+        fit = fit_phong(train, specular=specular)
+        with torch.no_grad():
+            return fit.render(one.lights, one.intensities, one.cameras)
+
+    return fit_render
+
+
+GALLERY_WIDTH = 512
+
+
+def _gallery_png(path: Path, photo, render) -> Path:
+    """photo | render | error (|Δ| of the sRGB values ×4), (3, H, W) linear → one sRGB PNG, panels
+    box-downsampled to ≤ :data:`GALLERY_WIDTH` px wide."""
+    import cv2
+    import torch
+    import torch.nn.functional as F
+
+    from torchmetal.metrics import srgb_encode
+
+    photo, render = photo.detach().float().cpu(), render.detach().float().cpu()
+    f = max(1, -(-int(photo.shape[-1]) // GALLERY_WIDTH))
+    small = [F.avg_pool2d(x[None], f)[0] if f > 1 else x for x in (photo, render)]
+    enc = [srgb_encode(x.clamp(0.0, 1.0)) for x in small]
+    err = ((enc[0] - enc[1]).abs() * 4.0).clamp(0.0, 1.0)
+    gap = torch.ones(3, enc[0].shape[-2], 4)
+    sheet = torch.cat([enc[0], gap, enc[1], gap, err], -1)
+    img = (sheet.permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.ascontiguousarray(img[..., ::-1]))
+    return path
 
 
 def _material_fit_render(method: str):
