@@ -19,8 +19,9 @@ from torchmetal.errors import InputError
 from torchmetal.fit.normals import angular_error, estimate_normals, with_normals
 from torchmetal.io.capture import load_capture
 from torchmetal.synth.zoo_render import Scene, make_case
+from torchmetal.io.shared_data import shared_data_dir
 
-DATA = (Path(__file__).resolve().parents[2] / "../shared/data").resolve()
+DATA = shared_data_dir()
 SPHERE = DATA / "uw_gray_sphere"
 
 

@@ -17,8 +17,9 @@ from torchmetal.flakes.report import save_detection_overlay
 from torchmetal.io.capture import load_capture
 from torchmetal.pipeline import fit_material
 from torchmetal.renderer import MaterialRenderer
+from torchmetal.io.shared_data import shared_data_dir
 
-DATA = (Path(__file__).resolve().parents[2] / "../shared/data").resolve()
+DATA = shared_data_dir()
 HOLD = 3
 
 

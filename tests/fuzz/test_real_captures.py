@@ -20,11 +20,12 @@ import torch
 import torch.nn.functional as F
 
 from tests.fuzz.harness import check_outcome, fresh_output, run_fit, threads_one
+from torchmetal.io.shared_data import shared_data_dir
 
 threads_one()
 
 REPO = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("TORCHMETAL_SHARED_DATA", REPO.parent / "shared" / "data"))
+DATA = shared_data_dir()
 CAPTURES = ["cards_blue", "yellow_box", "uw_gray_sphere"]
 MAX_PX = 96
 #: per capture, (how it is made small, fit options): two option sets each, kept to ~15 s in all

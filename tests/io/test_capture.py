@@ -14,8 +14,9 @@ from torchmetal.errors import CaptureError, InputError
 from torchmetal.io.capture import Capture, check_light_camera, load_capture
 from torchmetal.io.capture_save import save_capture
 from torchmetal.io.images import code_table, srgb_to_linear, write_image
+from torchmetal.io.shared_data import shared_data_dir
 
-DATA = (Path(__file__).resolve().parents[2] / "../shared/data").resolve()
+DATA = shared_data_dir()
 
 
 def one_line(exc_info, *words):

@@ -426,13 +426,11 @@ def _machine(threads: int | None = None) -> str:
 
 
 def default_data_dir() -> Path | None:
-    env = os.environ.get("TORCHMETAL_DATA")
-    if env:
-        return Path(env)
-    for cand in (Path(__file__).resolve().parents[3] / "shared" / "data", Path("/work/shared/data")):
-        if cand.is_dir():
-            return cand
-    return None
+    """The shared real captures (:func:`torchmetal.io.shared_data.shared_data_dir`), None when absent."""
+    from torchmetal.io.shared_data import shared_data_dir
+
+    d = shared_data_dir()
+    return d if d.is_dir() else None
 
 
 def run(plan: Plan, out: Path, sections: list[str], *, data_dir: Path | None = None, verbose: bool = True) -> Bench:
