@@ -122,3 +122,22 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
     assert torch.equal(m.texture, off.material.texture) and torch.equal(m.s, off.material.s)
     assert any("not kept: MD says no" in x for x in m.report["skipped"])
     assert dropped.report["flakes"]["flakes_choice"]["reason"] == "MD says no"
+
+
+def test_default_chooses_lobe_and_normals_on_left_out_shots():
+    """fit_material's defaults (normals="auto", lobe="auto") record their decisions: a bumpy GGX sample
+    without its normal map gets estimated normals and the GGX lobe; with the map given, the map is kept."""
+    from dataclasses import replace
+
+    from tests.fit.test_lobes import lobe_capture
+
+    cap, *_ = lobe_capture("ggx", alpha=(300.0, 300.0, 300.0), size=48, shots=12, bumpy=True, dtype=torch.float32)
+    g = torch.Generator().manual_seed(0)
+    cap = replace(cap, images=(cap.images + 0.003 * torch.randn(cap.images.shape, generator=g)).clamp_min(0.0))
+    res = fit_material(replace(cap, normals=None), flakes="off")
+    rep = res.report
+    assert rep["normals"]["mode"] == "auto" and rep["normals"]["chosen"] == "estimate", rep["normals"]["decision"]
+    assert rep["normals"]["decision"]["z"]["estimate"] > 4 and res.material.normals is not None
+    given = fit_material(cap, flakes="off")
+    assert given.report["normals"]["chosen"] == "given" and given.material.normals is not None
+    assert given.report["lobe"] == "ggx" == given.report["lobe_selection"]["lobe"], given.report["lobe_selection"]

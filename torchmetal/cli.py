@@ -45,16 +45,17 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if args.tile is not None:  # tile by tile from memory-mapped files (torchmetal.scale.tiled), scratch beside the output
             import tempfile
 
-            if args.normals != "given":
+            if args.normals not in ("given", "auto"):
                 from torchmetal.errors import InputError
 
-                raise InputError(f"--normals {args.normals}: expected 'given' with --tile (tiled fits use the capture's "
-                                 "normals)")
+                raise InputError(f"--normals {args.normals}: expected 'given' or 'auto' with --tile (tiled fits use the "
+                                 "capture's normals)")
 
-            if args.lobe != "phong":
+            if args.lobe not in ("phong", "auto"):
                 from torchmetal.errors import InputError
 
-                raise InputError(f"--lobe {args.lobe}: expected 'phong' with --tile (tiled fits use the paper's lobe)")
+                raise InputError(f"--lobe {args.lobe}: expected 'phong' or 'auto' with --tile (tiled fits use the paper's "
+                                 "lobe)")
             from torchmetal.scale.tiled import fit_tiled_material
 
             Path(args.output).resolve().parent.mkdir(parents=True, exist_ok=True)
@@ -212,12 +213,15 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--observed-flakes", choices=["auto", "on", "off"], nargs="?", const="on", default="auto",
                    help="keep the flakes the shots saw where they are, the statistical field filling the rest "
                         "(auto: when left-out shots say they render better; bare flag: on)")
-    f.add_argument("--lobe", choices=["phong", "blinn", "ggx", "auto"], default="phong",
-                   help="specular lobe: phong (docs/design.md §2.2, default), blinn, ggx (microfacet, Fresnel, shadowing) "
-                        "or auto (the best on held-out shots)")
-    f.add_argument("--normals", choices=["given", "flat", "estimate"], default="given",
-                   help="given: the capture's normals.npy (flat without one); flat: (0, 0, 1); "
-                        "estimate: from the photos (photometric stereo with the Phong terms)")
+    f.add_argument("--lobe", choices=["auto", "phong", "blinn", "ggx"], default="auto",
+                   help="specular lobe: auto (default: chosen on left-out shots; phong unless another lobe predicts them "
+                        "better beyond noise), phong (docs/design.md §2.2), blinn, ggx (microfacet, Fresnel, shadowing); "
+                        "tiled fits and --scheme paper use phong")
+    f.add_argument("--normals", choices=["auto", "given", "flat", "estimate"], default="auto",
+                   help="auto (default): the capture's normals.npy when it has one, else estimated from the photos "
+                        "where left-out shots prefer them to a flat plane; given: the capture's normals.npy (flat "
+                        "without one); flat: (0, 0, 1); estimate: from the photos (photometric stereo with the Phong "
+                        "terms); tiled fits use the capture's")
     f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
     f.add_argument("--tile", type=int, default=None, metavar="N",
                    help="fit tile by tile (N x N pixels; memory bounded by the tile, not the capture; docs/scale.md)")

@@ -91,6 +91,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
                   "screen": screen, "times": {"total": time.perf_counter() - t0}}
         return FlakeStageResult(None, Particles.empty(capture.images.device), report), fit, fit.texture
     from torchmetal.flakes.lobe_core import drop_core
+    from torchmetal.flakes.rim import drop_rim
     from torchmetal.flakes.null_test import glint_excess
     from torchmetal.flakes.stage import detect_capture, flake_stage
     from torchmetal.flakes.texture import texture_without_glints
@@ -105,10 +106,14 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     # the core of the coating's own highlight is left out of both sides: a lobe of the wrong shape leaves
     # compact positive peaks there (a sharp highlight on a sphere), glints are counted everywhere else
     mirror = detect_capture(capture, phong_images, mirrored=True)
+    # and so is the rim of the sample's mask (partial pixels, unreliable normals: flakes.rim)
     positive, core_pos = drop_core(fit, capture, det.particles)
     mirrored, core_mir = drop_core(fit, capture, mirror.particles)
+    positive, rim_pos = drop_rim(capture, positive)
+    mirrored, rim_mir = drop_rim(capture, mirrored)
     kept, counts = glint_excess(positive, mirrored, tuple(capture.images.shape[-2:]))
     counts["highlight_core"] = {"positive": core_pos, "mirrored": core_mir}
+    counts["mask_rim"] = {"positive": rim_pos, "mirrored": rim_mir}
     if not kept:
         report = {"skipped": ("detections consistent with the Phong fit's misfit: no SNR at which they exceed the "
                               f"mirrored residual's (locations brighter in the residual {counts['positive']} vs in "
@@ -144,8 +149,8 @@ def fit_material(
     seed: int = 0,
     observed_flakes: str | bool = "auto",
     progress: bool = False,
-    lobe: str = "phong",
-    normals: str = "given",
+    lobe: str = "auto",
+    normals: str = "auto",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -167,11 +172,13 @@ def fit_material(
             zoo flakes_b: kept, +5.7 dB and MD 12.1 → 8.3 against the clean truth), "on"/True
             always, "off"/False never.
         progress: show progress bars.
-        lobe: the specular lobe, "phong" (docs/design.md §2.2), "blinn", "ggx" or "auto" (chosen on
-            held-out shots by the first fit; the refits keep that choice).
-        normals: "given" (the capture's normals.npy; flat without one), "flat" (0, 0, 1), or
-            "estimate" (photometric stereo with the Phong terms,
-            :func:`~torchmetal.fit.normals.estimate_normals`; the material keeps them).
+        lobe: the specular lobe, "auto" (the default: chosen on held-out shots by the first fit,
+            :mod:`~torchmetal.fit.lobe_choice`; phong, docs/design.md §2.2, unless another lobe predicts them
+            better beyond noise; the refits keep that choice), "phong", "blinn" or "ggx".
+        normals: "auto" (the default: the capture's normals.npy when it has one; else estimated where
+            left-out shots prefer them to the flat plane, :mod:`~torchmetal.fit.normals_choice`), "given"
+            (the capture's normals.npy; flat without one), "flat" (0, 0, 1), or "estimate" (photometric
+            stereo with the Phong terms, :func:`~torchmetal.fit.normals.estimate_normals`; the material keeps them).
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,

@@ -231,7 +231,7 @@ class TestBadInput:
         from torchmetal.pipeline import fit_material
 
         with pytest.raises(InputError, match="normals: expected one of"):
-            fit_material(cap, normals="auto")
+            fit_material(cap, normals="guess")
 
 
 class TestModes:

@@ -127,15 +127,20 @@ def test_max3_is_the_3x3_max_pool():
 
 @pytest.mark.parametrize("clipped", [False, True])
 def test_sampled_valid_is_mask_and_no_saturated_channel(clipped):
+    """The mask's interior (its rim left out, torchmetal.flakes.rim) and no saturated channel."""
     from types import SimpleNamespace
 
     from torchmetal.flakes.prescreen import sampled_valid
+    from torchmetal.flakes.rim import interior
 
     g = torch.Generator().manual_seed(4)
-    mask = torch.rand(1, 21, 18, generator=g) > 0.2
+    mask = torch.ones(1, 21, 18, dtype=torch.bool)
+    mask[:, 15:, 12:] = False  # a corner cut out of the sample
     sat = (torch.rand(5, 3, 21, 18, generator=g) > 0.9) & clipped
     cap = SimpleNamespace(mask=mask, saturated=sat, num_shots=5)
-    want = (mask & ~sat.any(1))[..., ::2, ::2]
+    want = (interior(mask) & ~sat.any(1))[..., ::2, ::2]
+    inner = interior(mask)[0]
+    assert not bool(inner[14, 10]) and bool(inner[14, 8]) and bool(inner[12, 10])  # (14, 10) on the rim, (14, 8) not
     assert torch.equal(sampled_valid(cap, 2), want.expand(5, -1, -1))
 
 

@@ -41,14 +41,18 @@ def tiled128(tmp_path_factory):
 
 def assert_same_fit(a, b):
     assert rel_err(b.s, a.s) <= REL and rel_err(b.alpha, a.alpha) <= REL, (a.s, b.s, a.alpha, b.alpha)
-    assert rel_err(b.texture, a.texture) <= REL
+    # the texture in float32, its sums in tile order: equal to 1e-6 of its range (a texel of 0.05 may differ by one
+    # float32 step of 1.0, 2e-6 of itself)
+    assert float((b.texture.double() - a.texture.double()).abs().max()) <= REL * float(a.texture.abs().max())
     assert b.specular == a.specular and b.skipped == a.skipped and b.flat == a.flat
 
 
 def test_tiled_equals_in_memory_256(tiled256, tmp_path):
-    """256² × 8 shots, bumpy normals, texels saturated in every shot (inpainted), 64² tiles."""
-    a = fit_phong(load_capture(tiled256))
-    b = fit_tiled(tiled256, tile=64, scratch=tmp_path)
+    """256² × 8 shots, bumpy normals, texels saturated in every shot (inpainted), 64² tiles; a subsample of
+    512 pixels, so that the LM over the tiles has a step to take (from a subsample of 4096 the fit is already at
+    the whole image's optimum and the tile LM stops at its first evaluation)."""
+    a = fit_phong(load_capture(tiled256), sub_pixels=512)
+    b = fit_tiled(tiled256, tile=64, scratch=tmp_path, sub_pixels=512)
     assert b.tiled["tiles"] == 16 and b.tiled["passes"] >= 3
     assert_same_fit(a, b)
     assert any("inpainted" in s for s in b.skipped) and not b.flat

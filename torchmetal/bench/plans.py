@@ -28,9 +28,9 @@ class Plan:
     flake_size: int = 1024
     onnx_size: int = 1024
     real_downsample: int = 1
-    real_captures: tuple[str, ...] = ("cards_blue", "uw_gray_sphere")
+    real_captures: tuple[str, ...] = ("cards_blue", "yellow_box", "uw_gray_sphere")
     real_max_shots: int | None = None
-    real_speculars: tuple[str, ...] = ("global", "clustered", "paper", "default")
+    real_speculars: tuple[str, ...] = ("global", "clustered", "paper", "paper_model", "default")
     realflakes_captures: tuple[str, ...] = ("cards_blue",)
     isolate: bool = True
     timeout_s: float = 1800.0

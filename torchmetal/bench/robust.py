@@ -22,7 +22,7 @@ from pathlib import Path
 OPTION_SETS: dict[str, tuple[str, ...]] = {
     "default": (),
     "normals estimate": ("--normals", "estimate"),
-    "lobe auto": ("--lobe", "auto"),
+    "paper's model": ("--normals", "given", "--lobe", "phong"),  # the default before normals / lobe auto
     "specular maps": ("--specular", "maps"),
     "all three": ("--normals", "estimate", "--lobe", "auto", "--specular", "maps"),
     "flakes on": ("--flakes", "on"),

@@ -282,8 +282,9 @@ class Bench(SweepSection):
                                 "left-out shots")
         self.add(md_table(["capture", "fit", "mean PSNR dB", "per left-out shot (dB)", "chroma artifacts", "seconds"], rows))
         self.add("\n*fit*: global / clustered are `fit_phong` (refine scheme) with that specular; default is "
-                 "`fit_material` as `torchmetal fit` runs it (flakes, lobe, normals and maps decided by it) and paper "
-                 "the paper's scheme (`--scheme paper --flakes off`), both rendered by the material's renderer. "
+                 "`fit_material` as `torchmetal fit` runs it (flakes, lobe, normals and maps decided by it), paper_model "
+                 "the same with the paper's model forced (`--normals given --lobe phong`, the default before issue 27) "
+                 "and paper the paper's scheme (`--scheme paper --flakes off`), all rendered by the material's renderer. "
                  "PSNR: linear, peak 1, mask pixels not saturated. *chroma artifacts*: share of 8×8-px blocks of the "
                  "left-out shots where photo and render differ by a CIELAB chroma distance > 15 (sRGB block means, "
                  "`torchmetal.metrics.chroma_artifact_share`), mean over the shots.")

@@ -135,10 +135,10 @@ def fit_phong(
             ~N·3·chunk values each); results do not depend on it.
         sub_pixels, select_pixels: pixel budgets of the init and selection subsamples.
         seed: k-means seed.
-        lobe: the specular lobe (:mod:`torchmetal.lobes`): "phong" (docs/design.md §2.2, the default),
+        lobe: the specular lobe (:mod:`torchmetal.lobes`): "phong" (docs/design.md §2.2, the default here),
             "blinn", "ggx", or "auto" (the lowest error on held-out shots,
-            :mod:`torchmetal.fit.lobe_choice`; phong unless another lobe wins by 1 %). Other
-            lobes than phong need scheme="refine".
+            :mod:`torchmetal.fit.lobe_choice`; phong unless another lobe wins beyond noise; phong with
+            scheme="paper"). Other lobes than phong need scheme="refine".
 
     Returns:
         :class:`FitResult`.
@@ -149,33 +149,50 @@ def fit_phong(
     clusters = tuple(clusters)
     _check_args(capture, scheme, specular, tol, max_iters, robust, outliers, clusters)
     check_lobe(lobe, (*LOBES, "auto"))
-    if scheme == "paper" and lobe != "phong":
-        raise InputError(f"lobe: expected 'phong' with scheme='paper' (the paper's lobe), found {lobe!r}")
+    if scheme == "paper" and lobe not in ("phong", "auto"):
+        raise InputError(f"lobe: expected 'phong' or 'auto' with scheme='paper' (the paper's lobe), found {lobe!r}")
     run = FitRun(progress)
     lobe_sel = None
     try:
-        if lobe == "auto" and specular != "none":
-            h, w = capture.images.shape[-2:]
-            with run.stage("lobe"):
-                lobe_sel = choose_lobe(capture, stride=grid_stride(h, w, select_pixels), tol=max(tol, 1e-4),
-                                       max_iters=max_iters, dtype=compute_dtype(capture.images), chunk=max_pixels_per_chunk)
-            lobe = lobe_sel.lobe
-        elif lobe == "auto":
+        if lobe == "auto" and scheme == "paper":
+            lobe = "phong"
+            run.skipped.append("lobe: scheme='paper' fits the paper's lobe; phong")
+        elif lobe == "auto" and specular == "none":
             lobe = "phong"
             run.skipped.append("lobe: specular='none', no lobe to choose; phong")
         if scheme == "paper":
             res = _fit_paper(capture, run, specular=specular, tol=tol, max_iters=max_iters, chunk=max_pixels_per_chunk,
                              robust=robust)
         else:
-            res = _fit_refine(capture, run, specular=specular, tol=tol, max_iters=max_iters, robust=robust,
-                              outliers=outliers, clusters=clusters, chunk=max_pixels_per_chunk, sub_pixels=sub_pixels,
-                              select_pixels=select_pixels, seed=seed, lobe=lobe)
+            kw = dict(specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers, clusters=clusters,
+                      chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed)
+            decided = None
+            if lobe == "auto":  # the structure (clusters) with Phong first, then the lobes compete on it
+                decided = subsample_decisions(capture, run, lobe="phong", **kw)
+                lobe, lobe_sel = _choose_lobe(capture, run, decided, tol=tol, max_iters=max_iters,
+                                              select_pixels=select_pixels, chunk=max_pixels_per_chunk)
+                if lobe != "phong":
+                    decided = None  # the decisions again, with the chosen lobe
+            res = _fit_refine(capture, run, lobe=lobe, decided=decided, **kw)
     finally:
         run.close()
     res.lobe = lobe
     res.lobe_selection = None if lobe_sel is None else lobe_sel.to_dict()
     _check_finite("fit_phong", res.texture, res.s, res.alpha, torch.tensor(res.rmse))
     return res
+
+
+def _choose_lobe(capture, run: FitRun, d, *, tol, max_iters, select_pixels, chunk):
+    """lobe="auto": :func:`~torchmetal.fit.lobe_choice.choose_lobe` on the specular structure the Phong
+    decisions ``d`` kept (global, or its clusters). Returns (lobe, selection or None)."""
+    if d.spec is None:
+        run.skipped.append("lobe: no highlight evidence, no lobe shape to choose; phong")
+        return "phong", None
+    h, w = capture.images.shape[-2:]
+    with run.stage("lobe"):
+        sel = choose_lobe(capture, stride=grid_stride(h, w, select_pixels), tol=max(tol, 1e-4), max_iters=max_iters,
+                          dtype=compute_dtype(capture.images), chunk=chunk, labeler=d.labeler)
+    return sel.lobe, sel
 
 
 def _result(capture, run: FitRun, texture: Tensor, s: Tensor, alpha: Tensor, **kw) -> FitResult:
@@ -243,10 +260,10 @@ def _fit_paper(capture, run: FitRun, *, specular: str, tol: float, max_iters: in
 
 
 def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outliers, clusters, chunk, sub_pixels,
-                select_pixels, seed, lobe="phong") -> FitResult:
-    d = subsample_decisions(capture, run, specular=specular, tol=tol, max_iters=max_iters, robust=robust,
-                            outliers=outliers, clusters=clusters, chunk=chunk, sub_pixels=sub_pixels,
-                            select_pixels=select_pixels, seed=seed, lobe=lobe)
+                select_pixels, seed, lobe="phong", decided=None) -> FitResult:
+    d = decided if decided is not None else subsample_decisions(
+        capture, run, specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers,
+        clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed, lobe=lobe)
     spec, labeler, s_fixed, sel, use_maps, maps_info, weighting = (
         d.spec, d.labeler, d.s_fixed, d.sel, d.use_maps, d.maps_info, d.weighting)
     imgs = capture.images

@@ -59,7 +59,7 @@ from torchmetal.fit.normals_refine import (
 )
 from torchmetal.geometry import direction_to, surface_points
 
-NORMALS_MODES = ("given", "flat", "estimate")
+NORMALS_MODES = ("auto", "given", "flat", "estimate")
 DARK = 0.02  # init: shots darker than this fraction of the pixel's brightest are left out
 SHADOW = 0.05  # init: shots with predicted n·l below this are attached shadow
 INIT_K = 3.0  # init: |residual| > INIT_K·σ leaves a shot out (highlights, glints, cast shadows)
@@ -256,6 +256,8 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
 def with_normals(capture, mode: str, **kw):
     """The capture with the normals ``mode`` asks for, and a report entry.
 
+    "auto": the capture's own when it has them, else "estimate" or "flat" as shots left out of the fit
+    prefer (:func:`~torchmetal.fit.normals_choice.choose_normals`; the report's "decision" says why);
     "given": the capture's own (its normals.npy, flat (0, 0, 1) without one); "flat": (0, 0, 1)
     everywhere; "estimate": :func:`estimate_normals` (``kw`` passed on).
 
@@ -264,6 +266,14 @@ def with_normals(capture, mode: str, **kw):
     """
     if mode not in NORMALS_MODES:
         raise InputError(f"normals: expected one of {list(NORMALS_MODES)}, found {mode!r}")
+    if mode == "auto":
+        from torchmetal.fit.normals_choice import choose_normals
+
+        t0 = time.perf_counter()
+        chosen, decision = choose_normals(capture, fit_kwargs=kw.get("fit_kwargs"))
+        record = {"decision": decision.to_dict(), "decision_time": time.perf_counter() - t0}
+        cap, report = with_normals(capture, chosen, **kw)
+        return cap, {**report, "mode": "auto", "chosen": chosen, **record}
     if mode == "given":
         return capture, {"mode": "given", "flat": capture.flat}
     if mode == "flat":

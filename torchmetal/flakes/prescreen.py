@@ -34,6 +34,7 @@ from torch import Tensor
 
 from torchmetal.flakes.filters import box_mean
 from torchmetal.flakes.lobe_core import CORE_LEVEL, LOG_CORE
+from torchmetal.flakes.rim import interior
 from torchmetal.flakes.null_test import MIN_EXCESS, SNR_LADDER, glint_rule
 
 SCREEN_STRIDE = 2  # the pipeline renders and screens every 2nd row and column
@@ -159,8 +160,9 @@ def residual_groups(fit, capture, stride: int = SCREEN_STRIDE, chunk: int | None
 
 
 def sampled_valid(capture, stride: int = SCREEN_STRIDE) -> Tensor:
-    """(N, ⌈H/stride⌉, ⌈W/stride⌉) bool: on the sample's mask and saturated in no channel."""
-    mask = capture.mask[..., ::stride, ::stride]
+    """(N, ⌈H/stride⌉, ⌈W/stride⌉) bool: inside the sample's mask, off its rim
+    (:func:`~torchmetal.flakes.rim.interior`), and saturated in no channel."""
+    mask = interior(capture.mask)[..., ::stride, ::stride]
     if not bool(capture.saturated.view(torch.uint8).amax()):  # 10× cheaper than Tensor.any; then no strided ORs
         return mask.expand(capture.num_shots, -1, -1)
     sat = capture.saturated[..., ::stride, ::stride]

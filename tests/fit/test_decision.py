@@ -1,0 +1,34 @@
+"""The one held-out decision rule (torchmetal.fit.decision): paired z over the same observations."""
+
+import math
+
+import torch
+
+from torchmetal.fit.decision import Decision, paired_choice, paired_z
+
+
+def test_paired_z_signs():
+    e = torch.rand(1000, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    assert paired_z(e, e) == 0.0
+    assert paired_z(0.5 * e, e) > 10 and paired_z(2 * e, e) < -10
+    assert paired_z(e[:1], e[:1] * 2) == 0.0  # one observation: no standard error, no evidence
+
+
+def test_reference_kept_unless_beaten_beyond_noise():
+    g = torch.Generator().manual_seed(1)
+    noise = torch.rand(4000, dtype=torch.float64, generator=g)
+    tiny = noise * (1 - 1e-5) + 1e-4 * torch.rand(4000, dtype=torch.float64, generator=g)  # within noise
+    better = 0.8 * noise
+    d = paired_choice("lobe", {"phong": noise, "blinn": tiny}, "phong")
+    assert d.chosen == "phong" and "phong kept" in d.reason and d.reference == "phong"
+    d = paired_choice("lobe", {"phong": noise, "blinn": tiny, "ggx": better}, "phong")
+    assert d.chosen == "ggx" and d.z["ggx"] > 4 and "ggx lowers" in d.reason
+    assert math.isclose(d.mse["ggx"], float(better.mean()))
+
+
+def test_record_is_json_ready():
+    d = paired_choice("normals", {"flat": torch.ones(10, dtype=torch.float64),
+                                  "estimate": torch.full((10,), 0.5, dtype=torch.float64)}, "flat")
+    rec = d.to_dict()
+    assert isinstance(d, Decision) and rec["chosen"] == "estimate" and rec["candidates"] == ["flat", "estimate"]
+    assert math.isclose(rec["psnr_heldout"]["estimate"], 10 * math.log10(2.0))
