@@ -357,6 +357,13 @@ class TestBoundedEstimates:
         assert fit.degenerate is not None and fit.evaluations == S.DEGENERATE_AFTER
         assert all(math.isnan(v) for v in fit.std_err.values())
 
+    def test_tilt_at_its_bound_stops_early(self, data, monkeypatch):
+        """A best point with the flakes' tilt σ at the box's upper end (normals at random) is no flake layer."""
+        monkeypatch.setattr(S, "TILT_RANGE", (0.01, 0.011))  # the box's top below any start: every point on it
+        fit = S.fit_glints(data)
+        assert fit.degenerate is not None and "at its bound" in fit.degenerate
+        assert fit.evaluations == S.DEGENERATE_AFTER and fit.tilt_sigma == pytest.approx(0.011)
+
     def test_degenerate_fit_gives_no_model_and_says_why(self, small, monkeypatch):
         det, geo = small
         monkeypatch.setattr(S, "DEGENERATE_DENSITY", 1e-12)

@@ -168,11 +168,13 @@ def fit_phong(
                       chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed)
             decided = None
             if lobe == "auto":  # the structure (clusters) with Phong first, then the lobes compete on it
+                n_skipped = len(run.skipped)
                 decided = subsample_decisions(capture, run, lobe="phong", **kw)
                 lobe, lobe_sel = _choose_lobe(capture, run, decided, tol=tol, max_iters=max_iters,
                                               select_pixels=select_pixels, chunk=max_pixels_per_chunk)
                 if lobe != "phong":
-                    decided = None  # the decisions again, with the chosen lobe
+                    decided = None  # the decisions again, with the chosen lobe (Phong's notes no longer apply)
+                    del run.skipped[n_skipped:]
             res = _fit_refine(capture, run, lobe=lobe, decided=decided, **kw)
     finally:
         run.close()
@@ -184,14 +186,14 @@ def fit_phong(
 
 def _choose_lobe(capture, run: FitRun, d, *, tol, max_iters, select_pixels, chunk):
     """lobe="auto": :func:`~torchmetal.fit.lobe_choice.choose_lobe` on the specular structure the Phong
-    decisions ``d`` kept (global, or its clusters). Returns (lobe, selection or None)."""
-    if d.spec is None:
-        run.skipped.append("lobe: no highlight evidence, no lobe shape to choose; phong")
-        return "phong", None
+    decisions ``d`` kept (global, or its clusters; global when Phong showed no highlight on its held-out
+    shot: a highlight of another shape may, and the decisions are then made again with that lobe).
+    Returns (lobe, selection)."""
     h, w = capture.images.shape[-2:]
     with run.stage("lobe"):
         sel = choose_lobe(capture, stride=grid_stride(h, w, select_pixels), tol=max(tol, 1e-4), max_iters=max_iters,
-                          dtype=compute_dtype(capture.images), chunk=chunk, labeler=d.labeler)
+                          dtype=compute_dtype(capture.images), chunk=chunk,
+                          labeler=d.labeler if d.spec is not None else None)
     return sel.lobe, sel
 
 

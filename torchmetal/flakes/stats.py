@@ -37,7 +37,8 @@ from torchmetal.flakes.shot_geometry import Geometry
 from torchmetal.flakes.visibility import _grid
 
 
-TILT_RANGE = (0.01, 1.5)  # radians: the flake-normal slope spread the model can hold
+TILT_RANGE = (0.01, 1.5)  # radians: the flake-normal slope spread the model can hold (a best point at the
+# upper bound after DEGENERATE_AFTER evaluations is no flake layer: the likelihood stops, no model)
 GLINT_RANGE = (0.003, 0.5)  # radians: a glint narrower than 0.2° is a collapse, not a measurement
 SPREAD_RANGE = (0.02, 1.5)  # log-amplitude spread: flakes of one paint are alike within a factor e^1.5
 CEILING_MARGIN = 1.0  # the amplitudes stop e× above the brightest detection (seen at most at its peak)
@@ -206,15 +207,22 @@ def fit_glints(
             if value < best[0]:  # keep the best point visited (line searches may end off it)
                 best[:] = [value, theta.detach().clone(), float(expected.detach()), g.clone()]
             if evals[0] >= DEGENERATE_AFTER and d.count > DEGENERATE_DENSITY * best[2]:
-                raise _Degenerate  # the best point needs more flakes than pixels: stop, no model
+                raise _Degenerate("needs")  # the best point needs more flakes than pixels: stop, no model
+            if evals[0] >= DEGENERATE_AFTER and float(best[1][0]) >= float(hi[0]) - 1e-9:
+                raise _Degenerate("tilt")  # flake normals at random: no layer of flakes (TILT_RANGE)
             return value, g
 
         try:
             _, n = lbfgs.minimize(loss_grad, torch.zeros(4, dtype=torch.float64, device=dev), max_iter=max_iter,
                                   tolerance_grad=1e-5, tolerance_change=tol)
-        except _Degenerate:
-            degenerate = (f"stopped after {evals[0]} evaluations: the best point explains the detections with "
-                          f"{d.count / best[2]:.3g} flakes per pixel (> {DEGENERATE_DENSITY:g})")
+        except _Degenerate as why:
+            if str(why) == "tilt":
+                degenerate = (f"stopped after {evals[0]} evaluations: the best point has the flake normals' tilt σ "
+                              f"at its bound {TILT_RANGE[1]:g} rad, normals at random: no layer of flakes (a sheen "
+                              "or rim the coating misfits)")
+            else:
+                degenerate = (f"stopped after {evals[0]} evaluations: the best point explains the detections with "
+                              f"{d.count / best[2]:.3g} flakes per pixel (> {DEGENERATE_DENSITY:g})")
             break
         iters += n
         if start_loss - best[0] < 0.05:
@@ -315,9 +323,9 @@ def flake_statistics(
     if gfit.degenerate is not None or not (math.isfinite(gfit.density) and gfit.density <= DEGENERATE_DENSITY):
         # the likelihood ran off to a spike or tail that explains the detections with almost no
         # flakes expected anywhere (more flakes than pixels): no trustworthy model (reported, not rendered)
-        report["skipped"] = (f"glint likelihood degenerate (density {gfit.density:.3g}/px > {DEGENERATE_DENSITY:g}, "
-                             f"tilt σ {gfit.tilt_sigma:.3g}, glint σ {gfit.glint_sigma:.3g}"
-                             f"{'; ' + gfit.degenerate if gfit.degenerate else ''}): no flake model")
+        report["skipped"] = (f"glint likelihood degenerate (density {gfit.density:.3g}/px, tilt σ {gfit.tilt_sigma:.3g}, "
+                             f"glint σ {gfit.glint_sigma:.3g}; "
+                             f"{gfit.degenerate or f'more flakes than pixels (> {DEGENERATE_DENSITY:g}/px)'}): no flake model")
         report["degenerate"] = {"density": gfit.density, "tilt_sigma": gfit.tilt_sigma,
                                 "glint_sigma": gfit.glint_sigma, "evaluations": gfit.evaluations}
         report["times"] = times
