@@ -211,7 +211,10 @@ def fit_material(
     else:
         t = time.perf_counter()
         two_fits = auto and scheme == "refine"
-        refit = (lambda: fit_phong(capture, robust=ROBUST_GLINTS, **kw)) if two_fits else None
+        # the statistics' Huber refit keeps the first fit's specular structure (the trials of clusters and gloss
+        # maps again cost more than the rest of the refit); the coating's refit below chooses it again, glints out
+        same = {**kw, "specular": fit.specular if specular == "auto" else specular}
+        refit = (lambda: fit_phong(capture, robust=ROBUST_GLINTS, **same)) if two_fits else None
         coat_fit = (lambda cap: fit_phong(cap, robust=None, **kw)) if two_fits else None
         flake_result, coat, texture = _flake_stage(capture, fit, seed, refit, coat_fit)
         stage_times["flakes"] = time.perf_counter() - t
