@@ -24,7 +24,7 @@ from torch import Tensor
 from torchmetal.fit.lm import solve_2x2
 from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, weighted
-from torchmetal.fit.refine import SpecFit, fit_specular, pinned_terms, pixel_map, spec_sums, texture_map
+from torchmetal.fit.refine import SpecFit, chunk_terms, fit_specular, pinned_terms, spec_sums, texture_map
 
 EVIDENCE_REL = 1e-3  # the specular term must explain this fraction of the diffuse-only residual…
 EVIDENCE_ABS = 1e-6  # …and this fraction of Σ w·y²
@@ -294,15 +294,9 @@ def heldout_mse(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor, l
     held-out test of that unrenderable model kept 4 GGX clusters on the real grey sphere whose
     texture was negative in half their pixels (−5 dB on other light directions)."""
     texture = texture.clamp_min(0.0)
-    lab = labels if s.shape[0] > 1 else None
-    s_pix = pixel_map(s.to(hold.dtype), lab)
-    a_pix = pixel_map(alpha.to(hold.dtype), lab)
     sse = torch.zeros((), dtype=torch.float64, device=texture.device)
     cnt = 0.0
-    for j, (p0, p1) in enumerate(hold.chunks):
-        y, g, u, L, w, inten = hold.chunk(j)
-        sp = s_pix if s_pix.shape[1] == 1 else s_pix[:, p0:p1]
-        ap = a_pix if a_pix.shape[1] == 1 else a_pix[:, p0:p1]
+    for j, (p0, p1), (y, g, u, L, w, inten), sp, ap in chunk_terms(hold, s, alpha, labels):
         r = y - inten * g * texture[:, p0:p1] - sp * (inten * u) * lobe_factor(L, ap, hold.geo_chunk(j), hold.lobe)
         sse += (weighted(r, w) * r).double().sum()
         cnt += float(w.sum())

@@ -34,10 +34,16 @@ class Decision:
     reason: str = ""
 
     def to_dict(self) -> dict:
-        psnr = {k: (10.0 * math.log10(1.0 / v) if 0 < v < math.inf else None) for k, v in self.mse.items()}
+        psnr = heldout_psnr(self.mse)
         return {"name": self.name, "candidates": list(self.candidates), "chosen": self.chosen,
                 "reference": self.reference, "mse": dict(self.mse), "psnr_heldout": psnr, "z": dict(self.z),
                 "holds": list(self.holds), "pixels": self.pixels, "reason": self.reason}
+
+
+def heldout_psnr(mse: dict) -> dict:
+    """Candidate → held-out PSNR (dB, peak 1) of its MSE: inf for a perfect one, None where it had no observation."""
+    return {k: (10.0 * math.log10(1.0 / v) if 0 < v < math.inf else (math.inf if v == 0 else None))
+            for k, v in mse.items()}
 
 
 def paired_z(err: Tensor, ref: Tensor) -> float:

@@ -14,8 +14,7 @@ from torch import Tensor
 
 from torchmetal.fit.clusters import Labeler, Selection, choose_specular, evidence, fit_clustered, heldout_evidence
 from torchmetal.fit.gloss import choose_maps
-from torchmetal.fit.lobe_choice import LOBE_GRID
-from torchmetal.fit.lobes import lobe_factor
+from torchmetal.fit.lobe_choice import LOBE_GRID, specular_energy
 from torchmetal.fit.paper import paper_scheme
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, compute_dtype, grid_stride
 from torchmetal.fit.refine import SpecFit, evaluate_specular, fit_specular, grid_beta, residual_scale
@@ -35,14 +34,7 @@ def _sigma(obs: Observations, fit: SpecFit, capture) -> Tensor:
 
 def _hold_shot(obs: Observations, fit: SpecFit) -> int:
     """The shot whose observations carry the most specular energy (the most telling to hold out)."""
-    alpha = fit.alpha
-    energy = torch.zeros(obs.num_shots, dtype=torch.float64, device=alpha.device)
-    s3, a3 = fit.s[0].to(obs.dtype).view(1, 3, 1), alpha[0].to(obs.dtype).view(1, 3, 1)
-    for j in range(len(obs.chunks)):
-        y, g, u, L, w, inten = obs.chunk(j)
-        b = s3 * inten * u * lobe_factor(L, a3, obs.geo_chunk(j), obs.lobe)
-        energy += (w * b * b).sum((1, 2)).double()
-    return int(energy.argmax())
+    return int(specular_energy(obs, fit).argmax())
 
 
 @dataclass

@@ -15,17 +15,16 @@ sample keeps the paper's lobe.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
 from torchmetal.fit.clusters import evidence
-from torchmetal.fit.decision import MIN_GAIN, Z_MIN, paired_choice
+from torchmetal.fit.decision import MIN_GAIN, Z_MIN, heldout_psnr, paired_choice
 from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.problem import Observations, build_observations
-from torchmetal.fit.refine import SpecFit, fit_specular, grid_beta, pixel_map, texture_map
+from torchmetal.fit.refine import SpecFit, chunk_terms, fit_specular, grid_beta, texture_map
 from torchmetal.lobes import LOBES
 
 __all__ = ["LobeSelection", "choose_lobe", "LOBE_GRID", "HOLDS", "FOLDS"]
@@ -48,8 +47,7 @@ class LobeSelection:
     reason: str = ""
 
     def to_dict(self) -> dict:
-        psnr = {k: (10.0 * math.log10(1.0 / v) if v > 0 else math.inf) for k, v in self.mse.items()}
-        return {"lobe": self.lobe, "holds": list(self.holds), "mse": dict(self.mse), "psnr_heldout": psnr,
+        return {"lobe": self.lobe, "holds": list(self.holds), "mse": dict(self.mse), "psnr_heldout": heldout_psnr(self.mse),
                 "z": dict(self.z), "alpha": dict(self.alpha), "clusters": self.clusters,
                 "reason": self.reason}
 
@@ -59,20 +57,10 @@ def fit_lobe(obs: Observations, *, tol: float, max_iters: int, grid: tuple[float
     return fit_specular(obs, grid_beta(obs, k, grid=grid), tol=tol, max_iters=max_iters)
 
 
-def _chunk_terms(obs: Observations, s: Tensor, alpha: Tensor, labels: Tensor | None):
-    """Per chunk j: (chunk tensors, s (1, 3, c|1), α (1, 3, c|1)) for elements s, α (K, 3) on ``labels`` (P,)."""
-    lab = labels if s.shape[0] > 1 else None
-    s_pix, a_pix = pixel_map(s.to(obs.dtype), lab), pixel_map(alpha.to(obs.dtype), lab)
-    for j, (p0, p1) in enumerate(obs.chunks):
-        sp = s_pix if s_pix.shape[1] == 1 else s_pix[:, p0:p1]
-        ap = a_pix if a_pix.shape[1] == 1 else a_pix[:, p0:p1]
-        yield j, (p0, p1), obs.chunk(j), sp.unsqueeze(0), ap.unsqueeze(0)
-
-
 def specular_energy(obs: Observations, fit: SpecFit) -> Tensor:
     """(N,) float64 Σ w·(s·b)² per shot: how much of each shot the specular term predicts."""
     energy = torch.zeros(obs.num_shots, dtype=torch.float64, device=obs.device)
-    for j, _, (y, g, u, L, w, inten), s3, a3 in _chunk_terms(obs, fit.s, fit.alpha, obs.labels):
+    for j, _, (y, g, u, L, w, inten), s3, a3 in chunk_terms(obs, fit.s, fit.alpha, obs.labels):
         b = s3 * inten * u * lobe_factor(L, a3, obs.geo_chunk(j), obs.lobe)
         energy += (w * b * b).sum((1, 2)).double()
     return energy
@@ -85,7 +73,7 @@ def heldout_errors(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor
     s, α (K, 3) per element, ``labels`` (P,) the fit's pixel labels when K > 1."""
     texture = texture.clamp_min(0.0)
     out = []
-    for j, (p0, p1), (y, g, u, L, w, inten), s3, a3 in _chunk_terms(hold, s, alpha, labels):
+    for j, (p0, p1), (y, g, u, L, w, inten), s3, a3 in chunk_terms(hold, s, alpha, labels):
         r = y - inten * g * texture[:, p0:p1] - s3 * (inten * u) * lobe_factor(L, a3, hold.geo_chunk(j), hold.lobe)
         out.append((r * r)[w > 0].double())
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)

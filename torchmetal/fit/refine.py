@@ -79,6 +79,17 @@ def pixel_map(x: Tensor, labels: Tensor | None) -> Tensor:
     return x[labels].T
 
 
+def chunk_terms(obs: Observations, s: Tensor, alpha: Tensor, labels: Tensor | None):
+    """Per chunk j of ``obs``: (j, (p0, p1), obs.chunk(j), s (1, 3, c|1), α (1, 3, c|1)) for elements s, α (K, 3)
+    on pixel ``labels`` (P,) (ignored for K = 1)."""
+    lab = labels if s.shape[0] > 1 else None
+    s_pix, a_pix = pixel_map(s.to(obs.dtype), lab), pixel_map(alpha.to(obs.dtype), lab)
+    for j, (p0, p1) in enumerate(obs.chunks):
+        sp = s_pix if s_pix.shape[1] == 1 else s_pix[:, p0:p1]
+        ap = a_pix if a_pix.shape[1] == 1 else a_pix[:, p0:p1]
+        yield j, (p0, p1), obs.chunk(j), sp.unsqueeze(0), ap.unsqueeze(0)
+
+
 def spec_sums(obs: Observations, alpha: Tensor, *, per_pixel: bool = False) -> tuple[Tensor, Tensor, float]:
     """One pass: per-element stats (6, K, 3) float64 and e_b (3, P) for α (K, 3).
 
