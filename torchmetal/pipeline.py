@@ -3,14 +3,15 @@
 Each stage is skipped when the scene does not need it, and the report says so:
 no highlights → no specular fit (inside :func:`~torchmetal.fit.fit_phong`), no flakes → the flake
 stage returns no model and the material stores ``flakes: null``. Detections that pass the noise
-tests but do not bring left-out shots' sparkle statistics closer (a real sample's misfit: the
-matte uw_gray_sphere's sheen and rim) give the flake-free material (:func:`~torchmetal.flakes.choice.keep_flakes`).
+tests but do not bring left-out shots' sparkle statistics closer give the flake-free material
+(:func:`~torchmetal.flakes.choice.keep_flakes`).
 
 The Phong fit is plain least squares by default (``robust="auto"``): on the scene zoo
 (:mod:`torchmetal.synth.zoo`), Huber weights cost 0.1–0.3 dB against the clean truth on every
 flake-free scene. The flake stage first asks whether the detections are glints at all: misfit
 gives residuals of both signs, glints positive ones, so detections must exceed those of the
-mirrored residual (:func:`~torchmetal.flakes.null_test.glint_excess`). Only then is the Phong fit
+mirrored residual (:func:`~torchmetal.flakes.null_test.glint_excess`), counting spots only (a sheen band,
+the streak of a highlight, the mask's rim are misfit). Only then is the Phong fit
 redone with Huber weights for the flake statistics (glints are outliers of the Phong model:
 without them the flake density came out up to 60 % high and the colour 30 % high), while the
 material's coating is refitted by least squares without the detected observations (glints seen
@@ -92,7 +93,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
         return FlakeStageResult(None, Particles.empty(capture.images.device), report), fit, fit.texture
     from torchmetal.flakes.lobe_core import drop_core
     from torchmetal.flakes.rim import drop_rim
-    from torchmetal.flakes.null_test import glint_excess
+    from torchmetal.flakes.null_test import drop_extended, glint_excess
     from torchmetal.flakes.stage import detect_capture, flake_stage
     from torchmetal.flakes.texture import texture_without_glints
 
@@ -111,9 +112,13 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     mirrored, core_mir = drop_core(fit, capture, mirror.particles)
     positive, rim_pos = drop_rim(capture, positive)
     mirrored, rim_mir = drop_rim(capture, mirrored)
+    # and so are extended detections: a glint is a spot (null_test.drop_extended)
+    positive, ext_pos = drop_extended(positive)
+    mirrored, ext_mir = drop_extended(mirrored)
     kept, counts = glint_excess(positive, mirrored, tuple(capture.images.shape[-2:]))
     counts["highlight_core"] = {"positive": core_pos, "mirrored": core_mir}
     counts["mask_rim"] = {"positive": rim_pos, "mirrored": rim_mir}
+    counts["extended"] = {"positive": ext_pos, "mirrored": ext_mir}
     if not kept:
         report = {"skipped": ("detections consistent with the Phong fit's misfit: no SNR at which they exceed the "
                               f"mirrored residual's (locations brighter in the residual {counts['positive']} vs in "

@@ -168,7 +168,38 @@ def test_screen_in_shot_groups_equals_the_whole_screen(group):
     residual = torch.cat([r for _, r, _ in groups])
     core = torch.cat([c for _, _, c in groups])  # the highlight's peak (torchmetal.flakes.lobe_core): left out
     assert bool(core.any()) and torch.equal(residual, sampled_residual(fit, cap, SCREEN_STRIDE, chunk=group))
-    want = glint_screen(residual, sampled_valid(cap, SCREEN_STRIDE) & ~core)
+    want = glint_screen(residual, sampled_valid(cap, SCREEN_STRIDE) & ~core, pitch=SCREEN_STRIDE)
     got = screen_fit(fit, cap, shots_per_pass=group)
     assert got == want
     assert want[0] and max(want[1]["positive"]) > 0
+
+
+def test_ring_max_is_the_maximum_on_the_square_ring():
+    from torchmetal.flakes.prescreen import _ring_max
+
+    z = torch.randn(2, 13, 17, generator=torch.Generator().manual_seed(5))
+    r = 3
+    got = _ring_max(z, r)
+    for i in range(13):
+        for j in range(17):
+            ring = [z[:, a, b] for a in range(i - r, i + r + 1) for b in range(j - r, j + r + 1)
+                    if 0 <= a < 13 and 0 <= b < 17 and max(abs(a - i), abs(b - j)) == r]
+            want = torch.stack(ring).amax(0) if ring else torch.full((2,), -torch.inf)
+            assert torch.equal(got[:, i, j], want), (i, j)
+
+
+def test_bands_of_positive_misfit_are_not_glints():
+    # thin bright streaks longer than a glint (a sheen, a highlight's streak) as often as spots would pass:
+    # the screen counts spots only (a glint no longer than null_test.EXTENT)
+    from torchmetal.flakes.null_test import EXTENT
+
+    g, photo, phong, valid = _scene(6)
+    bands = torch.zeros(N, 3, H, W)
+    for k in range(N):
+        for i in (20, 50, 80):
+            j = int(torch.randint(4, W - 44, (1,), generator=g))
+            bands[k, :, i, j : j + 40] = 0.5  # 40 px > EXTENT
+    assert 40 > EXTENT
+    passed, counts = _screen(photo + bands, phong, valid)
+    assert not passed, counts
+    assert _screen(photo + _spikes(g, 40, 0.5), phong, valid)[0]  # the same brightness as spots: glints

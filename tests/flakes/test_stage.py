@@ -84,3 +84,15 @@ class TestGlintNull:
         kept, counts = glint_excess(detect_capture(cap2, scene.phong).particles,
                                     detect_capture(cap2, scene.phong, mirrored=True).particles, (h, w))
         assert not kept and counts["positive"][0] > 50, counts  # plenty detected, none in excess
+
+
+def test_extended_detections_are_left_out_of_the_null_test():
+    from torchmetal.flakes.null_test import EXTENT, drop_extended
+    from torchmetal.flakes.results import Particles
+
+    p = Particles.empty()
+    p = Particles(**{k: torch.zeros((4, *v.shape[1:]), dtype=v.dtype) for k, v in vars(p).items()})
+    p.major = torch.tensor([2.0, EXTENT, EXTENT + 0.5, 200.0])
+    p.shot = torch.tensor([0, 1, 2, 3])
+    kept, dropped = drop_extended(p)
+    assert dropped == 2 and kept.shot.tolist() == [0, 1]

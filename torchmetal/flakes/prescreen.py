@@ -17,7 +17,9 @@ sampled; the pipeline renders only those pixels), the channel-summed residual lo
 (clipped) mean over a small box (what is wider than a flake is misfit, not a glint), and σ is
 1.4826·MAD over ``tile``×``tile`` sampled pixels of each shot (from every ``SUB``-th of them), so a
 bright highlight's noise does not hide a glint in the shade nor the reverse. Outliers are counted
-once per local peak.
+once per local peak, and only where they are spots: above twice the largest value on a ring half of
+:data:`~torchmetal.flakes.null_test.EXTENT` away (a flake glints as a spot; the shared uw_gray_sphere's
+sheen bands, 200 px long, had passed the screen).
 
 Cost, skipped flake stage / Phong fit (CPU seconds of a fresh process, one thread, 3 runs each;
 :func:`sampled_residual` renders the strided grid separably in float32, the tile statistics are
@@ -29,13 +31,15 @@ module with itself).
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
 from torchmetal.flakes.filters import box_mean
 from torchmetal.flakes.lobe_core import CORE_LEVEL, LOG_CORE
 from torchmetal.flakes.rim import interior
-from torchmetal.flakes.null_test import MIN_EXCESS, SNR_LADDER, glint_rule
+from torchmetal.flakes.null_test import EXTENT, MIN_EXCESS, SNR_LADDER, glint_rule
 
 SCREEN_STRIDE = 2  # the pipeline renders and screens every 2nd row and column
 TILE = 32
@@ -81,6 +85,26 @@ def _max3(x: Tensor) -> Tensor:
     p = torch.nn.functional.pad(x, (1, 1, 1, 1), value=-torch.inf)
     rows = torch.maximum(torch.maximum(p[:, :-2], p[:, 1:-1]), p[:, 2:])
     return torch.maximum(torch.maximum(rows[:-2], rows[1:-1]), rows[2:])
+
+
+def _ring_max(z: Tensor, radius: int) -> Tensor:
+    """Largest value of (N, h, w) ``z`` on the square ring at Chebyshev distance ``radius`` around each pixel
+    (−inf off the image), from one row- and one column-wise running maximum: (N, h, w)."""
+    k = 2 * radius + 1
+    x = z.unsqueeze(1)
+    rows = torch.nn.functional.max_pool2d(x, (1, k), stride=1, padding=(0, radius))[:, 0]  # along each row
+    cols = torch.nn.functional.max_pool2d(x, (k, 1), stride=1, padding=(radius, 0))[:, 0]
+    p = torch.nn.functional.pad(rows, (0, 0, radius, radius), value=-torch.inf)
+    q = torch.nn.functional.pad(cols, (radius, radius), value=-torch.inf)
+    h, w = z.shape[-2:]
+    return torch.maximum(torch.maximum(p[:, :h], p[:, 2 * radius:]), torch.maximum(q[..., :w], q[..., 2 * radius:]))
+
+
+def _compact(z: Tensor, radius: int) -> Tensor:
+    """``z`` (N, h, w) where a pixel is a spot — above twice the largest value on the ring ``radius`` sampled
+    px around it (a glint no longer than :data:`~torchmetal.flakes.null_test.EXTENT`), 0 elsewhere (a band of
+    misfit crossing the ring: a sheen, the streak of a highlight)."""
+    return torch.where(z > 2.0 * _ring_max(z, radius), z, torch.zeros_like(z))
 
 
 def _high_pass(r: Tensor, ok: Tensor | None, med: Tensor, sigma: Tensor, radius: int, tile: int) -> Tensor:
@@ -169,16 +193,16 @@ def sampled_valid(capture, stride: int = SCREEN_STRIDE) -> Tensor:
     return mask & ~(sat[:, 0] | sat[:, 1] | sat[:, 2])
 
 
-def _extremes(r: Tensor, ok: Tensor, tile: int, background: int) -> tuple[Tensor, Tensor, int]:
-    """Largest z and largest −z over the shots of (n, h, w) residuals ``r`` (valid where ``ok``):
-    (h, w) each, and the number of valid pixel-shots. Every statistic is per shot, so shot groups
-    combine by maxima."""
+def _extremes(r: Tensor, ok: Tensor, tile: int, background: int, radius: int) -> tuple[Tensor, Tensor, int]:
+    """Largest compact z and largest compact −z (:func:`_compact`, ring ``radius``) over the shots of
+    (n, h, w) residuals ``r`` (valid where ``ok``): (h, w) each, and the number of valid pixel-shots. Every
+    statistic is per shot, so shot groups combine by maxima."""
     every = bool(ok.view(torch.uint8).amin())  # Tensor.all, cheaper
     r = r if every else torch.where(ok, r, torch.zeros_like(r))
     hp = _high_pass(r, None if every else ok, *_tile_stats(r, ok, tile, sub=2 * SUB), background, tile)
     z = _per_tile(lambda x, med, sigma: (x - med) / sigma, hp, tile, *_tile_stats(hp, ok, tile))
     z = z if every else torch.where(ok, z, torch.zeros_like(z))  # masked pixels count nowhere
-    return z.amax(0), -z.amin(0), ok.numel() if every else int(ok.sum())
+    return _compact(z, radius).amax(0), _compact(-z, radius).amax(0), ok.numel() if every else int(ok.sum())
 
 
 def _counts(hi: Tensor, lo: Tensor, pixels: int, ladder: tuple[float, ...], min_excess: int) -> tuple[bool, dict]:
@@ -191,7 +215,7 @@ def _counts(hi: Tensor, lo: Tensor, pixels: int, ladder: tuple[float, ...], min_
     return passed, {"snr": list(ladder), "positive": pos, "negative": neg, "pixels": pixels}
 
 
-def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int = TILE,
+def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, pitch: int = 1, tile: int = TILE,
                  background: int = BACKGROUND,
                  ladder: tuple[float, ...] = SNR_LADDER, min_excess: int = MIN_EXCESS) -> tuple[bool, dict]:
     """Do positive residual outliers exceed negative ones, pixel by pixel?
@@ -200,6 +224,8 @@ def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int 
         residual: (N, H, W) channel-summed photo − Phong render (:func:`sampled_residual`).
         valid: (N, H, W) bool, pixels to look at (mask, not saturated).
         stride: sample every ``stride``-th row and column of the inputs.
+        pitch: capture pixels per input pixel (:data:`SCREEN_STRIDE` for :func:`sampled_residual`'s grid):
+            sets the ring a spot must stand above (:func:`ring_radius`).
         tile: edge of the tiles (in sampled pixels) over which σ is estimated.
         background: radius (sampled pixels) of the box whose (clipped) mean is taken off first: a
             misfit wider than the box (a highlight of the wrong width or place) is not an outlier.
@@ -207,8 +233,15 @@ def glint_screen(residual: Tensor, valid: Tensor, *, stride: int = 1, tile: int 
     Returns:
         (passed, {"snr": [t…], "positive": [P…], "negative": [M…], "pixels": sampled pixel-shots valid}).
     """
-    hi, lo, pixels = _extremes(residual[..., ::stride, ::stride], valid[..., ::stride, ::stride], tile, background)
+    hi, lo, pixels = _extremes(residual[..., ::stride, ::stride], valid[..., ::stride, ::stride], tile, background,
+                               ring_radius(pitch * stride))
     return _counts(hi, lo, pixels, ladder, min_excess)
+
+
+def ring_radius(stride: int) -> int:
+    """Sampled px from a spot's centre to the ring it must stand above: half of
+    :data:`~torchmetal.flakes.null_test.EXTENT`, rounded up, at sampling ``stride``."""
+    return max(1, math.ceil(EXTENT / 2 / stride))
 
 
 def screen_fit(fit, capture, stride: int = SCREEN_STRIDE, *, shots_per_pass: int | None = None) -> tuple[bool, dict]:
@@ -220,7 +253,7 @@ def screen_fit(fit, capture, stride: int = SCREEN_STRIDE, *, shots_per_pass: int
     pixels = 0
     for shots, r, core in residual_groups(fit, capture, stride, shots_per_pass):
         ok = valid[shots.start:shots.stop]
-        h_k, l_k, p_k = _extremes(r, ok if core is None else ok & ~core, TILE, BACKGROUND)
+        h_k, l_k, p_k = _extremes(r, ok if core is None else ok & ~core, TILE, BACKGROUND, ring_radius(stride))
         hi, lo = (h_k, l_k) if hi is None else (torch.maximum(hi, h_k), torch.maximum(lo, l_k))
         pixels += p_k
     return _counts(hi, lo, pixels, SNR_LADDER, MIN_EXCESS)

@@ -5,7 +5,8 @@ beyond it and have the least reliable normals; the Phong fit misses them both wa
 makes compact positive blobs that pass for glints. On the shared uw_gray_sphere (a matte sphere, no
 flakes) 65 of 145 positive detections lay within 2 px of the mask's edge against 8 of 89 in the mirrored
 residual: an excess that is the mask's edge, not glints. The screen and the null test therefore look only
-at the mask's interior (on uw_gray_sphere the sheen still leaves an excess: 17 vs 3 above SNR 15):
+at the mask's interior (on uw_gray_sphere the sheen still left an excess, 17 vs 3 above SNR 15, of bands
+~200 px long, which :func:`~torchmetal.flakes.null_test.drop_extended` leaves out):
 pixels more than :data:`RIM` px from a pixel outside the mask (the image border does not count). A
 sample's glints elsewhere are counted as before; a full mask has no rim.
 """
