@@ -74,6 +74,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
                 tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
                 progress=not args.quiet, normals=args.normals, lobe=args.lobe, observed_flakes=args.observed_flakes,
+                weights=args.weights,
             )
         if args.export:
             from torchmetal.onnx_export import export_onnx
@@ -206,7 +207,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="flake model: auto keeps it when detections exceed noise and left-out shots' sparkle "
                         "statistics (MD) are no further from the photos with it; on: whenever detections exceed noise")
     f.add_argument("--robust", choices=["auto", "none", "huber", "cauchy"], default="auto",
-                   help="IRLS weights of the Phong fit (auto: plain least squares)")
+                   help="IRLS weights of the Phong fit (auto: least squares, Huber for the flake statistics)")
+    f.add_argument("--weights", choices=["noise", "uniform"], default="noise",
+                   help="least-squares weights: noise (default): each observation by the inverse of its expected "
+                        "noise variance, read + shot noise fitted to the residuals; uniform: every observation alike "
+                        "(tiled fits and --scheme paper: uniform)")
     f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
     f.add_argument("--max-iters", type=int, default=100)
     f.add_argument("--seed", type=int, default=0, help="seed of the flake field")

@@ -6,9 +6,9 @@ stage returns no model and the material stores ``flakes: null``. Detections that
 tests but do not bring left-out shots' sparkle statistics closer give the flake-free material
 (:func:`~torchmetal.flakes.choice.keep_flakes`).
 
-The Phong fit is plain least squares by default (``robust="auto"``): on the scene zoo
-(:mod:`torchmetal.synth.zoo`), Huber weights cost 0.1–0.3 dB against the clean truth on every
-flake-free scene. The flake stage first asks whether the detections are glints at all: misfit
+The Phong fit is least squares weighted by a fitted noise model by default (``weights="noise"``,
+``robust="auto"``): on the scene zoo (:mod:`torchmetal.synth.zoo`), Huber weights cost 0.1–0.3 dB against the
+clean truth on every flake-free scene. The flake stage first asks whether the detections are glints at all: misfit
 gives residuals of both signs, glints positive ones, so detections must exceed those of the
 mirrored residual (:func:`~torchmetal.flakes.null_test.glint_excess`), counting spots only (a sheen band,
 the streak of a highlight, the mask's rim are misfit). Only then is the Phong fit
@@ -36,6 +36,7 @@ from torchmetal.material import Material
 
 FLAKE_MODES = ("auto", "on", "off")
 OBSERVED_MODES = ("auto", "on", "off")
+WEIGHTS = ("noise", "uniform")
 ROBUST_GLINTS = "huber"  # robust="auto": the Phong fit's weights once the detections are glints
 CLEAN_MIN_PARTICLES = 20  # fewer first-round detections: no statistics (flake_statistics' min_flakes)
 
@@ -156,6 +157,7 @@ def fit_material(
     progress: bool = False,
     lobe: str = "auto",
     normals: str = "auto",
+    weights: str = "noise",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -184,6 +186,8 @@ def fit_material(
             left-out shots prefer them to the flat plane, :mod:`~torchmetal.fit.normals_choice`), "given"
             (the capture's normals.npy; flat without one), "flat" (0, 0, 1), or "estimate" (photometric
             stereo with the Phong terms, :func:`~torchmetal.fit.normals.estimate_normals`; the material keeps them).
+        weights: "noise" (the default: each observation weighted by the inverse of its expected noise variance,
+            ``fit_phong(noise_weights=True)``) or "uniform" (plain least squares).
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,
@@ -196,12 +200,15 @@ def fit_material(
     mode = {True: "on", False: "off"}.get(observed_flakes, observed_flakes) if isinstance(observed_flakes, (bool, str)) else None
     if mode not in OBSERVED_MODES:
         raise InputError(f"observed_flakes: expected one of {OBSERVED_MODES} or a bool, found {observed_flakes!r}")
+    if weights not in WEIGHTS:
+        raise InputError(f"weights: expected one of {WEIGHTS}, found {weights!r}")
     auto = robust == "auto"
     t0 = time.perf_counter()
     from torchmetal.fit.normals import with_normals
 
     capture, normals_report = with_normals(capture, normals, fit_kwargs=dict(tol=tol, max_iters=max_iters))
-    kw = dict(scheme=scheme, specular=specular, tol=tol, max_iters=max_iters, progress=progress)
+    kw = dict(scheme=scheme, specular=specular, tol=tol, max_iters=max_iters, progress=progress,
+              noise_weights=weights == "noise")
     fit = fit_phong(capture, robust=None if auto else robust, lobe=lobe, **kw)
     first = fit  # the flake-free material's fit, should the flakes be dropped
     kw["lobe"] = fit.lobe  # refits keep the lobe the first fit chose

@@ -40,3 +40,34 @@ def test_skipped_stats_equal_dense_stats(tmp_path):
     ref = st_ref.double().sum(-1).unsqueeze(1)  # (6, 1, 3)
     assert torch.allclose(st, ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
     assert torch.allclose(eb, eb_ref, rtol=1e-9, atol=1e-15)
+
+
+def _shot_noise(cap, a: float, b: float, seed: int = 0):
+    """``cap`` with Gaussian noise of variance a + b·value added to every observation (read + shot noise)."""
+    import dataclasses
+
+    g = torch.Generator().manual_seed(seed)
+    clean = cap.images.double()
+    noisy = clean + (a + b * clean.clamp_min(0.0)).sqrt() * torch.randn(clean.shape, generator=g, dtype=torch.float64)
+    return dataclasses.replace(cap, images=noisy.clamp_min(0.0).to(cap.images.dtype))
+
+
+def test_noise_model_recovers_read_and_shot_noise(tmp_path):
+    """noise_model: var = a + b·ŷ per channel from the residuals of a fit at the true terms."""
+    from torchmetal.fit.refine import noise_model
+
+    scene = SCENES["flakes_a"].with_(size=96, encoding="float", noise=0.0, flakes=None)
+    cap = load_capture(make_case(scene, tmp_path / "c").capture_dir)
+    a, b = 2e-6, 4e-4
+    obs = build_observations(_shot_noise(cap, a, b), dtype=torch.float64, chunk=1024)
+    alpha = torch.full((1, 3), scene.alpha, dtype=torch.float64)
+    fit = evaluate_specular(obs, torch.full((1, 3), scene.s, dtype=torch.float64), alpha)
+    got = noise_model(obs, fit.s, fit.alpha, fit.eb)
+    assert got.shape == (2, 3)
+    assert torch.allclose(got[1], torch.full((3,), b, dtype=torch.float64), rtol=0.25), got
+    assert bool((got[0] > 0).all()) and bool((got[0] < 10 * a + 0.05 * b).all()), got  # small beside b·ŷ
+    # without shot noise the slope vanishes
+    obs = build_observations(_shot_noise(cap, 1e-4, 0.0), dtype=torch.float64, chunk=1024)
+    fit = evaluate_specular(obs, fit.s, alpha)
+    flat = noise_model(obs, fit.s, fit.alpha, fit.eb)
+    assert bool((flat[1] * 0.5 < 0.25 * flat[0]).all()), flat  # b·ŷ (ŷ ≲ 0.5) well below a

@@ -110,6 +110,7 @@ def fit_phong(
     select_pixels: int = 1 << 13,
     seed: int = 0,
     lobe: str = "phong",
+    noise_weights: bool = True,
 ) -> FitResult:
     """Fit the Phong model of docs/design.md §2.2 (texture d(p), s, α per channel) to a capture.
 
@@ -139,6 +140,10 @@ def fit_phong(
             "blinn", "ggx", or "auto" (the lowest error on held-out shots,
             :mod:`torchmetal.fit.lobe_choice`; phong unless another lobe wins beyond noise; phong with
             scheme="paper"). Other lobes than phong need scheme="refine".
+        noise_weights: weigh each observation by the inverse of its expected noise variance, a + b·ŷ per
+            channel fitted to the residuals (:func:`~torchmetal.fit.refine.noise_model`: read noise, shot
+            noise, the 8-bit sRGB step that grows with the value); False: every observation alike.
+            Only with scheme="refine".
 
     Returns:
         :class:`FitResult`.
@@ -165,7 +170,8 @@ def fit_phong(
                              robust=robust)
         else:
             kw = dict(specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers, clusters=clusters,
-                      chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed)
+                      chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
+                      noise=noise_weights)
             decided = None
             if lobe == "auto":  # the structure (clusters) with Phong first, then the lobes compete on it
                 n_skipped = len(run.skipped)
@@ -262,12 +268,15 @@ def _fit_paper(capture, run: FitRun, *, specular: str, tol: float, max_iters: in
 
 
 def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outliers, clusters, chunk, sub_pixels,
-                select_pixels, seed, lobe="phong", decided=None) -> FitResult:
+                select_pixels, seed, lobe="phong", decided=None, noise=False) -> FitResult:
     d = decided if decided is not None else subsample_decisions(
         capture, run, specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers,
-        clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed, lobe=lobe)
+        clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed, lobe=lobe,
+        noise=noise)
     spec, labeler, s_fixed, sel, use_maps, maps_info, weighting = (
         d.spec, d.labeler, d.s_fixed, d.sel, d.use_maps, d.maps_info, d.weighting)
+    noise_info = None if weighting is None or weighting.variance is None else \
+        {"a": weighting.variance[0].tolist(), "b": weighting.variance[1].tolist()}
     imgs = capture.images
     dt = compute_dtype(imgs)
     h, w = imgs.shape[-2:]
@@ -290,7 +299,7 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
         run.log("texture", 0, rmse, 1.0, full.num_pixels)
         z = torch.zeros(3, dtype=dt, device=imgs.device)
         return _result(capture, run, tex, z, torch.full_like(z, ALPHA_MIN),
-                       status="converged", rmse=rmse, scheme="refine", specular="none")
+                       status="converged", rmse=rmse, scheme="refine", specular="none", noise=noise_info)
     with run.stage("refine"):
         k = spec.k
         s_fix, b_fix = None, None
@@ -316,7 +325,8 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
             run.skipped.append(f"specular: per-channel α not kept (GGX: one α for the three channels; they lower the "
                                f"cost by {shared['cost_rise']:.3g}, below the χ² bound {shared['bound']:.3g})")
     if use_maps:
-        return _finish_maps(capture, run, full, fit, k, tol=tol, max_iters=max_iters, sel_info=sel, maps_info=maps_info)
+        return _finish_maps(capture, run, full, fit, k, tol=tol, max_iters=max_iters, sel_info=sel, maps_info=maps_info,
+                            noise=noise_info)
     with run.stage("texture"):
         tex = texture_map(full, fit.s, fit.eb)
         fit = replace(fit, eb=None)  # e_b (3, P) is spent: the texture's peak need not hold it
@@ -326,17 +336,18 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
     sel_info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason,
                                          "relabel": sel.relabel}
     if k == 1:
-        return _result(capture, run, tex, fit.s[0], fit.alpha[0], status=fit.status, rmse=rmse, scheme="refine",
+        return _result(capture, run, tex, fit.s[0], fit.alpha[0], status=fit.status, rmse=rmse, scheme="refine", noise=noise_info,
                        specular="global", selection=sel_info, maps_selection=maps_info)
     labels = _grid_maps(full.labels, h, w)
     area = torch.bincount(full.labels, minlength=k).to(torch.float64)
     area = area / area.sum().clamp_min(1.0)
-    return _result(capture, run, tex, (area @ fit.s).to(dt), (area @ fit.alpha).to(dt), spec_labels=labels,
+    return _result(capture, run, tex, (area @ fit.s).to(dt), (area @ fit.alpha).to(dt), spec_labels=labels, noise=noise_info,
                    cluster_s=fit.s.to(dt), cluster_alpha=fit.alpha.to(dt), status=fit.status, rmse=rmse,
                    scheme="refine", specular="clustered", selection=sel_info, maps_selection=maps_info)
 
 
-def _finish_maps(capture, run: FitRun, full: Observations, fit: SpecFit, k: int, *, tol, max_iters, sel_info, maps_info) -> FitResult:
+def _finish_maps(capture, run: FitRun, full: Observations, fit: SpecFit, k: int, *, tol, max_iters, sel_info, maps_info,
+                 noise=None) -> FitResult:
     """Full-resolution gloss maps from the global/clustered fit ``fit``; texture at the maps."""
     h, w = capture.images.shape[-2:]
     dt = full.dtype
@@ -355,6 +366,6 @@ def _finish_maps(capture, run: FitRun, full: Observations, fit: SpecFit, k: int,
     s_mean = (maps.s.double() @ wgt) if bool(inside.any()) else fit.s[0].double()
     a_mean = (maps.alpha.double() @ wgt) if bool(inside.any()) else fit.alpha[0].double()
     sel = None if sel_info is None else {"k": sel_info.k, "hold": sel_info.hold, "mse": sel_info.mse, "reason": sel_info.reason}
-    return _result(capture, run, tex, s_mean.to(dt), a_mean.to(dt), gloss_s=_grid_maps(maps.s.to(dt), h, w),
+    return _result(capture, run, tex, s_mean.to(dt), a_mean.to(dt), noise=noise, gloss_s=_grid_maps(maps.s.to(dt), h, w),
                    gloss_alpha=_grid_maps(maps.alpha.to(dt), h, w), status=fit.status, rmse=rmse, scheme="refine",
                    specular="maps", selection=sel, maps_selection=maps_info)

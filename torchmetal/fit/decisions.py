@@ -7,7 +7,7 @@ the in-memory fit and the tiled one (:mod:`torchmetal.scale.tiled`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -17,7 +17,7 @@ from torchmetal.fit.gloss import choose_maps
 from torchmetal.fit.lobe_choice import LOBE_GRID, specular_energy
 from torchmetal.fit.paper import paper_scheme
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, compute_dtype, grid_stride
-from torchmetal.fit.refine import SpecFit, evaluate_specular, fit_specular, grid_beta, residual_scale
+from torchmetal.fit.refine import SpecFit, evaluate_specular, fit_specular, grid_beta, noise_model, residual_scale
 from torchmetal.fit.run import FitRun
 
 SIGMA_FLOOR = 1e-5  # residual scale floor, relative to the largest pixel value
@@ -51,16 +51,18 @@ class SubsampleDecisions:
 
 
 def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robust, outliers, clusters, chunk,
-                        sub_pixels, select_pixels, seed, lobe="phong") -> SubsampleDecisions:
+                        sub_pixels, select_pixels, seed, lobe="phong", noise: bool = False) -> SubsampleDecisions:
     """Steps 1–4b of the refine scheme (module docstring) on strided pixel subsamples of ``capture``
     (any object with ``images`` (N, 3, H, W) readable by :func:`~torchmetal.fit.problem.build_observations`,
-    such as the tiled fit's memory-mapped capture): the same values bit for bit for the same pixels."""
+    such as the tiled fit's memory-mapped capture): the same values bit for bit for the same pixels.
+    ``noise``: weigh each observation by its expected variance (:func:`~torchmetal.fit.refine.noise_model`,
+    fitted to the subsample fit's residuals)."""
     imgs = capture.images
     dt = compute_dtype(imgs)
     n_shots, _, h, w = imgs.shape
     stride = grid_stride(h, w, sub_pixels)
     sub_tol = max(tol, 1e-4)
-    weigh = outliers is not None or robust is not None
+    weigh = outliers is not None or robust is not None or noise
 
     # 1. init on a small subsample: the paper's scheme (loose tolerance) + a coarse α grid
     with run.stage("init"):
@@ -90,7 +92,8 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
             else:
                 glob0 = glob
             sigma = _sigma(sub, glob0, capture)
-            weighting = Weighting(sigma=sigma, robust=robust, outlier_k=outliers)
+            variance = noise_model(sub, glob0.s, glob0.alpha, glob0.eb) if noise else None
+            weighting = Weighting(sigma=sigma, robust=robust, outlier_k=outliers, variance=variance)
             n_base = float(sub.n.sum())
             for _ in range(2 if robust is not None else 1):
                 sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob0.s, glob0.alpha),
@@ -101,12 +104,12 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
                                     on_iter=run.logger("refine.sub", sub.num_pixels))
                 glob0 = glob
 
-        if robust is None and weighting is not None:
+        if robust is None and outliers is not None:
             frac = 1.0 - float(sub.n.sum()) / max(n_base, 1.0)
             if frac < OUTLIER_SKIP:
                 run.skipped.append(f"outliers: {frac:.1e} of the subsample's observations beyond {outliers:g}·σ; "
                                    "full-resolution outlier masking skipped")
-                weighting = None
+                weighting = None if weighting.variance is None else replace(weighting, outlier_k=None)
 
     # 3. highlight evidence: in sample, then on a held-out shot (a sharp lobe can fit noise)
     s_fixed = None

@@ -83,14 +83,31 @@ class Reference:
         return self.s[labels].T, self.alpha[labels].T
 
 
+VARIANCE_W_MIN = 1e-3  # the smallest noise weight relative to the darkest observation's (float16 storage)
+
+
 @dataclass
 class Weighting:
-    """How residuals become weights: scale σ (3,), robust loss, outlier cut k·σ, IRLS rounds."""
+    """How residuals become weights: scale σ (3,), robust loss, outlier cut k·σ, IRLS rounds, and the noise
+    model ``variance`` (2, 3): per channel (a, b) of the expected variance a + b·max(ŷ, 0) of an observation
+    whose model value is ŷ (:func:`~torchmetal.fit.refine.noise_model`; None: every observation alike)."""
 
     sigma: Tensor
     robust: str | None = None
     outlier_k: float | None = None
     rounds: int = 3
+    variance: Tensor | None = None
+
+    @property
+    def weighs(self) -> bool:
+        """Per-observation weights are stored (robust or noise weights), not only 0/1 outlier masks."""
+        return self.robust is not None or self.variance is not None
+
+    def noise_weight(self, pred: Tensor) -> Tensor:
+        """a / (a + b·max(ŷ, 0)) in [VARIANCE_W_MIN, 1] for model values ``pred`` (n, 3, c): the inverse
+        variance relative to a black observation's."""
+        a, b = (v.to(pred.dtype).view(1, 3, 1) for v in self.variance)
+        return (a / (a + b * pred.clamp_min(0.0))).clamp_min(VARIANCE_W_MIN)
 
     def __call__(self, res: Tensor) -> Tensor:
         """Weights in [0, 1] for residuals (n, 3, c)."""
@@ -243,11 +260,13 @@ def tmin_chunk(y: Tensor, a: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(torch.isfinite(t), t, torch.zeros_like(t)), k
 
 
-def _irls_chunk(target: Tensor, a: Tensor, base: Tensor, weighting: Weighting) -> Tensor:
+def _irls_chunk(target: Tensor, a: Tensor, base: Tensor, weighting: Weighting, spec: Tensor | None = None) -> Tensor:
     """Per-pixel IRLS of the texture against ``target`` = y − specular; float weights (n, 3, c).
 
     ``base`` (n, 3, c) 0/1 float. Starts from the median over shots of target/a (one glint cannot
-    drag the start), and never rejects every observation of a pixel.
+    drag the start), and never rejects every observation of a pixel. With a noise model
+    (``weighting.variance``) the weights carry :meth:`Weighting.noise_weight` of the model value
+    a·d + ``spec`` (the specular term (n|1, 3, c), 0 when None).
     """
     dt = a.dtype
     zero = torch.zeros((), dtype=dt, device=a.device)
@@ -264,10 +283,15 @@ def _irls_chunk(target: Tensor, a: Tensor, base: Tensor, weighting: Weighting) -
             okd = den > 0
             d = torch.where(okd, (wa * target).sum(0) / torch.where(okd, den, torch.ones_like(den)), d)
         res = target - a * d
-        if weighting.robust is None:
+        if weighting.robust is not None:
+            w = base * weighting(res)
+        elif weighting.outlier_k is not None:
             w = base * as_float(res.abs() <= weighting.outlier_k * sigma, dt)
         else:
-            w = base * weighting(res)
+            w = base
+        if weighting.variance is not None:
+            pred = a * d if spec is None else torch.addcmul(spec, a, d)
+            w = w * weighting.noise_weight(pred)
     lost = (w.sum(0) == 0) & (base.sum(0) > 0)
     if bool(lost.any()):
         w = torch.where(lost.unsqueeze(0), base, w)
@@ -353,7 +377,7 @@ def build_observations(
 
     chunks = chunk_ranges(p, chunk)
     new = lambda *shape, dtype=dt: torch.empty(*shape, dtype=dtype, device=dev)  # noqa: E731
-    robust = weighting is not None and weighting.robust is not None
+    robust = weighting is not None and weighting.weighs  # per-observation weights stored
     valid_all = new(n_shots, 3, p, dtype=torch.uint8) if not stream or weighting is not None else None
     wstore = torch.float16 if dt == torch.float32 else torch.float32
     weight_all = new(n_shots, 3, p, dtype=wstore) if robust else None
@@ -409,7 +433,7 @@ def build_observations(
         if weighting is not None and b is not None:
             target = torch.addcmul(yc, s_c.unsqueeze(0), b, value=-1.0)  # y − s·b
             if robust:
-                wts = _irls_chunk(target, a, base, weighting)
+                wts = _irls_chunk(target, a, base, weighting, yc - target)
                 weight_all[:, :, sl] = wts.to(wstore)
                 wts = weight_all[:, :, sl].to(dt)  # the stored (rounded) weights define the cost
             elif weighting.outlier_k is not None:  # a least-squares pass; IRLS only where something exceeds k·σ

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.lobes import lobe_factor, lobe_terms
-from torchmetal.fit.problem import Observations
+from torchmetal.fit.problem import VARIANCE_W_MIN, Observations
 from torchmetal.fit.projected_sums import add_skipped_shots, chunk_stats, reduce_stats
 
 ALPHA_MIN = 1.0
@@ -327,6 +327,55 @@ def residual_scale(obs: Observations, s: Tensor, alpha: Tensor, eb: Tensor, max_
         v = torch.cat(parts[c]) if parts[c] else torch.zeros(0, dtype=obs.dtype, device=d.device)
         out.append(1.4826 * v.median() if v.numel() else torch.zeros((), dtype=obs.dtype, device=d.device))
     return torch.stack(out)
+
+
+NOISE_BINS = 16  # noise_model: quantile bins of the model value
+MEDIAN_CHI2_1 = 0.45493642311957283  # median of χ²(1): median r² = 0.4549·variance for Gaussian noise
+
+
+def noise_model(obs: Observations, s: Tensor, alpha: Tensor, eb: Tensor, max_samples: int = 1 << 18) -> Tensor:
+    """The observations' noise variance as a function of the model value ŷ, var = a + b·ŷ per channel
+    (read noise and quantisation a; shot noise, and an 8-bit sRGB step growing with the value, b):
+    (2, 3) float64 rows a, b.
+
+    Fitted to the residuals of the fit (s, α (K, 3), e_b (3, P)): ŷ cut into :data:`NOISE_BINS`
+    quantile bins, each bin's variance its median r² / :data:`MEDIAN_CHI2_1` (glints and a misfit
+    highlight do not move a median), then a, b ≥ 0 by least squares relative to each bin's variance.
+    a is at least :data:`~torchmetal.fit.problem.VARIANCE_W_MIN` of the brightest bin's variance."""
+    d = texture_map(obs, s, eb)
+    labels = obs.labels if s.shape[0] > 1 else None
+    preds: list[list[Tensor]] = [[], [], []]
+    sq: list[list[Tensor]] = [[], [], []]
+    budget = max(1, max_samples // max(1, len(obs.chunks)))
+    for j, (p0, p1), (y, g, u, L, w, inten), sp, ap in chunk_terms(obs, s, alpha, labels):
+        pred = inten * g * d[:, p0:p1] + sp * (inten * u) * lobe_factor(L, ap, obs.geo_chunk(j), obs.lobe)
+        ok = w > 0
+        for c in range(3):
+            m = ok[:, c]
+            v, r = pred[:, c][m], (y[:, c] - pred[:, c])[m]
+            step = max(1, v.numel() // budget)
+            preds[c].append(v[::step])
+            sq[c].append((r * r)[::step])
+    out = torch.zeros(2, 3, dtype=torch.float64, device=d.device)
+    for c in range(3):
+        v = torch.cat(preds[c]).double() if preds[c] else torch.zeros(0, dtype=torch.float64, device=d.device)
+        if v.numel() < 4 * NOISE_BINS:
+            out[0, c] = 1.0  # too few observations to model: every observation alike
+            continue
+        r2 = torch.cat(sq[c]).double()
+        order = torch.argsort(v)
+        v, r2 = v[order], r2[order]
+        bins = torch.tensor_split(torch.arange(v.numel(), device=v.device), NOISE_BINS)
+        x = torch.stack([v[i].median() for i in bins])
+        var = torch.stack([r2[i].median() for i in bins]) / MEDIAN_CHI2_1
+        rel = 1.0 / var.clamp_min(1e-300)  # least squares relative to each bin's variance
+        design = torch.stack([torch.ones_like(x), x.clamp_min(0.0)], 1) * rel[:, None]
+        a, b = torch.linalg.lstsq(design, var * rel).solution.tolist()
+        if b < 0.0:
+            a, b = float((var * rel).sum() / rel.sum()), 0.0
+        top = a + b * float(x.clamp_min(0.0).max())
+        out[0, c], out[1, c] = max(a, VARIANCE_W_MIN * top, 1e-300), b
+    return out
 
 
 def model_terms(obs: Observations, alpha: Tensor, labels: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:

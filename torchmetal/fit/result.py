@@ -77,6 +77,8 @@ class FitResult:
         flat: True when every normal is (0, 0, 1).
         lobe: the specular lobe ("phong", docs/design.md §2.2; "blinn"; "ggx"), see :mod:`torchmetal.lobes`.
         lobe_selection: the held-out comparison behind lobe="auto", if any.
+        noise: the noise model the least squares were weighted by, {"a": [3], "b": [3]} (variance
+            a + b·ŷ per channel, :func:`~torchmetal.fit.refine.noise_model`), or None (unweighted).
     """
 
     texture: Tensor
@@ -102,6 +104,7 @@ class FitResult:
     gloss_s: Tensor | None = None
     gloss_alpha: Tensor | None = None
     maps_selection: dict | None = None
+    noise: dict | None = None
 
     @property
     def clustered(self) -> bool:
@@ -136,7 +139,7 @@ class FitResult:
             "history": stages, "skipped": list(self.skipped),
             "selection": self.selection,
             "lobe": self.lobe, "lobe_selection": self.lobe_selection,
-            "maps_selection": self.maps_selection,
+            "maps_selection": self.maps_selection, "noise": self.noise,
         }
 
     def to_material(self, report_extra: dict | None = None) -> Material:
