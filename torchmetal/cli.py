@@ -208,10 +208,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "statistics (MD) are no further from the photos with it; on: whenever detections exceed noise")
     f.add_argument("--robust", choices=["auto", "none", "huber", "cauchy"], default="auto",
                    help="IRLS weights of the Phong fit (auto: least squares, Huber for the flake statistics)")
-    f.add_argument("--weights", choices=["noise", "uniform"], default="noise",
-                   help="least-squares weights: noise (default): each observation by the inverse of its expected "
-                        "noise variance, read + shot noise fitted to the residuals; uniform: every observation alike "
-                        "(tiled fits and --scheme paper: uniform)")
+    f.add_argument("--weights", choices=["uniform", "noise"], default="uniform",
+                   help="least-squares weights: uniform (default): every observation alike; noise: each by the "
+                        "inverse of its expected noise variance, read + shot noise fitted to the residuals (tiled "
+                        "fits and --scheme paper: uniform)")
     f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
     f.add_argument("--max-iters", type=int, default=100)
     f.add_argument("--seed", type=int, default=0, help="seed of the flake field")

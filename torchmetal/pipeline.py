@@ -6,9 +6,9 @@ stage returns no model and the material stores ``flakes: null``. Detections that
 tests but do not bring left-out shots' sparkle statistics closer give the flake-free material
 (:func:`~torchmetal.flakes.choice.keep_flakes`).
 
-The Phong fit is least squares weighted by a fitted noise model by default (``weights="noise"``,
-``robust="auto"``): on the scene zoo (:mod:`torchmetal.synth.zoo`), Huber weights cost 0.1–0.3 dB against the
-clean truth on every flake-free scene. The flake stage first asks whether the detections are glints at all: misfit
+The Phong fit is plain least squares by default (``robust="auto"``, ``weights="uniform"``): on the scene zoo
+(:mod:`torchmetal.synth.zoo`), Huber weights cost 0.1–0.3 dB against the clean truth on every
+flake-free scene. The flake stage first asks whether the detections are glints at all: misfit
 gives residuals of both signs, glints positive ones, so detections must exceed those of the
 mirrored residual (:func:`~torchmetal.flakes.null_test.glint_excess`), counting spots only (a sheen band,
 the streak of a highlight, the mask's rim are misfit). Only then is the Phong fit
@@ -157,7 +157,7 @@ def fit_material(
     progress: bool = False,
     lobe: str = "auto",
     normals: str = "auto",
-    weights: str = "noise",
+    weights: str = "uniform",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -186,8 +186,8 @@ def fit_material(
             left-out shots prefer them to the flat plane, :mod:`~torchmetal.fit.normals_choice`), "given"
             (the capture's normals.npy; flat without one), "flat" (0, 0, 1), or "estimate" (photometric
             stereo with the Phong terms, :func:`~torchmetal.fit.normals.estimate_normals`; the material keeps them).
-        weights: "noise" (the default: each observation weighted by the inverse of its expected noise variance,
-            ``fit_phong(noise_weights=True)``) or "uniform" (plain least squares).
+        weights: "uniform" (the default: plain least squares) or "noise" (each observation weighted by the
+            inverse of its expected noise variance, ``fit_phong(noise_weights=True)``).
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,

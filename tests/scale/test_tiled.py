@@ -51,7 +51,7 @@ def test_tiled_equals_in_memory_256(tiled256, tmp_path):
     """256² × 8 shots, bumpy normals, texels saturated in every shot (inpainted), 64² tiles; a subsample of
     512 pixels, so that the LM over the tiles has a step to take (from a subsample of 4096 the fit is already at
     the whole image's optimum and the tile LM stops at its first evaluation)."""
-    a = fit_phong(load_capture(tiled256), sub_pixels=512, noise_weights=False)  # the tiled fit: uniform weights
+    a = fit_phong(load_capture(tiled256), sub_pixels=512)
     b = fit_tiled(tiled256, tile=64, scratch=tmp_path, sub_pixels=512)
     assert b.tiled["tiles"] == 16 and b.tiled["passes"] >= 3
     assert_same_fit(a, b)
@@ -63,7 +63,7 @@ def test_tiled_strided_subsample_and_clusters(tiled128, tmp_path):
     """128² × 8: subsample decisions on a strided grid read from the files, clustered specular per
     tile, and a tile size that does not divide the image."""
     kw = dict(sub_pixels=2048, select_pixels=512, specular="clustered", max_iters=20)
-    a = fit_phong(load_capture(tiled128), noise_weights=False, **kw)
+    a = fit_phong(load_capture(tiled128), **kw)
     b = fit_tiled(tiled128, tile=50, scratch=tmp_path, **kw)
     assert a.specular == "clustered"
     assert_same_fit(a, b)
@@ -141,7 +141,7 @@ def test_tiled_relabels_pixels_as_in_memory(tmp_path):
     write_synth(synth_capture(size=96, shots=10, seed=3, noise=0.005, spec_clusters=2, bits=16), tmp_path / "png")
     tiled = convert_capture(tmp_path / "png", tmp_path / "tiled")
     kw = dict(specular="clustered", max_iters=30)
-    a = fit_phong(load_capture(tiled), noise_weights=False, **kw)
+    a = fit_phong(load_capture(tiled), **kw)
     b = fit_tiled(tiled, tile=40, scratch=tmp_path / "scratch", **kw)
     moved = [h["pixels"] for h in a.history if h["stage"] == "relabel"]
     assert moved and moved[0] > 0, a.history[-3:]

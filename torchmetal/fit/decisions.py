@@ -26,10 +26,13 @@ INIT_ITERS = 10  # … or 10 iterations
 OUTLIER_SKIP = 1e-5  # fewer outliers than this on the subsample: none are looked for at full resolution
 
 
+def _sigma_floor(capture) -> float:
+    """The residual scale below which residuals are rounding, not noise: :data:`SIGMA_FLOOR` of the largest value."""
+    return SIGMA_FLOOR * float(capture.images.detach().abs().amax().clamp_min(1e-30))
+
+
 def _sigma(obs: Observations, fit: SpecFit, capture) -> Tensor:
-    sig = residual_scale(obs, fit.s, fit.alpha, fit.eb)
-    floor = SIGMA_FLOOR * float(capture.images.detach().abs().amax().clamp_min(1e-30))
-    return sig.clamp_min(floor)
+    return residual_scale(obs, fit.s, fit.alpha, fit.eb).clamp_min(_sigma_floor(capture))
 
 
 def _hold_shot(obs: Observations, fit: SpecFit) -> int:
@@ -92,7 +95,7 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
             else:
                 glob0 = glob
             sigma = _sigma(sub, glob0, capture)
-            variance = noise_model(sub, glob0.s, glob0.alpha, glob0.eb) if noise else None
+            variance = noise_model(sub, glob0.s, glob0.alpha, glob0.eb, floor=_sigma_floor(capture) ** 2) if noise else None
             weighting = Weighting(sigma=sigma, robust=robust, outlier_k=outliers, variance=variance)
             n_base = float(sub.n.sum())
             for _ in range(2 if robust is not None else 1):

@@ -83,7 +83,7 @@ class Reference:
         return self.s[labels].T, self.alpha[labels].T
 
 
-VARIANCE_W_MIN = 1e-3  # the smallest noise weight relative to the darkest observation's (float16 storage)
+VARIANCE_W_MIN = 1e-3  # the smallest noise weight relative to the darkest observation's (refine.noise_model)
 
 
 @dataclass

@@ -106,8 +106,7 @@ def fit_tiled(
     address: str | None = None,
     threads: int | None = None,
 ) -> FitResult:
-    """:func:`~torchmetal.fit.fit_phong` (scheme "refine", least squares with uniform weights, ``noise_weights=False``)
-    of a tiled capture, tile by tile.
+    """:func:`~torchmetal.fit.fit_phong` (scheme "refine", least squares) of a tiled capture, tile by tile.
 
     Args:
         capture: a :class:`TiledCapture` or its directory (``.npy`` images; see
