@@ -17,7 +17,7 @@ from torchmetal.bench.children import run_jobs
 from torchmetal.bench.plans import full_plan, quick_plan, sweep_configs
 from torchmetal.bench.runner import SECTIONS
 from torchmetal.bench.tables import EQUAL_DB, speed_ratio
-from torchmetal.bench.tasks import holdout_indices, psnr_or_nan, rel_err
+from torchmetal.bench.scoring import holdout_indices, psnr_or_nan, rel_err
 from torchmetal.bench.worker import run_task
 
 

@@ -122,7 +122,7 @@ def startup(env: dict, repeats: int, timeout: float = 120.0) -> dict:
 
 
 def _score(pred: np.ndarray, case) -> float:
-    from torchmetal.bench.tasks import psnr_or_nan
+    from torchmetal.bench.scoring import psnr_or_nan
 
     return psnr_or_nan(np.asarray(pred, np.float32), case.clean)
 

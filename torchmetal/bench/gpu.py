@@ -84,7 +84,7 @@ def run_gpu(device: str = "cuda", size: int = 4096, shots: int = 16, flake_size:
     """Fit, flake-stage, renderer and ONNX timings on ``device``; every tensor lives there."""
     import torch
 
-    from torchmetal.bench.tasks import psnr_or_nan, rel_err
+    from torchmetal.bench.scoring import psnr_or_nan, rel_err
     from torchmetal.fit import fit_phong
     from torchmetal.flakes.model import FlakeModel
     from torchmetal.flakes.stage import flake_stage
