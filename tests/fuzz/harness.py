@@ -1,6 +1,6 @@
 """What every fuzzed ``torchmetal fit`` must end with, and a tally of how the cases ended.
 
-The property (issue 26): a run ends either with exit 0 and a complete material directory
+The property (robustness of ``torchmetal fit``): a run ends either with exit 0 and a complete material directory
 (``material.json`` loads with :func:`torchmetal.material.load_material`, every array in it is
 readable with numpy and finite), or with exit 2 and exactly one line on stderr that says what
 was expected and what was found. Never an exception escaping :func:`torchmetal.cli.main` (a

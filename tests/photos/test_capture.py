@@ -1,4 +1,4 @@
-"""The issue's "must show" on generated phone photos: intrinsics, camera positions, rectified
+"""What the phone-photo capture must show, on generated phone photos: intrinsics, camera positions, rectified
 images against the direct renders, the report, the capture directory."""
 
 import json

@@ -5,7 +5,7 @@ ONNX renderer with onnxruntime's CUDA provider where it is installed.
 Runs wherever ``torch.cuda.is_available()``; elsewhere :func:`skip_reason` says why in one line.
 :func:`run_gpu` takes any device, so the tests run the very same code with ``device="cpu"`` at a
 tiny size. In a child: ``python -m torchmetal.bench.gpu DEVICE SIZE SHOTS OUT.json``.
-Goal (issue 13) on a datacentre GPU: fit 4096² × 16 ≤ 1 s.
+Goal on a datacentre GPU: fit 4096² × 16 ≤ 1 s.
 """
 
 from __future__ import annotations

@@ -101,7 +101,7 @@ def _gallery_png(path: Path, photo, render) -> Path:
 
 
 #: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe and the
-#: normals were chosen on left-out shots (issue 27), and the richest options
+#: normals were chosen on left-out shots, and the richest options
 REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong"},
                  "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}
 
