@@ -14,7 +14,7 @@ fit1024   1024² × 16-shot fit: wall time and peak memory, torchmetal vs the pa
 skip      per-stage times and the skipped list: flake-free, specular-free and full scenes
 flakes    flake detection + statistics time on one 1024² shot
 onnx      ONNX renderer of a 1024² material: frame time (onnxruntime and torch) and file size
-real      leave-one-out PSNR on the real captures in shared/data (when present): fit_phong global /
+real      leave-one-out PSNR on the shared real captures ($TORCHMETAL_SHARED_DATA, when present): fit_phong global /
           clustered, the paper's scheme and the default pipeline (default ≥ paper verdict)
 realflakes  cards_blue: flake statistics, MD and PSNR of a left-out shot with and without the
           flake term, detections drawn on a shot (``flakes_<capture>.png``)
