@@ -146,7 +146,7 @@ def check_outcome(o: Outcome, output: Path, tally: str) -> str:
         assert not output.exists(), f"exit 2 but {output} exists (a partial material)"
         # a generic Python error class in the message means the bad input was not caught at the boundary
         reason = line[len("torchmetal fit: error: "):]
-        assert not reason.split(":")[0] in ("ValueError", "OSError", "TypeError", "IndexError", "KeyError"), \
+        assert reason.split(":")[0] not in ("ValueError", "OSError", "TypeError", "IndexError", "KeyError"), \
             f"an internal error reached the user unexplained: {line!r}"
         kind = "error"
         if "fit options" in tally or "real" in tally:  # valid captures: say which errors they got

@@ -10,7 +10,14 @@ import torch
 
 from torchmetal.errors import CaptureError, InputError
 from torchmetal.io.images import (
-    code_table, decode_planes, linear_to_srgb, quantize, read_image, read_raw, srgb_to_linear, write_image,
+    code_table,
+    decode_planes,
+    linear_to_srgb,
+    quantize,
+    read_image,
+    read_raw,
+    srgb_to_linear,
+    write_image,
 )
 
 

@@ -12,7 +12,7 @@ from torchmetal.metrics import psnr
 from torchmetal.photos.capture import save_photo_capture
 from torchmetal.photos.simulate import direct_render
 
-from .conftest import FLASH, N, SHOTS
+from .conftest import FLASH, SHOTS, N
 
 
 def inner_mask(board, h, w, inset_mm=1.0):

@@ -99,7 +99,7 @@ def run_gpu(device: str = "cuda", size: int = 4096, shots: int = 16, flake_size:
     fit_phong(warm)  # first-call costs (CUDA context, kernels) out of the timing
 
     cap, texture = device_capture(size, shots, dev)
-    fit_s, fit = _timed(lambda: fit_phong(cap, specular="global"), dev, repeats)
+    fit_s, fit = _timed(lambda: fit_phong(cap, specular="global"), dev, repeats)  # noqa: F821 (runs before the del)
     out["fit"] = {"size": size, "shots": shots, "seconds": fit_s, "device": str(fit.texture.device),
                   "s_err": rel_err(fit.s.cpu().numpy(), S_TRUE), "alpha_err": rel_err(fit.alpha.cpu().numpy(), ALPHA_TRUE),
                   "texture_psnr": psnr_or_nan(fit.texture, texture)}
@@ -110,7 +110,7 @@ def run_gpu(device: str = "cuda", size: int = 4096, shots: int = 16, flake_size:
     tr = {k: syn.truth[k].to(dev) for k in ("texture", "s", "alpha", "normals")}
     phong = phong_render(tr["texture"], tr["s"], tr["alpha"], tr["normals"], fcap.lights, fcap.intensities,
                          fcap.cameras, fcap.size)
-    fl_s, fl = _timed(lambda: flake_stage(fcap, phong), dev, repeats)
+    fl_s, fl = _timed(lambda: flake_stage(fcap, phong), dev, repeats)  # noqa: F821 (runs before the del)
     out["flakes"] = {"size": flake_size, "shots": 8, "seconds": fl_s, "model": fl.model is not None,
                      "density_fit": None if fl.model is None else float(fl.model.density), "density_true": 0.003}
     del fcap, phong

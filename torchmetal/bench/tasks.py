@@ -23,8 +23,15 @@ import numpy as np
 from torchmetal.bench.available import NotAvailable, need
 from torchmetal.bench.memory import PeakMemory
 from torchmetal.bench.real_tasks import task_real, task_realflakes
-from torchmetal.bench.scoring import (capture_nbytes_f32, holdout_indices, psnr_or_nan, rel_err, render_params, to_numpy,
-                                      valid_mask)
+from torchmetal.bench.scoring import (
+    capture_nbytes_f32,
+    holdout_indices,
+    psnr_or_nan,
+    rel_err,
+    render_params,
+    to_numpy,
+    valid_mask,
+)
 
 
 def task_prepare(cfg: dict) -> dict:
@@ -207,8 +214,6 @@ def task_skip(cfg: dict) -> dict:
 
 def task_flakes(cfg: dict) -> dict:
     """Flake detection + statistics time on one shot of a prepared flake capture."""
-    import torch
-
     flake_stage = need("torchmetal.flakes.stage", "flake_stage")
     cap, truth, fit_idx, hold_idx = _load_prepared(cfg["path"])
     shot = cap.subset([fit_idx[0]])

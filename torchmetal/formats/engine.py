@@ -22,14 +22,21 @@ Flakes are baked by :mod:`torchmetal.formats.bake` (see there for the two layer 
 
 from __future__ import annotations
 
-
 import torch
 from torch import Tensor
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.bake import bake_flakes
-from torchmetal.formats.engine_brdf import (COAT_F0, Coat, EngineMaterial, check_lights, engine_render, finish_base_color,
-                                            reference_render, render_error)
+from torchmetal.formats.engine_brdf import (
+    COAT_F0,
+    Coat,
+    EngineMaterial,
+    check_lights,
+    engine_render,
+    finish_base_color,
+    reference_render,
+    render_error,
+)
 from torchmetal.formats.lobe_fit import LobeFit, fit_lobe
 from torchmetal.geometry import normalize
 
