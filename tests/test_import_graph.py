@@ -30,8 +30,10 @@ ROOT = Path(__file__).resolve().parents[1] / PACKAGE
 PENDING = ("torchmetal.fit", "torchmetal.flakes", "torchmetal.pipeline")
 
 #: circles (with function-local imports) that reach into PENDING, measured when this test was
-#: written; lower it as they are broken, never raise it
+#: written (fit.normals and fit.normals_choice import each other, both inside functions); lower
+#: the count and drop the circle as they are broken, never add one
 PENDING_CYCLES = 1
+KNOWN_PENDING_CYCLES = [{"torchmetal.fit.normals", "torchmetal.fit.normals_choice"}]
 
 
 def module_files(root: Path = ROOT, package: str = PACKAGE) -> dict[str, Path]:
@@ -188,10 +190,14 @@ def test_no_cycle_outside_pending_counting_function_local_imports():
 
 
 def test_pending_cycles_do_not_grow():
+    """No more circles through PENDING than measured, and none wider than a known one (a new import
+    that joins a known circle makes it wider without adding a circle)."""
     _, every = import_graph()
     found = pending_cycles(every)
-    assert len(found) <= PENDING_CYCLES, "new import circle(s) through " + ", ".join(PENDING) + ":\n" + "\n".join(
-        " <-> ".join(c) for c in found)
+    listing = "\n".join(" <-> ".join(c) for c in found)
+    assert len(found) <= PENDING_CYCLES, f"new import circle(s) through {', '.join(PENDING)}:\n{listing}"
+    assert all(any(set(c) <= known for known in KNOWN_PENDING_CYCLES) for c in found), (
+        f"import circle(s) through {', '.join(PENDING)} beyond the known ones:\n{listing}")
 
 
 def test_checks_catch_a_cycle(tmp_path):
