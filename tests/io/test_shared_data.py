@@ -1,5 +1,6 @@
 """One setting finds the shared development captures (torchmetal.io.shared_data)."""
 
+import os
 from pathlib import Path
 
 from torchmetal.io import shared_data
@@ -26,9 +27,11 @@ SKIP_DIRS = {".git", ".venv", "node_modules", ".pytest_cache", "__pycache__", "b
 
 
 def _project_files(repo: Path):
-    for p in sorted(repo.rglob("*")):
-        if p.is_file() and p.suffix in TEXT_SUFFIXES and not SKIP_DIRS & set(p.relative_to(repo).parts[:-1]):
-            yield p
+    for top, dirs, files in os.walk(repo):
+        dirs[:] = sorted(d for d in dirs if d not in SKIP_DIRS)
+        for name in sorted(files):
+            if Path(name).suffix in TEXT_SUFFIXES:
+                yield Path(top) / name
 
 
 def test_no_absolute_machine_paths_in_the_project():
