@@ -132,7 +132,7 @@ class Renderer:
         """
         arrays = [_as_batch(x, name, width) for x, (name, width) in zip((light, light_intensity, camera), INPUTS)]
         b = max(a.shape[0] for a in arrays)
-        for k, (a, (name, _)) in enumerate(zip(arrays, INPUTS)):
+        for k, (a, (_name, _)) in enumerate(zip(arrays, INPUTS)):
             if a.shape[0] not in (1, b):
                 sizes = ", ".join(f"{n} {x.shape[0]}" for x, (n, _) in zip(arrays, INPUTS))
                 raise RuntimeInputError(f"batch: expected equal batch sizes (or 1), found {sizes}")

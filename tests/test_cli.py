@@ -58,8 +58,9 @@ def test_synth_fit_render_export(tmp_path):
     ],
 )
 def test_bad_input_one_line(tmp_path, args, expected):
-    from torchmetal.material import Material, save_material
     import torch
+
+    from torchmetal.material import Material, save_material
 
     save_material(Material(torch.rand(3, 4, 4), torch.zeros(3), torch.ones(3), (1.0, 1.0)), tmp_path / "mat")
     fmt = {"missing": tmp_path / "nope", "tmp": tmp_path, "mat": tmp_path / "mat"}

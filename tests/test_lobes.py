@@ -11,8 +11,20 @@ import torch
 from torchmetal.errors import InputError, MaterialError
 from torchmetal.geometry import pixel_axes, shading_geometry
 from torchmetal.lobes import (
-    F0, LOBES, LobeModel, blinn_lobe, check_lobe, fresnel_ratio, ggx_k, ggx_lobe, ggx_log_core, grid_half_terms,
-    half_terms, lobe_render, lobe_shading, lobe_value,
+    F0,
+    LOBES,
+    LobeModel,
+    blinn_lobe,
+    check_lobe,
+    fresnel_ratio,
+    ggx_k,
+    ggx_lobe,
+    ggx_log_core,
+    grid_half_terms,
+    half_terms,
+    lobe_render,
+    lobe_shading,
+    lobe_value,
 )
 from torchmetal.material import Material, load_material, save_material
 from torchmetal.phong import phong_shading

@@ -11,7 +11,7 @@ from torchmetal.phong import PhongModel, log1p_exact, phong_render, phong_shadin
 
 def numpy_phong(texture, s, alpha, n, L, I, C, size):
     out = []
-    for l, v, nl, rv, E in numpy_geometry(n, L, I, C, size):
+    for _l, _v, nl, rv, E in numpy_geometry(n, L, I, C, size):
         lobe = np.maximum(rv, 0.0)[None] ** alpha[:, None, None]
         out.append(E * (texture * np.maximum(nl, 0) + (nl > 0) * s[:, None, None] * lobe))
     return np.stack(out)

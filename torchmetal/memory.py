@@ -16,7 +16,6 @@ import ctypes
 import functools
 import sys
 
-
 #: a capture whose float32 images exceed this is "large": its full-resolution fit streams the
 #: geometry (:mod:`torchmetal.fit.grid_terms`) and freed heap pages go back to the OS between stages.
 LARGE_BYTES = 64 << 20

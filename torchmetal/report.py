@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -405,7 +404,7 @@ def report_figure(
     # row 1: input shots
     show = sorted({int(round(i)) for i in np.linspace(0, n_shots - 1, min(6, n_shots))})
     shot_axes = [fig.add_subplot(gs[0, i]) for i in range(6)]
-    exposure = plot_shots(shot_axes, capture.images, indices=show, labels=[f"input shot {i}" for i in show])
+    plot_shots(shot_axes, capture.images, indices=show, labels=[f"input shot {i}" for i in show])
 
     # row 2: texture (fit | truth), lobe, flakes
     ax_tex = fig.add_subplot(gs[1, 0:2])

@@ -6,18 +6,17 @@ import csv
 import importlib.util
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from torchmetal.bench.memory import PeakMemory
 from torchmetal.bench.children import run_jobs
+from torchmetal.bench.memory import PeakMemory
 from torchmetal.bench.plans import full_plan, quick_plan, sweep_configs
 from torchmetal.bench.runner import SECTIONS
+from torchmetal.bench.scoring import holdout_indices, psnr_or_nan, rel_err
 from torchmetal.bench.tables import EQUAL_DB, speed_ratio
-from torchmetal.bench.tasks import holdout_indices, psnr_or_nan, rel_err
 from torchmetal.bench.worker import run_task
 
 

@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from torchmetal.bench.paper_process import main, read_capture
 from torchmetal.bench.children import _env
+from torchmetal.bench.paper_process import main, read_capture
 from torchmetal.synth.zoo import Scene, make_case
 
 

@@ -76,7 +76,7 @@ PHOTO_TEXTURE_BIAS = pytest.mark.xfail(strict=True, reason=(
 def test_flake_statistics_within_tolerance(zoo, name):
     """Density within 10 %, tilt within 20 % on every flake scene; median area within 15 % where the
     flakes are not smaller than ~3 px² (flakes_b's 2.5 px² flakes measure 12-18 % large across seeds:
-    open, see issue 12's note)."""
+    an open bias of the smallest flakes' areas)."""
     d = zoo[name]["default"]
     assert d["density_err"] <= 0.10 and d["tilt_err"] <= 0.20, d
     if SCENES[name].flakes["area_median"] >= 3.0:

@@ -155,7 +155,7 @@ def _flash_at_lens_capture(n: int = 24, shots: int = 7, seed: int = 0):
 
 @pytest.mark.parametrize("left_out", [0, 2])
 def test_paper_scheme_flash_at_lens_does_not_run_to_alpha_one(left_out):
-    """Issue 27 (yellow_box: α = 1, s = 0.63/0.94/0.19, 12 dB left out). Two causes, both reproduced
+    """The real yellow_box capture (before: α = 1, s = 0.63/0.94/0.19, 12 dB left out). Two causes, both reproduced
     here (before the fix: α = 1 and s = 2.7/2.1/0.75 in every channel, 18.5 dB on shot 0):
     equal-weight control points let the few observations of the sparse bins far from the mirror
     direction pick 4.1.6's α = 1 solution, and past its Err minimum the alternation drifted along

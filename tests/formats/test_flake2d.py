@@ -7,8 +7,14 @@ import pytest
 
 from torchmetal.errors import ExportError
 from torchmetal.flakes.model import FlakeModel
-from torchmetal.formats.flake2d import (density_to_probability, fit_flake_roughness, flake2d_inputs,
-                                        flake2d_pattern, glint_statistics, slope_density_ggx)
+from torchmetal.formats.flake2d import (
+    density_to_probability,
+    fit_flake_roughness,
+    flake2d_inputs,
+    flake2d_pattern,
+    glint_statistics,
+    slope_density_ggx,
+)
 
 
 def test_probability_curve():

@@ -7,8 +7,17 @@ import pytest
 import torch
 
 from torchmetal.errors import ExportError
-from torchmetal.formats.lobe_fit import (capture_views, fit_glint, fit_lobe, ggx_terms, lobe_directions, lobe_target, phong_cone,
-                                         phong_target, textbook_roughness)
+from torchmetal.formats.lobe_fit import (
+    capture_views,
+    fit_glint,
+    fit_lobe,
+    ggx_terms,
+    lobe_directions,
+    lobe_target,
+    phong_cone,
+    phong_target,
+    textbook_roughness,
+)
 
 
 def test_textbook_mapping_reference():

@@ -5,8 +5,15 @@ import torch
 
 from tests.formats.kinds import make_material
 from torchmetal.formats.engine import engine_material
-from torchmetal.formats.textures import (MAX_F0_IOR, decode_png, f0_to_ior, png_bytes, specular_encoding,
-                                         to_linear, to_srgb)
+from torchmetal.formats.textures import (
+    MAX_F0_IOR,
+    decode_png,
+    f0_to_ior,
+    png_bytes,
+    specular_encoding,
+    to_linear,
+    to_srgb,
+)
 
 
 def test_specular_encoding_reproduces_f0_and_f90():

@@ -1,6 +1,6 @@
 """What every fuzzed ``torchmetal fit`` must end with, and a tally of how the cases ended.
 
-The property (issue 26): a run ends either with exit 0 and a complete material directory
+The property (robustness of ``torchmetal fit``): a run ends either with exit 0 and a complete material directory
 (``material.json`` loads with :func:`torchmetal.material.load_material`, every array in it is
 readable with numpy and finite), or with exit 2 and exactly one line on stderr that says what
 was expected and what was found. Never an exception escaping :func:`torchmetal.cli.main` (a
@@ -146,7 +146,7 @@ def check_outcome(o: Outcome, output: Path, tally: str) -> str:
         assert not output.exists(), f"exit 2 but {output} exists (a partial material)"
         # a generic Python error class in the message means the bad input was not caught at the boundary
         reason = line[len("torchmetal fit: error: "):]
-        assert not reason.split(":")[0] in ("ValueError", "OSError", "TypeError", "IndexError", "KeyError"), \
+        assert reason.split(":")[0] not in ("ValueError", "OSError", "TypeError", "IndexError", "KeyError"), \
             f"an internal error reached the user unexplained: {line!r}"
         kind = "error"
         if "fit options" in tally or "real" in tally:  # valid captures: say which errors they got

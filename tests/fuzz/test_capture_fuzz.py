@@ -1,4 +1,4 @@
-"""Issue 26: malformed captures never crash, stall or leave half a material.
+"""Robustness: malformed captures never crash, stall or leave half a material.
 
 Each generated case writes a capture directory (tests/fuzz/captures.py: a valid tiny capture,
 then up to three mutations of capture.json or its files) and runs ``torchmetal fit`` on it.

@@ -1,4 +1,4 @@
-"""Issue 26: every fit option set ends with a complete material or a one-line error.
+"""Robustness: every fit option set ends with a complete material or a one-line error.
 
 Small valid captures (zoo scenes shrunk to 24–48 px and 1–6 shots, or ``synth_capture`` with
 random flakes / bumps / noise / layout) × option sets drawn from the fit's choices. Same
@@ -20,7 +20,7 @@ threads_one()
 
 N_FITS = examples(60)
 
-#: the option sets of issue 26 (combined freely; --flakes on/off exclusive)
+#: the fit's options (combined freely; --flakes on/off exclusive)
 OPTIONS = {
     "normals-estimate": ["--normals", "estimate"],
     "lobe-auto": ["--lobe", "auto"],

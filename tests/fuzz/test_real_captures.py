@@ -1,4 +1,4 @@
-"""Issue 26 on the shared real captures: made small, fitted with a few option sets, same property.
+"""The fuzz property on the shared real captures: made small, fitted with a few option sets, same property.
 
 Each capture (``$TORCHMETAL_SHARED_DATA``, default ``../shared/data`` beside the repository) is
 loaded, then made ≤ 96 px two ways and re-saved in a temporary directory: the whole sample
@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import tempfile
 from pathlib import Path
 

@@ -394,12 +394,12 @@ BAD_JSON = {
     "surface_negative_height": (lambda m: m["surface"].update(height=-2), ["expected positive finite", "-2"]),
     "surface_not_object": (lambda m: m.update(surface=[1, 1]), ["surface: expected {\"width\": w, \"height\": h}"]),
     "normals_not_string": (lambda m: m.update(normals=5), ["normals: expected a file name or null"]),
-    # issue 26 fuzz: integers beyond the float range (JSON literals of 309+ digits) raised OverflowError
+    # found by the fuzz suite (tests/fuzz): integers beyond the float range (JSON literals of 309+ digits) raised OverflowError
     "light_huge_integer": (_shot(0, "light", [10 ** 400, 0, 1, 1]), ["shots[0].light", "expected finite numbers", "inf"]),
     "surface_huge_integer": (lambda m: m["surface"].update(height=10 ** 400), ["surface width/height", "expected positive finite"]),
     "camera_beyond_float32": (_shot(1, "camera", [0, 1e39, 1, 1]), ["shots[1].camera", "within the float32 range"]),
     "light_below_float32_resolution": (_shot(1, "light", [0, 0, 1e-300, 1]), ["shots[1]", "expected z > 0", "found z = 0"]),
-    # issue 26 fuzz: a light 2e9 away for a photo of normal brightness overflowed the fit (inf in material.json)
+    # found by the fuzz suite: a light 2e9 away for a photo of normal brightness overflowed the fit (inf in material.json)
     "light_too_far_for_photo": (_shot(0, "light", [2.1e9, 0, 0.3, 1]), ["shots[0] (images/000.png)", "irradiance", "too far or too weak"]),
 }
 
@@ -471,7 +471,7 @@ def test_bad_capture_in_python(case):
 
 
 def test_normals_near_float64_limit_are_normalised(cap_dir):
-    """issue 26 fuzz: |n|² overflowed (a RuntimeWarning on stderr beside the result)."""
+    """Found by the fuzz suite (tests/fuzz): |n|² overflowed (a RuntimeWarning on stderr beside the result)."""
     n = np.zeros((6, 5, 3))
     n[..., 2] = 1e200
     n[0, 0] = [1e200, 0, 1e200]

@@ -10,7 +10,14 @@ import torch
 
 from torchmetal.errors import CaptureError, InputError
 from torchmetal.io.images import (
-    code_table, decode_planes, linear_to_srgb, quantize, read_image, read_raw, srgb_to_linear, write_image,
+    code_table,
+    decode_planes,
+    linear_to_srgb,
+    quantize,
+    read_image,
+    read_raw,
+    srgb_to_linear,
+    write_image,
 )
 
 
@@ -282,7 +289,7 @@ class TestBadFiles:
 
     @pytest.mark.parametrize("shape", [(0, 0, 3), (0, 4, 3), (5, 0, 3)])
     def test_no_pixels_rejected(self, tmp_path, shape):
-        """issue 26 fuzz: a 0x0 float image reached Capture.validate and raised a torch RuntimeError."""
+        """Found by the fuzz suite (tests/fuzz): a 0x0 float image reached Capture.validate and raised a torch RuntimeError."""
         np.save(tmp_path / "none.npy", np.zeros(shape, np.float32))
         with pytest.raises(CaptureError) as e:
             read_image(tmp_path / "none.npy")

@@ -9,7 +9,6 @@ from torchmetal.photos.capture import capture_from_photos
 
 from .conftest import FLASH
 
-
 EXPECT = {
     "noboard.jpg": "no board found (no markers detected)", "blurred.jpg": "blurred: edges",
     "veryblurred.jpg": "no board found (no markers detected): the photo is blurred", "small.jpg": "mixed resolutions",

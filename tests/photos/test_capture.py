@@ -1,4 +1,4 @@
-"""The issue's "must show" on generated phone photos: intrinsics, camera positions, rectified
+"""What the phone-photo capture must show, on generated phone photos: intrinsics, camera positions, rectified
 images against the direct renders, the report, the capture directory."""
 
 import json
@@ -12,7 +12,7 @@ from torchmetal.metrics import psnr
 from torchmetal.photos.capture import save_photo_capture
 from torchmetal.photos.simulate import direct_render
 
-from .conftest import FLASH, N, SHOTS
+from .conftest import FLASH, SHOTS, N
 
 
 def inner_mask(board, h, w, inset_mm=1.0):

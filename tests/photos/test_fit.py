@@ -12,7 +12,7 @@ from torchmetal.fit import fit_phong
 from torchmetal.metrics import psnr
 from torchmetal.photos.simulate import direct_render, truth_capture
 
-from .conftest import N, SHOTS
+from .conftest import SHOTS, N
 from .test_capture import inner_mask
 
 HELD = [4, 10]  # an oblique shot and a near-overhead one (highlight in the window)

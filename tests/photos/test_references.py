@@ -1,4 +1,4 @@
-"""Issue 26: exposure and white balance from EXIF or the unclipped part of the paper band.
+"""Exposure and white balance from EXIF or the unclipped part of the paper band.
 
 Generated photos with a clipped flash hotspot on the band, without EXIF, with the whole band
 clipped (a dark sample exposed for), and with neither reference: each is used or rejected by what

@@ -1,6 +1,6 @@
 """Numerical stress of the forward model: phong_render, specular_lobe and the material renderer.
 
-Extremes from issue 6: α from 1 to 5000, s from 0 to 10, lights at 0.5° elevation, the light at
+Extremes a user can give: α from 1 to 5000, s from 0 to 10, lights at 0.5° elevation, the light at
 the camera, normals pointing down, a 1×1 image, float16/float64 inputs, intensities from 1e-6
 to 1e6. Every case must give finite values (and finite gradients) that obey the model's bounds.
 """

@@ -39,7 +39,7 @@ def test_encodings_and_clipping(tmp_path):
         assert meta["color_space"] == space and meta["shots"][0]["image"].endswith(suffix)
         assert meta["normals"] == "normals.npy"
     cap = load_capture(tmp_path / "linear16")
-    assert 0.0 < float(cap.saturated.float().mean()) < 0.2  # exposure 2.2: some highlights clip, as in the issue
+    assert 0.0 < float(cap.saturated.float().mean()) < 0.2  # exposure 2.2: some highlights clip, as the scene is exposed to
 
 
 def test_noise_is_signal_dependent(tmp_path):

@@ -25,7 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="bench-results", help="output directory (default: %(default)s)")
     p.add_argument("--sections", default=",".join(SECTIONS),
                    help=f"comma-separated subset of {','.join(SECTIONS)} (default: all)")
-    p.add_argument("--data", default=None, help="directory with real captures (default: shared/data when present)")
+    p.add_argument("--data", default=None, help="directory with real captures (default: $TORCHMETAL_SHARED_DATA, "
+                   "else ../shared/data beside the checkout, when present)")
     p.add_argument("--timeout", type=float, default=None, help="seconds before a child process is stopped")
     p.add_argument("--isolate", action=argparse.BooleanOptionalAction, default=None,
                    help="one child process per run (default: on for --full, off for --quick)")

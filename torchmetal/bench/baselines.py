@@ -98,7 +98,7 @@ def capture_arrays(capture, dtype=np.float32) -> dict:
         if sat.ndim == 3:
             sat = sat[:, None]
         valid &= ~np.broadcast_to(sat, images.shape)
-    size = getattr(capture, "size")
+    size = capture.size
     return {
         "images": np.where(valid, images, 0).astype(dtype, copy=False),
         "normals": _normals_chw(getattr(capture, "normals", None), h, w),
@@ -412,7 +412,6 @@ def adam_fit(
     import torch
 
     from torchmetal.geometry import shading_geometry
-    from torchmetal.phong import specular_lobe
 
     t_start = time.perf_counter()
     a = capture_arrays(capture, np.float32)

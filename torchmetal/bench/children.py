@@ -11,7 +11,6 @@ import tempfile
 import time
 from pathlib import Path
 
-
 THREADS_ENV = "TORCHMETAL_BENCH_THREADS"
 
 

@@ -39,7 +39,7 @@ MiB = 2**20
 #: the (size, shots) whose in-process peak memory is the memory row.
 PLANS = {
     "quick": {"fits": [(24, 4)], "dome": None, "repeats": 1, "memory": (24, 4)},
-    # the issue's headline row first (a shared machine may not leave time for all)
+    # the headline row (1024² × 8, target TARGETS['speedup_1024x8']) first (a shared machine may not leave time for all)
     "full": {"fits": [(1024, 8), (1024, 16), (256, 8), (256, 16)], "dome": 150, "repeats": 5, "memory": (1024, 16)},
 }
 FULL_ONLY = [(2048, 8), (2048, 16)]  # with ``torchmetal bench --full`` only
@@ -122,7 +122,7 @@ def startup(env: dict, repeats: int, timeout: float = 120.0) -> dict:
 
 
 def _score(pred: np.ndarray, case) -> float:
-    from torchmetal.bench.tasks import psnr_or_nan
+    from torchmetal.bench.scoring import psnr_or_nan
 
     return psnr_or_nan(np.asarray(pred, np.float32), case.clean)
 
@@ -193,7 +193,7 @@ def run_section(plan_name: str, full: bool, workdir: Path, env: dict, timeout: f
     for i, (size, shots) in enumerate(p["fits"]):
         out["fits"].append(run_case(fit_scene(size, shots), workdir, env, timeout))
         say("  " + " | ".join(_fit_row(f"{size}² × {shots}", out["fits"][-1])))
-        if i == 0 and p["dome"]:  # the issue's second target right after its first
+        if i == 0 and p["dome"]:  # the dome72 target right after the headline row
             out["dome"] = run_case(dome_scene(p["dome"]), workdir, env, timeout)
             say("  " + " | ".join(_fit_row(f"dome72 {p['dome']}²", out["dome"])))
     out["memory"] = list(p["memory"])
@@ -318,7 +318,7 @@ def markdown(res: dict) -> str:
     parts.append(f"\nheld-out PSNR: 3 shots (dome72: 6) never in the capture, against their noise-free renders "
                  f"(torchmetal.metrics.psnr). speed-up: numpy whole / torchmetal whole where torchmetal's error is "
                  f"equal or better; CPU s = user + system of the process (os.wait4), less inflated by a loaded "
-                 f"machine than wall time. Targets (issue 13): 1024²×8 ≥ {TARGETS['speedup_1024x8']:.0f}×, dome72 ≥ "
+                 f"machine than wall time. Targets: 1024²×8 ≥ {TARGETS['speedup_1024x8']:.0f}×, dome72 ≥ "
                  f"{TARGETS['dome_speedup']:.0f}×.")
     su = res.get("startup", {})
     floor = _torch_floor(res, su.get(K_TORCH, {}).get("median_s"))

@@ -5,7 +5,7 @@ ONNX renderer with onnxruntime's CUDA provider where it is installed.
 Runs wherever ``torch.cuda.is_available()``; elsewhere :func:`skip_reason` says why in one line.
 :func:`run_gpu` takes any device, so the tests run the very same code with ``device="cpu"`` at a
 tiny size. In a child: ``python -m torchmetal.bench.gpu DEVICE SIZE SHOTS OUT.json``.
-Goal (issue 13) on a datacentre GPU: fit 4096² × 16 ≤ 1 s.
+Goal on a datacentre GPU: fit 4096² × 16 ≤ 1 s.
 """
 
 from __future__ import annotations
@@ -84,7 +84,7 @@ def run_gpu(device: str = "cuda", size: int = 4096, shots: int = 16, flake_size:
     """Fit, flake-stage, renderer and ONNX timings on ``device``; every tensor lives there."""
     import torch
 
-    from torchmetal.bench.tasks import psnr_or_nan, rel_err
+    from torchmetal.bench.scoring import psnr_or_nan, rel_err
     from torchmetal.fit import fit_phong
     from torchmetal.flakes.model import FlakeModel
     from torchmetal.flakes.stage import flake_stage
@@ -99,7 +99,7 @@ def run_gpu(device: str = "cuda", size: int = 4096, shots: int = 16, flake_size:
     fit_phong(warm)  # first-call costs (CUDA context, kernels) out of the timing
 
     cap, texture = device_capture(size, shots, dev)
-    fit_s, fit = _timed(lambda: fit_phong(cap, specular="global"), dev, repeats)
+    fit_s, fit = _timed(lambda: fit_phong(cap, specular="global"), dev, repeats)  # noqa: F821 (runs before the del)
     out["fit"] = {"size": size, "shots": shots, "seconds": fit_s, "device": str(fit.texture.device),
                   "s_err": rel_err(fit.s.cpu().numpy(), S_TRUE), "alpha_err": rel_err(fit.alpha.cpu().numpy(), ALPHA_TRUE),
                   "texture_psnr": psnr_or_nan(fit.texture, texture)}
@@ -110,7 +110,7 @@ def run_gpu(device: str = "cuda", size: int = 4096, shots: int = 16, flake_size:
     tr = {k: syn.truth[k].to(dev) for k in ("texture", "s", "alpha", "normals")}
     phong = phong_render(tr["texture"], tr["s"], tr["alpha"], tr["normals"], fcap.lights, fcap.intensities,
                          fcap.cameras, fcap.size)
-    fl_s, fl = _timed(lambda: flake_stage(fcap, phong), dev, repeats)
+    fl_s, fl = _timed(lambda: flake_stage(fcap, phong), dev, repeats)  # noqa: F821 (runs before the del)
     out["flakes"] = {"size": flake_size, "shots": 8, "seconds": fl_s, "model": fl.model is not None,
                      "density_fit": None if fl.model is None else float(fl.model.density), "density_true": 0.003}
     del fcap, phong

@@ -14,7 +14,7 @@ fit1024   1024² × 16-shot fit: wall time and peak memory, torchmetal vs the pa
 skip      per-stage times and the skipped list: flake-free, specular-free and full scenes
 flakes    flake detection + statistics time on one 1024² shot
 onnx      ONNX renderer of a 1024² material: frame time (onnxruntime and torch) and file size
-real      leave-one-out PSNR on the real captures in shared/data (when present): fit_phong global /
+real      leave-one-out PSNR on the shared real captures ($TORCHMETAL_SHARED_DATA, when present): fit_phong global /
           clustered, the paper's scheme and the default pipeline (default ≥ paper verdict)
 realflakes  cards_blue: flake statistics, MD and PSNR of a left-out shot with and without the
           flake term, detections drawn on a shot (``flakes_<capture>.png``)
@@ -144,7 +144,7 @@ class Bench(SweepSection):
         cap = _num(res[1].get("capture_f32_bytes")) if not problem(res[1]) else float("nan")
         self.add(md_table(["method", "wall s", "iters", "peak MiB", "peak / capture f32", "held-out PSNR vs truth dB",
                            "vs noisy photos dB", "texture PSNR dB", "stage times (s)"], rows))
-        self.add(f"\ncapture float32 size {fmt(cap / MiB, '.0f')} MiB; targets (issue 3): wall ≤ 3 s, peak ≤ 3× capture.")
+        self.add(f"\ncapture float32 size {fmt(cap / MiB, '.0f')} MiB; targets: wall ≤ 3 s, peak ≤ 3× capture.")
 
     # -- skip -----------------------------------------------------------------------------
 
@@ -207,7 +207,7 @@ class Bench(SweepSection):
             f"{fmt(r.get('density_fit'), '.4g')} / {fmt(r.get('density_true'), '.4g')}"]]))
         if r.get("all_shots_skipped"):
             self.add(f"\n8-shot stage skipped: {r['all_shots_skipped']}")
-        self.add("\ntarget (issue 4): ≤ 200 ms per 1024² shot.")
+        self.add("\ntarget: ≤ 200 ms per 1024² shot.")
 
     # -- onnx -----------------------------------------------------------------------------
 
@@ -231,7 +231,7 @@ class Bench(SweepSection):
         self.add(md_table(["material", "file MiB", "files written", "export s", "onnxruntime ms/frame", "torch eager ms/frame"], [[
             f"{r['size']}²{' + flakes' if r.get('flakes') else ''}", fmt(r["file_bytes"] / MiB, ".1f"),
             ", ".join(r.get("files", [])), fmt(r.get("export_s"), ".1f")] + timing]))
-        self.add("\ntarget (issue 5): ≤ 33 ms per frame in onnxruntime on this 2-core CPU.")
+        self.add("\ntarget: ≤ 33 ms per frame in onnxruntime on this 2-core CPU.")
         extra = {k: v for k, v in t.items() if k not in ("ort_ms", "torch_ms", "onnxruntime_ms", "torch_eager_ms")}
         if extra:
             self.add(f"timer details: {json.dumps(extra)}")
@@ -283,7 +283,7 @@ class Bench(SweepSection):
         self.add(md_table(["capture", "fit", "mean PSNR dB", "per left-out shot (dB)", "chroma artifacts", "seconds"], rows))
         self.add("\n*fit*: global / clustered are `fit_phong` (refine scheme) with that specular; default is "
                  "`fit_material` as `torchmetal fit` runs it (flakes, lobe, normals and maps decided by it), paper_model "
-                 "the same with the paper's model forced (`--normals given --lobe phong`, the default before issue 27) "
+                 "the same with the paper's model forced (`--normals given --lobe phong`, the default before the lobe and the normals were chosen on left-out shots) "
                  "and paper the paper's scheme (`--scheme paper --flakes off`), all rendered by the material's renderer. "
                  "PSNR: linear, peak 1, mask pixels not saturated. *chroma artifacts*: share of 8×8-px blocks of the "
                  "left-out shots where photo and render differ by a CIELAB chroma distance > 15 (sRGB block means, "
@@ -342,7 +342,7 @@ class Bench(SweepSection):
         (self.out / "zoo.json").write_text(json.dumps(self.raw["zoo"], indent=1, default=str))
         self.add(zoo_markdown(names, res, scene_sizes(p.zoo_ci, names)))
 
-    # -- command, onnx_kinds, gpu (issue 13) ----------------------------------------------
+    # -- command, onnx_kinds, gpu: speed of the command, of each material kind, on a GPU --
 
     def _child_json(self, argv: list[str], out: Path) -> dict:
         from torchmetal.bench.command import timed_process

@@ -28,9 +28,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchmetal.io.shared_data import shared_data_dir
+
 NOISE = 0.005
 CARD_HOLD = 3
-CARD = Path(__file__).resolve().parents[3] / "shared" / "data" / "cards_blue"
+CARD = shared_data_dir() / "cards_blue"  # $TORCHMETAL_SHARED_DATA, default ../shared/data beside the checkout
 
 
 def _png(path: Path, images: list[np.ndarray]) -> None:

@@ -42,7 +42,8 @@ def _set_threads() -> None:
 
 def run_task(task: str, cfg: dict) -> dict:
     """Run one task; failures become ``not_available`` / ``error`` entries instead of exceptions."""
-    from torchmetal.bench.tasks import TASKS, NotAvailable
+    from torchmetal.bench.available import NotAvailable
+    from torchmetal.bench.tasks import TASKS
 
     _set_threads()
     try:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchmetal.bench.tasks import rel_err
+from torchmetal.bench.scoring import rel_err
 
 METHODS = {
     "default": {},

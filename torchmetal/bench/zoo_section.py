@@ -68,7 +68,7 @@ def _stages_cell(row: dict) -> str:
 
 
 def _skip_share_cell(row: dict) -> str:
-    """The flake stage's seconds over the Phong fit's (issue 12: ≤ 10 % where the stage is skipped)."""
+    """The flake stage's seconds over the Phong fit's (target: ≤ 10 % where the stage is skipped)."""
     st = row.get("stage_times") or {}
     fit = sum(_f(v) for k, v in st.items() if k.startswith("phong."))
     if "flakes" not in st or not fit > 0:

@@ -30,8 +30,15 @@ import torch
 
 from torchmetal.errors import ExportError
 from torchmetal.flakes.field import flake_field
-from torchmetal.formats.engine import (COAT_F0, Coat, EngineMaterial, check_lights, finish_base_color, reference_render,
-                                       render_error)
+from torchmetal.formats.engine_brdf import (
+    COAT_F0,
+    Coat,
+    EngineMaterial,
+    check_lights,
+    finish_base_color,
+    reference_render,
+    render_error,
+)
 from torchmetal.formats.lobe_fit import fit_glint
 from torchmetal.geometry import normalize
 

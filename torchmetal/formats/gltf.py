@@ -31,8 +31,7 @@ import torch
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.engine import Coat, EngineMaterial, engine_material
-from torchmetal.formats.textures import (decode_png, hwc, is_constant, png_bytes, specular_encoding, to_linear,
-                                         to_srgb)
+from torchmetal.formats.textures import decode_png, hwc, is_constant, png_bytes, specular_encoding, to_linear, to_srgb
 from torchmetal.geometry import is_flat
 
 GENERATOR = "torchmetal"

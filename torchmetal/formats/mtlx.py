@@ -38,8 +38,7 @@ import torch
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.engine import EngineMaterial, engine_material
-from torchmetal.formats.textures import (f0_to_ior, gray, hwc, is_constant, specular_encoding, to_srgb,
-                                         write_texture_dir)
+from torchmetal.formats.textures import f0_to_ior, gray, hwc, is_constant, specular_encoding, to_srgb, write_texture_dir
 from torchmetal.geometry import is_flat
 
 TARGETS = ("glsl", "osl", "mdl")

@@ -18,11 +18,11 @@ from torch import Tensor
 
 __all__ = ["save_capture", "write_capture_files", "prepare_target", "replace_dir"]
 
-_SAFE_STEM = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")  # image stems kept as they are
-
 from torchmetal.errors import CaptureError
 from torchmetal.io.capture import COLOR_SPACES, FORMAT, VERSION, Capture
 from torchmetal.io.images import PNG_MAX, _cv2, encode_image, linear_to_srgb, quantize
+
+_SAFE_STEM = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")  # image stems kept as they are
 
 
 def _file_names(names: list[str], suffix: str) -> list[str]:

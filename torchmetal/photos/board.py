@@ -389,9 +389,9 @@ def load_board(path: str | os.PathLike) -> Board:
 def sheet_texture(board: Board, board_dir: str | os.PathLike | None = None) -> np.ndarray:
     """The printed sheet as (H, W) float reflectance at board.dpi: board.png decoded when given, else rendered."""
     if board_dir is not None and (Path(board_dir) / board.image).is_file():
-        from torchmetal.io.images import code_table
-
         import cv2
+
+        from torchmetal.io.images import code_table
 
         raw = cv2.imdecode(np.fromfile(Path(board_dir) / board.image, np.uint8), cv2.IMREAD_GRAYSCALE)
         if raw is None:

@@ -49,11 +49,10 @@ def _text_lines(row: dict) -> list[str]:
 
 def _tile(result, i: int, width: int) -> np.ndarray:
     import cv2
+    import torch
 
     from torchmetal.io.images import linear_to_srgb
     from torchmetal.photos.calibrate import project
-
-    import torch
 
     obs = result.observations[i]
     row = result.report["photos"][i]

@@ -129,7 +129,7 @@ class TiledCapture:
         self._cache = None
         srgb = self.color_space == "srgb"
         parts, sats = [], []
-        for k, f in enumerate(self._files):
+        for f in self._files:
             raw = np.asarray(_npy(f)[rows, cols, :3])
             img = np.empty((3, *raw.shape[:2]), np.float32)
             sat = np.empty((3, *raw.shape[:2]), bool)

@@ -42,10 +42,10 @@ from torch import Tensor
 from torchmetal.errors import CaptureError, InputError
 from torchmetal.flakes.field import flake_field, sparkle_render
 from torchmetal.flakes.model import FlakeModel
+from torchmetal.geometry import surface_points
 from torchmetal.io.capture import Capture
 from torchmetal.io.capture_save import prepare_target, replace_dir, write_capture_files
 from torchmetal.io.images import PNG_MAX, atomic_write_bytes, srgb_to_linear
-from torchmetal.geometry import surface_points
 from torchmetal.phong import phong_render
 
 __all__ = ["SynthResult", "synth_capture", "write_synth", "read_synth_truth", "LAYOUTS", "SURFACE", "CAMERA_HEIGHT"]

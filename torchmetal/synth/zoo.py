@@ -1,7 +1,8 @@
 """The scene zoo: the scenes every fit change is scored on (generator: :mod:`torchmetal.synth.zoo_render`).
 
 :data:`SCENES` holds each scene at full (bench) size; :func:`ci_scenes` the same scenes smaller,
-for the test suite. The first five follow the captures of issue 12's table; the rest cover the
+for the test suite. The first five are the benchmark's original captures (an 8-bit sRGB photo, bumpy
+16-bit linear, few highlights at 1024², a Blinn truth, sharp directional light); the rest cover the
 space (lobes, encodings, layouts, shot counts, two materials, flakes, unidentifiable lobes).
 """
 
@@ -21,7 +22,7 @@ _FLAKES_B = {"density": 0.008, "area_median": 2.5, "area_log_std": 0.3, "aspect"
 
 _FLAKES_HALF = {**_FLAKES_A, "density": 0.008, "region": "left"}
 
-#: name → Scene at full (bench) size. The issue's table is the first five; then the rest of the space.
+#: name → Scene at full (bench) size. The benchmark's original captures are the first five; then the rest of the space.
 SCENES: dict[str, Scene] = {s.name: s for s in [
     Scene("photo_srgb8", size=384, shots=12, texture="photo:astronaut", layout="hemisphere", camera="jitter",
           s=0.5, alpha=60, noise=0.01),
@@ -44,7 +45,7 @@ SCENES: dict[str, Scene] = {s.name: s for s in [
     Scene("blind_peak", size=256, shots=10, layout="blind", s=0.6, alpha=150, seed=12),
     Scene("flakes_a", size=256, shots=16, layout="hemisphere", flakes=_FLAKES_A, s=0.4, alpha=60, seed=13),
     Scene("flakes_b", size=256, shots=16, layout="ring", flakes=_FLAKES_B, s=0.3, alpha=40, normals="bumpy", seed=14),
-    # glitter on the left half only: a density map must put the sparkles there (issue 26)
+    # glitter on the left half only: the flake-density map must put the sparkles there
     Scene("flakes_half", size=256, shots=16, layout="hemisphere", flakes=_FLAKES_HALF, s=0.4, alpha=60, seed=17),
     # a sharp (GGX) lobe on curved normals under many directional lights, 16-bit, no flakes: a Phong fit's
     # misfit at each highlight's core leaves positive peaks that a plain screen and null test take for glints

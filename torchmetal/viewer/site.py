@@ -24,8 +24,8 @@ export fails, ``preview`` is null and ``preview_note`` says why.
 from __future__ import annotations
 
 import os
-from importlib import resources
 from collections.abc import Sequence
+from importlib import resources
 from pathlib import Path
 
 CONFIG_FORMAT = "torchmetal-viewer"

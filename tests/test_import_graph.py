@@ -1,0 +1,225 @@
+"""The torchmetal package's own import graph has no circles.
+
+Every module of the package is parsed with :mod:`ast` (nothing is imported). Each ``import`` and
+``from … import`` of a torchmetal module becomes an edge: relative imports are resolved against the
+importing module's package, and ``from torchmetal.x import y`` points at ``torchmetal.x.y`` when
+``y`` is a submodule, else at ``torchmetal.x``. Imports under ``if TYPE_CHECKING:`` never run and
+are left out; imports named by a string (``importlib.import_module``) are not seen.
+
+An import is *module-level* when it runs while the module itself is imported (at the top, or in a
+class body or an ``if``/``try`` there), and *function-local* when it sits in a function body and
+runs only when that function is called. A circle is a strongly connected component of more than
+one module.
+
+* Module-level imports: no circle at all (a circle there makes the import order matter).
+* All imports, function-local included: no circle among the modules outside
+  :data:`PENDING` (a function-local import that closes a circle hides a layering problem).
+  Circles that reach into :data:`PENDING` are counted and may not grow beyond
+  :data:`PENDING_CYCLES`; run this file as a script to list them.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = "torchmetal"
+ROOT = Path(__file__).resolve().parents[1] / PACKAGE
+
+#: modules still being reworked elsewhere: their function-local circles are counted, not forbidden
+PENDING = ("torchmetal.fit", "torchmetal.flakes", "torchmetal.pipeline")
+
+#: circles (with function-local imports) that reach into PENDING, measured when this test was
+#: written (fit.normals and fit.normals_choice import each other, both inside functions); lower
+#: the count and drop the circle as they are broken, never add one
+PENDING_CYCLES = 1
+KNOWN_PENDING_CYCLES = [{"torchmetal.fit.normals", "torchmetal.fit.normals_choice"}]
+
+
+def module_files(root: Path = ROOT, package: str = PACKAGE) -> dict[str, Path]:
+    """Dotted module name → source file, for every ``.py`` file under ``root``."""
+    out = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = [package, *path.relative_to(root).with_suffix("").parts]
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def _is_type_checking(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _imports(tree: ast.AST):
+    """(import node, function-local?) for every import that can run (not under TYPE_CHECKING)."""
+    stack = [(tree, False)]
+    while stack:
+        node, local = stack.pop()
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            yield node, local
+            continue
+        if isinstance(node, ast.If) and _is_type_checking(node.test):
+            children = node.orelse  # the body runs only under a type checker
+        else:
+            children = list(ast.iter_child_nodes(node))
+        inner = local or isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+        stack.extend((c, inner) for c in children)
+
+
+def _targets(node: ast.Import | ast.ImportFrom, name: str, is_package: bool, modules: dict) -> set[str]:
+    """The torchmetal modules one import statement of module ``name`` loads directly."""
+    if isinstance(node, ast.Import):
+        found = set()
+        for alias in node.names:
+            mod = alias.name
+            while mod and mod not in modules:  # ``import torchmetal.x.attr`` cannot happen, but be safe
+                mod = mod.rpartition(".")[0]
+            if mod:
+                found.add(mod)
+        return found
+    if node.level:
+        base = name.split(".") if is_package else name.split(".")[:-1]
+        base = base[: len(base) - (node.level - 1)]
+        mod = ".".join(base + ([node.module] if node.module else []))
+    else:
+        mod = node.module or ""
+    if mod not in modules:
+        return set()
+    found = set()
+    for alias in node.names:
+        sub = f"{mod}.{alias.name}"
+        found.add(sub if sub in modules else mod)
+    return found
+
+
+def import_graph(root: Path = ROOT, package: str = PACKAGE) -> tuple[dict, dict]:
+    """(module-level edges, all edges): module name → set of torchmetal modules it imports."""
+    modules = module_files(root, package)
+    top: dict[str, set] = {m: set() for m in modules}
+    every: dict[str, set] = {m: set() for m in modules}
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        for node, local in _imports(tree):
+            targets = _targets(node, name, path.name == "__init__.py", modules) - {name}
+            every[name] |= targets
+            if not local:
+                top[name] |= targets
+    return top, every
+
+
+def cycles(graph: dict[str, set]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan), each sorted, sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    on_stack: set = set()
+    stack: list = []
+    out = []
+    counter = 0
+    for start in sorted(graph):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = counter
+        counter += 1
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            v, it = work[-1]
+            for w in it:
+                if w not in index:
+                    index[w] = low[w] = counter
+                    counter += 1
+                    stack.append(w)
+                    on_stack.add(w)
+                    work.append((w, iter(sorted(graph.get(w, ())))))
+                    break
+                if w in on_stack:
+                    low[v] = min(low[v], index[w])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[v])
+                if low[v] == index[v]:
+                    comp = []
+                    while True:
+                        w = stack.pop()
+                        on_stack.discard(w)
+                        comp.append(w)
+                        if w == v:
+                            break
+                    if len(comp) > 1:
+                        out.append(sorted(comp))
+    return sorted(out)
+
+
+def _pending(module: str) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in PENDING)
+
+
+def pending_cycles(graph: dict[str, set]) -> list[list[str]]:
+    """The circles of ``graph`` that reach into :data:`PENDING`."""
+    return [c for c in cycles(graph) if any(_pending(m) for m in c)]
+
+
+def outside_graph(graph: dict[str, set]) -> dict[str, set]:
+    """``graph`` restricted to the modules outside :data:`PENDING`."""
+    return {m: {t for t in ts if not _pending(t)} for m, ts in graph.items() if not _pending(m)}
+
+
+# ----------------------------------------------------------------------------- tests
+
+
+def test_graph_sees_the_package():
+    top, every = import_graph()
+    assert "torchmetal.bench.tasks" in top and "torchmetal.formats.engine" in top
+    # an edge of each kind the parser must resolve
+    assert "torchmetal.bench.memory" in top["torchmetal.bench.tasks"]  # absolute, module-level
+    assert "torchmetal.phong" in every["torchmetal.bench.scoring"] - top["torchmetal.bench.scoring"]  # in a function
+
+
+def test_no_module_level_cycle():
+    top, _ = import_graph()
+    assert cycles(top) == []
+
+
+def test_no_cycle_outside_pending_counting_function_local_imports():
+    _, every = import_graph()
+    assert cycles(outside_graph(every)) == []
+
+
+def test_pending_cycles_do_not_grow():
+    """No more circles through PENDING than measured, and none wider than a known one (a new import
+    that joins a known circle makes it wider without adding a circle)."""
+    _, every = import_graph()
+    found = pending_cycles(every)
+    listing = "\n".join(" <-> ".join(c) for c in found)
+    assert len(found) <= PENDING_CYCLES, f"new import circle(s) through {', '.join(PENDING)}:\n{listing}"
+    assert all(any(set(c) <= known for known in KNOWN_PENDING_CYCLES) for c in found), (
+        f"import circle(s) through {', '.join(PENDING)} beyond the known ones:\n{listing}")
+
+
+def test_checks_catch_a_cycle(tmp_path):
+    """The parser and the circle search on a made-up package: relative, submodule and local imports."""
+    pkg = tmp_path / "pkg"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "__init__.py").write_text("from . import b\n")
+    (pkg / "a.py").write_text("from pkg.sub import b\nfrom typing import TYPE_CHECKING\n"
+                              "if TYPE_CHECKING:\n    from pkg import c\n")
+    (pkg / "sub" / "b.py").write_text("from ..a import x\n")
+    (pkg / "c.py").write_text("def f():\n    from pkg import d\n")
+    (pkg / "d.py").write_text("import pkg.c\n")
+    top, every = import_graph(pkg, "pkg")
+    assert top["pkg.a"] == {"pkg.sub.b"} and top["pkg.sub.b"] == {"pkg.a"} and top["pkg.sub"] == {"pkg.sub.b"}
+    assert cycles(top) == [["pkg.a", "pkg.sub.b"]]
+    assert cycles(every) == [["pkg.a", "pkg.sub.b"], ["pkg.c", "pkg.d"]]
+
+
+if __name__ == "__main__":
+    top_, every_ = import_graph()
+    for title, found in (("module-level", cycles(top_)), ("with function-local imports", cycles(every_))):
+        print(f"{title}: {len(found)} circle(s)")
+        for c in found:
+            print("  " + " <-> ".join(c))

@@ -1,0 +1,193 @@
+"""Benchmark tasks on real capture directories (the shared captures): leave-one-out PSNR per
+specular model or pipeline variant with a chroma-artifact share and an optional gallery
+(``real``), and the flake stage on one left-out shot (``realflakes``). Registered in
+:data:`torchmetal.bench.tasks.TASKS`.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from torchmetal.bench.available import need
+from torchmetal.bench.scoring import psnr_or_nan, valid_mask
+
+
+def task_real(cfg: dict) -> dict:
+    """Leave-one-out PSNR on a real capture directory for each of ``cfg["speculars"]``: "global" and
+    "clustered" are :func:`fit_phong` (the refine scheme) with that specular; a name of
+    :data:`torchmetal.bench.zoo.METHODS` ("default", "paper") is :func:`fit_material` with those options,
+    rendered as the material renders (sparkles included). Beside each PSNR, the chroma-artifact share
+    (:func:`torchmetal.metrics.chroma_artifact_share`) of every left-out shot.
+
+    With ``cfg["gallery"]`` (a directory), the default pipeline's first ``cfg["gallery_shots"]`` (3)
+    left-out shots are written there as ``{capture}_shot{k}.png``: photo | render | error (|Δ| of the
+    sRGB values ×4), sRGB, each panel box-downsampled to ≤ 512 px wide."""
+    load_capture = need("torchmetal.io.capture", "load_capture")
+    leave_one_out_with = need("torchmetal.fit.holdout", "leave_one_out_with")
+    chroma_artifact_share = need("torchmetal.metrics", "chroma_artifact_share")
+    cap = load_capture(cfg["dir"])
+    if cfg.get("max_shots") and cap.num_shots > int(cfg["max_shots"]):
+        cap = cap.subset(list(range(int(cfg["max_shots"]))))
+    if cfg.get("downsample"):
+        cap = _downsample(cap, int(cfg["downsample"]))
+    name = Path(cfg["dir"]).name
+    out = {"name": name, "shots": int(cap.images.shape[0]), "size": list(cap.images.shape[-2:])}
+    gallery = Path(cfg["gallery"]) if cfg.get("gallery") else None
+    for spec in cfg.get("speculars", ["global", "clustered"]):
+        t0 = time.perf_counter()
+        fr = _phong_fit_render(spec) if spec in ("global", "clustered") else _material_fit_render(spec)
+        renders: list = []
+
+        def keep(train, one, fr=fr, renders=renders):
+            pred = fr(train, one)
+            renders.append(pred.detach().float().cpu())
+            return pred
+
+        vals = [float(v) for v in leave_one_out_with(cap, keep)]
+        seconds = time.perf_counter() - t0
+        chroma = []
+        for k, pred in enumerate(renders):
+            one = cap.subset([k])
+            v = valid_mask(one)[0].all(0)
+            chroma.append(chroma_artifact_share(pred[0], one.images[0].float(), mask=v) if bool(v.any()) else float("nan"))
+        out[spec] = {"psnr": vals, "mean": float(np.mean(vals)), "seconds": seconds, "chroma": chroma,
+                     "chroma_mean": float(np.nanmean(chroma)) if any(c == c for c in chroma) else float("nan")}
+        if gallery is not None and spec == "default":
+            out[spec]["gallery"] = [str(_gallery_png(gallery / f"{name}_shot{k}.png", cap.images[k], renders[k][0]))
+                                    for k in range(min(len(renders), int(cfg.get("gallery_shots", 3))))]
+    return out
+
+
+def _phong_fit_render(specular: str):
+    """fit_render of :func:`~torchmetal.fit.holdout.leave_one_out` (``fit_phong`` with this specular)."""
+    import torch
+
+    from torchmetal.fit.api import fit_phong
+
+    def fit_render(train, one):
+        fit = fit_phong(train, specular=specular)
+        with torch.no_grad():
+            return fit.render(one.lights, one.intensities, one.cameras)
+
+    return fit_render
+
+
+GALLERY_WIDTH = 512
+
+
+def _gallery_png(path: Path, photo, render) -> Path:
+    """photo | render | error (|Δ| of the sRGB values ×4), (3, H, W) linear → one sRGB PNG, panels
+    box-downsampled to ≤ :data:`GALLERY_WIDTH` px wide."""
+    import cv2
+    import torch
+    import torch.nn.functional as F
+
+    from torchmetal.metrics import srgb_encode
+
+    photo, render = photo.detach().float().cpu(), render.detach().float().cpu()
+    f = max(1, -(-int(photo.shape[-1]) // GALLERY_WIDTH))
+    small = [F.avg_pool2d(x[None], f)[0] if f > 1 else x for x in (photo, render)]
+    enc = [srgb_encode(x.clamp(0.0, 1.0)) for x in small]
+    err = ((enc[0] - enc[1]).abs() * 4.0).clamp(0.0, 1.0)
+    gap = torch.ones(3, enc[0].shape[-2], 4)
+    sheet = torch.cat([enc[0], gap, enc[1], gap, err], -1)
+    img = (sheet.permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.ascontiguousarray(img[..., ::-1]))
+    return path
+
+
+#: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe and the
+#: normals were chosen on left-out shots, and the richest options
+REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong"},
+                 "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}
+
+
+def _material_fit_render(method: str):
+    """fit_render for :func:`~torchmetal.fit.holdout.leave_one_out_with`: the whole pipeline with the
+    options of the zoo's ``method``, rendered by the material's renderer."""
+    import torch
+
+    from torchmetal.bench.zoo import METHODS
+    from torchmetal.pipeline import fit_material
+    from torchmetal.renderer import MaterialRenderer
+
+    variants = {**METHODS, **REAL_VARIANTS}
+    if method not in variants:
+        raise ValueError(f"real: expected a variant among global, clustered, {', '.join(variants)}; found {method!r}")
+
+    def fit_render(train, one):
+        material = fit_material(train, seed=0, **variants[method]).material
+        with torch.no_grad():
+            return MaterialRenderer(material)(one.lights, one.intensities, one.cameras)
+
+    return fit_render
+
+
+def task_realflakes(cfg: dict) -> dict:
+    """Flake stage on a real capture: fit on all shots but one, MD and PSNR of the one left out
+    rendered with and without the flake term, and the detections drawn on a fitted shot (PNG)."""
+    import torch
+
+    from torchmetal.flakes.md import metallic_difference
+    from torchmetal.flakes.report import save_detection_overlay
+    from torchmetal.io.capture import load_capture
+    from torchmetal.pipeline import fit_material
+    from torchmetal.renderer import MaterialRenderer
+
+    cap = load_capture(cfg["dir"])
+    if cfg.get("downsample"):
+        cap = _downsample(cap, int(cfg["downsample"]))
+    n = cap.num_shots
+    hold = int(cfg.get("holdout", n // 2)) % n
+    fit_cap, one = cap.subset([k for k in range(n) if k != hold]), cap.subset([hold])
+    t0 = time.perf_counter()
+    res = fit_material(fit_cap, flakes="on", seed=0)
+    seconds = time.perf_counter() - t0
+    model = res.material.flakes
+    valid = valid_mask(one)
+    out = {"name": Path(cfg["dir"]).name, "shots_fitted": n - 1, "heldout": hold, "size": list(cap.images.shape[-2:]),
+           "fit_s": seconds, "flake_stage_s": res.report["stage_times"].get("flakes"),
+           "particles": len(res.flakes.particles) if res.flakes is not None else 0,
+           "model": None if model is None else {k: v for k, v in model.to_dict().items() if k != "extra"},
+           "skipped": (res.flakes.report.get("skipped") if res.flakes is not None else None)}
+    with torch.inference_mode():
+        for key, flakes in (("with", True), ("without", False)):
+            r = MaterialRenderer(res.material, flakes=flakes)
+            img = r(one.lights.float(), one.intensities.float(), one.cameras.float())
+            out[f"md_{key}"] = float(metallic_difference(img, one.images.float()))
+            out[f"psnr_{key}"] = psnr_or_nan(img, one.images, valid)
+    if cfg.get("overlay") and res.flakes is not None:
+        k = 0
+        parts = res.flakes.particles.for_shot(k)
+        gain = 0.5 / max(1e-12, float(fit_cap.images[k].float().mean()))
+        out["overlay"] = str(save_detection_overlay(cfg["overlay"], fit_cap.images[k], parts, gain=min(gain, 8.0)))
+        out["overlay_particles"] = len(parts)
+    return out
+
+
+def _downsample(cap, factor: int):
+    """Box-downsample a capture by an integer factor (for --quick runs on real data)."""
+    import dataclasses
+
+    import torch.nn.functional as F
+
+    if factor <= 1:
+        return cap
+    changes = {"images": F.avg_pool2d(cap.images, factor)}
+    for name in ("normals",):
+        v = getattr(cap, name, None)
+        if v is not None:
+            changes[name] = F.normalize(F.avg_pool2d(v[None] if v.dim() == 3 else v, factor), dim=-3).reshape(3, *changes["images"].shape[-2:])
+    mask = getattr(cap, "mask", None)
+    if mask is not None:
+        mm = F.avg_pool2d(mask.float().reshape(1, 1, *mask.shape[-2:]), factor) > 0.999
+        changes["mask"] = mm.reshape(*mask.shape[:-2], *changes["images"].shape[-2:]).to(mask.dtype)
+    sat = getattr(cap, "saturated", None)
+    if sat is not None:
+        changes["saturated"] = F.max_pool2d(sat.float().reshape(-1, 1, *sat.shape[-2:]), factor).reshape(
+            *sat.shape[:-2], *changes["images"].shape[-2:]).to(sat.dtype)
+    return dataclasses.replace(cap, **changes)
