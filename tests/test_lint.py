@@ -1,9 +1,4 @@
-"""``ruff check`` (its settings: ``[tool.ruff]`` in pyproject.toml) passes on the whole tree.
-
-The modules being reworked elsewhere (:data:`PENDING`) may still hold the violations they had when
-the linter came in, at most :data:`PENDING_VIOLATIONS` of them (mostly import order, which
-``ruff check --fix`` sorts); anywhere else none is allowed.
-"""
+"""``ruff check`` (its settings: ``[tool.ruff]`` in pyproject.toml) passes on the whole tree."""
 
 from __future__ import annotations
 
@@ -17,14 +12,6 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-
-#: paths (relative to the repository, "/"-separated) still to be passed through ``ruff check --fix``
-PENDING = ("torchmetal/fit/", "torchmetal/flakes/", "torchmetal/pipeline.py", "tests/fit/", "tests/flakes/",
-           "tests/test_pipeline.py")
-
-#: violations in PENDING when the linter came in; lower it as they are fixed, never raise it
-PENDING_VIOLATIONS = 34
-
 
 def ruff_executable() -> str | None:
     """The ruff of this interpreter's environment (the [test] extra installs it), else one on PATH."""
@@ -47,22 +34,13 @@ def _where(v: dict) -> str:
     return Path(v["filename"]).resolve().relative_to(ROOT).as_posix()
 
 
-def _pending(path: str) -> bool:
-    return any(path == p or (p.endswith("/") and path.startswith(p)) for p in PENDING)
-
-
 def _lines(found: list[dict]) -> str:
     return "\n".join(f"{_where(v)}:{v['location']['row']}: {v['code']} {v['message']}" for v in found)
 
 
 def test_ruff_passes():
     found = ruff_violations()
-    outside = [v for v in found if not _pending(_where(v))]
-    assert not outside, "ruff check (run `ruff check --fix` for the fixable ones):\n" + _lines(outside)
-    pending = [v for v in found if _pending(_where(v))]
-    assert len(pending) <= PENDING_VIOLATIONS, (
-        f"{len(pending)} ruff violations in {', '.join(PENDING)} (at most {PENDING_VIOLATIONS}); run "
-        "`ruff check --fix` there:\n" + _lines(pending))
+    assert not found, "ruff check (run `ruff check --fix` for the fixable ones):\n" + _lines(found)
 
 
 def test_ruff_catches_a_violation(tmp_path):

@@ -60,7 +60,7 @@ def left_out():
 
 
 def test_md_of_left_out_photo(left_out):
-    # the target (the paper reports 4.05 and 5.40); measured 3.54, 2.23, 3.68, 0.48, 3.53
+    # target: an MD of at most 4 on a left-out photo (the paper reports 4.05 and 5.40); measured 3.54, 2.23, 3.68, 0.48, 3.53
     # against a seed-to-seed floor of 3.26, 1.09, 3.21, 1.37, 3.56
     for case, r in left_out.items():
         assert r["md"] <= 4.0, (case, r)

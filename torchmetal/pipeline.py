@@ -93,8 +93,8 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
                   "screen": screen, "times": {"total": time.perf_counter() - t0}}
         return FlakeStageResult(None, Particles.empty(capture.images.device), report), fit, fit.texture
     from torchmetal.flakes.lobe_core import drop_core
-    from torchmetal.flakes.rim import drop_rim
     from torchmetal.flakes.null_test import drop_extended, glint_excess
+    from torchmetal.flakes.rim import drop_rim
     from torchmetal.flakes.stage import detect_capture, flake_stage
     from torchmetal.flakes.texture import texture_without_glints
 

@@ -43,7 +43,7 @@ def test_bilateral_weights_stop_at_colour_edges():
 
 
 def test_maps_recover_two_materials_better_than_global(two):
-    cap, truth = two.capture, two.truth
+    cap = two.capture
     obs = build_observations(cap, dtype=torch.float64, want_tmin=True)
     g = fit_specular(obs, grid_beta(obs, 1), tol=1e-6, max_iters=50)
     maps = fit_gloss_maps(obs, g.s[0].view(3, 1), g.alpha[0].view(3, 1), tol=1e-6, max_iters=30)

@@ -1,15 +1,23 @@
 """Batched LM primitives: closed-form solves, damping bounds, acceptance, a full driver."""
 
-import math
 
-import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchmetal.fit.lm import (
-    LAMBDA_MAX, LAMBDA_MIN, NU_MAX, LMEval, accept_step, damped_step, levenberg_marquardt, marquardt_diag,
-    predicted_reduction, solve_1x1, solve_2x2, update_damping,
+    LAMBDA_MAX,
+    LAMBDA_MIN,
+    NU_MAX,
+    LMEval,
+    accept_step,
+    damped_step,
+    levenberg_marquardt,
+    marquardt_diag,
+    predicted_reduction,
+    solve_1x1,
+    solve_2x2,
+    update_damping,
 )
 
 

@@ -9,7 +9,6 @@ no code with the fit, and are scored against its noise-free truth.
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,8 +17,8 @@ import torch
 from torchmetal.errors import InputError
 from torchmetal.fit.normals import angular_error, estimate_normals, with_normals
 from torchmetal.io.capture import load_capture
-from torchmetal.synth.zoo_render import Scene, make_case
 from torchmetal.io.shared_data import shared_data_dir
+from torchmetal.synth.zoo_render import Scene, make_case
 
 DATA = shared_data_dir()
 SPHERE = DATA / "uw_gray_sphere"
@@ -89,7 +88,8 @@ class TestRestart:
         # the zoo's photo_bumpy_noise2 at 96²: dark photo texture, noise 0.02, a ring of point lights.
         # Without the restart, patches near highlights stay in a wrong minimum (20–50° off, the true
         # normal costing a tenth of theirs): mean 2.17°, 740 pixels > 5°; with it 1.31°, 552
-        from torchmetal.synth.zoo import SCENES, make_case as zoo_case
+        from torchmetal.synth.zoo import SCENES
+        from torchmetal.synth.zoo import make_case as zoo_case
 
         case = zoo_case(SCENES["photo_bumpy_noise2"].with_(size=96), tmp_path / "pbn2")
         cap = load_capture(case.capture_dir)
@@ -158,7 +158,8 @@ class TestWeakLobe:
         # disc's normals to explain its highlights (3° mean). Small cost gains there buy more tilt, so the
         # restart's moves need a real gain (MOVE_GAIN): 2.9625° without the step, 2.9636° with it
         # (3.13° when any gain was taken)
-        from torchmetal.synth.zoo import SCENES, make_case as zoo_case
+        from torchmetal.synth.zoo import SCENES
+        from torchmetal.synth.zoo import make_case as zoo_case
 
         case = zoo_case(SCENES["two_materials"].with_(size=128), tmp_path / "two")
         cap = load_capture(case.capture_dir)

@@ -7,7 +7,16 @@ import torch
 
 from tests.fit.helpers import rel_err, synth
 from torchmetal.fit.paper import (
-    BinSums, N_BINS, _new_cache, bin_index, bins_of, fit_control_points, grid_start, initial_approximation, paper_pass, paper_scheme,
+    N_BINS,
+    BinSums,
+    _new_cache,
+    bin_index,
+    bins_of,
+    fit_control_points,
+    grid_start,
+    initial_approximation,
+    paper_pass,
+    paper_scheme,
     tmin_control_points,
 )
 from torchmetal.fit.problem import LOG_OFF, build_observations

@@ -191,9 +191,9 @@ def test_sparkle_counts_per_block():
 def test_half_glitter_zoo_scene(tmp_path):
     """Zoo flakes_half: the fit keeps a map, its density right of the glitter ≪ left, and the render has
     no flake right of it."""
+    from torchmetal.flakes.observed import material_flake_field
     from torchmetal.io.capture import load_capture
     from torchmetal.pipeline import fit_material
-    from torchmetal.flakes.observed import material_flake_field
     from torchmetal.synth.zoo import SCENES, make_case
 
     case = make_case(SCENES["flakes_half"], tmp_path / "half")

@@ -217,7 +217,7 @@ def test_zoo_flakes_b_observed_beats_none_and_statistical(flakes_b):
     assert sc["observed"]["psnr"] >= sc["none"]["psnr"] + 1.0, sc
     assert sc["observed"]["psnr"] >= sc["statistical"]["psnr"] + 2.0, sc
     assert sc["observed"]["within_2px"] >= 0.5, sc
-    assert 0.8 <= sc["observed"]["count_ratio"] <= 1.25, sc  # the bound (fill thinned by detect_amp)
+    assert 0.8 <= sc["observed"]["count_ratio"] <= 1.25, sc  # counts within 20 %, a quarter above (the fill thinned by detect_amp)
     assert sc["statistical"]["within_2px"] <= 0.1, sc  # random places: what the observed flakes fix
 
 

@@ -6,7 +6,6 @@ of P_any, the glint likelihood ran off to "a steep bright tail of invisible flak
 model was fitted. Shot 3 is left out and rendered with and without the flake term.
 """
 
-from pathlib import Path
 
 import pytest
 import torch
@@ -15,9 +14,9 @@ from torchmetal.flakes.md import metallic_difference
 from torchmetal.flakes.model import MAX_DENSITY
 from torchmetal.flakes.report import save_detection_overlay
 from torchmetal.io.capture import load_capture
+from torchmetal.io.shared_data import shared_data_dir
 from torchmetal.pipeline import fit_material
 from torchmetal.renderer import MaterialRenderer
-from torchmetal.io.shared_data import shared_data_dir
 
 DATA = shared_data_dir()
 HOLD = 3

@@ -10,10 +10,10 @@ import torch
 from tests.flakes.scenes import residual_scene
 from torchmetal.errors import InputError
 from torchmetal.flakes.detect import detect_flakes
-from torchmetal.flakes.results import Particles
-from torchmetal.io.images import linear_to_srgb
 from torchmetal.flakes.regions import PixelList, region_moments
 from torchmetal.flakes.report import overlay_detections, save_detection_overlay
+from torchmetal.flakes.results import Particles
+from torchmetal.io.images import linear_to_srgb
 
 RED = (255, 40, 40)
 

@@ -33,7 +33,15 @@ from torchmetal.fit.lobe_choice import choose_lobe
 from torchmetal.fit.paper import paper_scheme
 from torchmetal.fit.problem import ROBUST, Observations, Reference, build_observations, compute_dtype, grid_stride
 from torchmetal.fit.refine import (
-    ALPHA_MIN, SpecFit, fill_unobserved, fit_specular, pinned_terms, pixel_map, share_alpha, texture_map, unobserved,
+    ALPHA_MIN,
+    SpecFit,
+    fill_unobserved,
+    fit_specular,
+    pinned_terms,
+    pixel_map,
+    share_alpha,
+    texture_map,
+    unobserved,
 )
 from torchmetal.fit.result import FitResult
 from torchmetal.fit.run import FitRun

@@ -38,7 +38,16 @@ from torchmetal.fit.clusters import MIN_GAIN, MIN_GAIN_ABS, colour_features, hel
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations
 from torchmetal.fit.refine import (
-    ALPHA_MAX, ALPHA_MIN, BETA_MAX, BETA_MIN, SpecFit, fit_specular, pinned_terms, pixel_map, spec_sums, texture_map,
+    ALPHA_MAX,
+    ALPHA_MIN,
+    BETA_MAX,
+    BETA_MIN,
+    SpecFit,
+    fit_specular,
+    pinned_terms,
+    pixel_map,
+    spec_sums,
+    texture_map,
 )
 
 __all__ = ["GlossMaps", "fit_gloss_maps", "choose_maps", "MapsSelection", "RADIUS", "PRIOR", "SIGMA_GUIDE"]

@@ -60,7 +60,7 @@ def fit_lobe(obs: Observations, *, tol: float, max_iters: int, grid: tuple[float
 def specular_energy(obs: Observations, fit: SpecFit) -> Tensor:
     """(N,) float64 Σ w·(s·b)² per shot: how much of each shot the specular term predicts."""
     energy = torch.zeros(obs.num_shots, dtype=torch.float64, device=obs.device)
-    for j, _, (y, g, u, L, w, inten), s3, a3 in chunk_terms(obs, fit.s, fit.alpha, obs.labels):
+    for j, _, (_, _, u, L, w, inten), s3, a3 in chunk_terms(obs, fit.s, fit.alpha, obs.labels):
         b = s3 * inten * u * lobe_factor(L, a3, obs.geo_chunk(j), obs.lobe)
         energy += (w * b * b).sum((1, 2)).double()
     return energy

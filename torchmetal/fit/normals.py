@@ -55,7 +55,14 @@ from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
 from torchmetal.fit.normals_refine import (
-    _chunk, _Chunk, _normals_of, _robust_scale, _row_blocks, _theta_of, _work_dtype, refine_normals,
+    _Chunk,
+    _chunk,
+    _normals_of,
+    _robust_scale,
+    _row_blocks,
+    _theta_of,
+    _work_dtype,
+    refine_normals,
 )
 from torchmetal.geometry import direction_to, surface_points
 

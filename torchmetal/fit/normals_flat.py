@@ -24,7 +24,13 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _pass_setup, _robust_scale, _theta_of,
+    CAUCHY_C,
+    _active_blocks,
+    _cauchy_weights,
+    _model,
+    _pass_setup,
+    _robust_scale,
+    _theta_of,
 )
 
 FLAT_P = 1e-3  # the test's false-alarm rate on a flat pixel

@@ -23,8 +23,17 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _normals_of, _robust_cost, _robust_scale, _Spec, _theta_of,
-    _work_dtype, refine_normals,
+    CAUCHY_C,
+    _active_blocks,
+    _cauchy_weights,
+    _model,
+    _normals_of,
+    _robust_cost,
+    _robust_scale,
+    _Spec,
+    _theta_of,
+    _work_dtype,
+    refine_normals,
 )
 
 
@@ -61,7 +70,7 @@ def joint_refine(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: i
     spec_of = lambda g: _Spec(s0 * math.exp(float(g[0])), a0 * math.exp(float(g[1])))  # noqa: E731
     lam, accepted, it = 1e-3, 0, 0
     cost = sum(float(_model(p[3], p[4], spec0, p[5], jac=False).cost.double().sum()) for p in parts)
-    for it in range(1, iters + 1):
+    for it in range(1, iters + 1):  # noqa: B007 (the count is reported after the loop)
         spec = spec_of(g)
         S = torch.zeros(2, 2, dtype=torch.float64, device=g.device)
         b = torch.zeros(2, dtype=torch.float64, device=g.device)

@@ -17,7 +17,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    _active_blocks, CAUCHY_C, _cauchy_weights, _model, _normals_of, _pass_setup, _robust_scale, _theta_of,
+    CAUCHY_C,
+    _active_blocks,
+    _cauchy_weights,
+    _model,
+    _normals_of,
+    _pass_setup,
+    _robust_scale,
+    _theta_of,
 )
 
 WINDOW = 5

@@ -32,8 +32,19 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.normals_refine import (
-    _active_blocks, _best_of, CAUCHY_C, _model, _normals_of, PROPAGATE, _refine_kept, _robust_cost, _robust_scale,
-    _pass_setup, _shifted, _subset, _theta_of,
+    CAUCHY_C,
+    PROPAGATE,
+    _active_blocks,
+    _best_of,
+    _model,
+    _normals_of,
+    _pass_setup,
+    _refine_kept,
+    _robust_cost,
+    _robust_scale,
+    _shifted,
+    _subset,
+    _theta_of,
 )
 
 RESTART_K = 3.0  # a pixel costing more than this × its chunk's median robust cost gets the grid of starts
@@ -67,7 +78,7 @@ def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, it
     cost = torch.zeros(h * w, dtype=dt, device=theta.device)
     grid = _grid(dt, theta.device)
     scales, tried, kept = [], 0, 0
-    for r0, r1, keep, sub in _active_blocks(capture, act, dt):  # 1. restart
+    for r0, _, keep, sub in _active_blocks(capture, act, dt):  # 1. restart
         idx = r0 * w + keep
         th = theta[:, idx]
         scale = CAUCHY_C * _robust_scale(_model(sub, th, spec, sub.ok.to(dt), jac=False).r, sub.ok, floor)
@@ -88,11 +99,11 @@ def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, it
     act_flat = act.reshape(-1)
     front = act_flat.clone()  # pixels whose normal is new to their neighbours
     passes, moves = 0, 0
-    for passes in range(1, SETTLE_PASSES + 1):  # 2. propagation until settled
+    for passes in range(1, SETTLE_PASSES + 1):  # noqa: B007 (reported after the loop)  2. propagation until settled
         new = (front & act_flat).view(1, -1)  # a neighbour's normal is a candidate where it is new
         src = [(_shifted(theta, w, dy, dx), _shifted(new, w, dy, dx)[0]) for dy, dx in PROPAGATE]
         moved = torch.zeros_like(front)
-        for (r0, r1, keep, sub), scale in zip(_active_blocks(capture, act, dt), scales):
+        for (r0, _, keep, sub), scale in zip(_active_blocks(capture, act, dt), scales):
             idx = r0 * w + keep
             look = torch.stack([f[idx] for _, f in src]).any(0).nonzero().squeeze(1)
             if not look.numel():

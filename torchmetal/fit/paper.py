@@ -11,7 +11,7 @@ Iteration i:
         per-channel acceptance, closed-form 2×2 steps);
   4.1.4 texture T^i = mean_k (image − specular)/(E·n·l) over the valid observations;
   4.1.5 Err_i = Σ (image − render)²; stop when |Err_{i−1} − Err_i| ≤ tol·Err_{i−1}.
-Deviations, all documented (issue 27 for the last three): control points come from bins (the paper's "same r·v" sets are
+Deviations, all documented (the last three found where a plain numpy implementation of 4.1 converged and this one did not): control points come from bins (the paper's "same r·v" sets are
 empty for real data; every non-empty bin is a control point, as in the numpy reference — with a
 higher ``min_count`` the few observations near the mirror direction of a sharp lobe are lost and
 α = 5000 comes out up to 0.4% low); the 4.1.6 LM starts from the best of a coarse α grid; s is free inside

@@ -10,7 +10,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-
 SHIFT_MAX_RADIUS = 12  # up to here shifted adds beat the two cumsums on CPU (r = 7: 7 vs 18 ms at 8×512²)
 
 

@@ -7,8 +7,8 @@ reflectances (peak flake radiance divided by irradiance), comparable to the text
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
 from copy import deepcopy
+from dataclasses import dataclass, field, fields
 
 import torch
 

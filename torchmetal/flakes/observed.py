@@ -425,8 +425,9 @@ def observed_json(obs: ObservedFlakes) -> dict:
 
 def save_observed(obs: ObservedFlakes, root) -> None:
     """Write the arrays of ``obs`` as .npy files (float32) into the directory ``root``."""
-    import numpy as np
     from pathlib import Path
+
+    import numpy as np
 
     for name, v in obs.arrays().items():
         np.save(Path(root) / ARRAYS[name], np.ascontiguousarray(v.detach().cpu().float().numpy()))
@@ -434,8 +435,9 @@ def save_observed(obs: ObservedFlakes, root) -> None:
 
 def load_observed(root, entry: dict | None) -> ObservedFlakes | None:
     """Read the observed flakes named by material.json's ``observed_flakes`` entry (None → None)."""
-    import numpy as np
     from pathlib import Path
+
+    import numpy as np
 
     if not entry:
         return None

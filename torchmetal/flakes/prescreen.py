@@ -38,8 +38,8 @@ from torch import Tensor
 
 from torchmetal.flakes.filters import box_mean
 from torchmetal.flakes.lobe_core import CORE_LEVEL, LOG_CORE
-from torchmetal.flakes.rim import interior
 from torchmetal.flakes.null_test import EXTENT, MIN_EXCESS, SNR_LADDER, glint_rule
+from torchmetal.flakes.rim import interior
 
 SCREEN_STRIDE = 2  # the pipeline renders and screens every 2nd row and column
 TILE = 32

@@ -36,7 +36,6 @@ from torchmetal.flakes.shape_colour import fit_colour, fit_shapes
 from torchmetal.flakes.shot_geometry import Geometry
 from torchmetal.flakes.visibility import _grid
 
-
 TILT_RANGE = (0.01, 1.5)  # radians: the flake-normal slope spread the model can hold (a best point at the
 # upper bound after DEGENERATE_AFTER evaluations is no flake layer: the likelihood stops, no model)
 GLINT_RANGE = (0.003, 0.5)  # radians: a glint narrower than 0.2° is a collapse, not a measurement
