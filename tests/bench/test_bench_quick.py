@@ -190,6 +190,8 @@ def test_real_task_scores_paper_and_default_leave_one_out(tmp_path):
     for v in ("global", "paper", "default"):
         assert len(r[v]["psnr"]) == 4 and all(30 < x < 100 for x in r[v]["psnr"]), (v, r[v])
         assert r[v]["mean"] == pytest.approx(sum(r[v]["psnr"]) / 4)
+        # in sample (fitted on the shots it is scored on): the model's reach, above the left-out mean
+        assert 30 < r[v]["in_sample"] < 100 and r[v]["in_sample"] > r[v]["mean"], (v, r[v])
     bad = run_task("real", {"dir": str(case.capture_dir), "speculars": ["nonsense"]})
     assert "error" in bad and "nonsense" in bad["error"]
 

@@ -20,7 +20,8 @@ def task_real(cfg: dict) -> dict:
     "clustered" are :func:`fit_phong` (the refine scheme) with that specular; a name of
     :data:`torchmetal.bench.zoo.METHODS` ("default", "paper") is :func:`fit_material` with those options,
     rendered as the material renders (sparkles included). Beside each PSNR, the chroma-artifact share
-    (:func:`torchmetal.metrics.chroma_artifact_share`) of every left-out shot.
+    (:func:`torchmetal.metrics.chroma_artifact_share`) of every left-out shot, and the in-sample PSNR
+    (``in_sample``: fitted on every shot, scored on the same shots — what the model can explain at all).
 
     With ``cfg["gallery"]`` (a directory), the default pipeline's first ``cfg["gallery_shots"]`` (3)
     left-out shots are written there as ``{capture}_shot{k}.png``: photo | render | error (|Δ| of the
@@ -53,8 +54,11 @@ def task_real(cfg: dict) -> dict:
             one = cap.subset([k])
             v = valid_mask(one)[0].all(0)
             chroma.append(chroma_artifact_share(pred[0], one.images[0].float(), mask=v) if bool(v.any()) else float("nan"))
+        pred = fr(cap, cap)  # in sample: every shot fitted and rendered
+        in_sample = psnr_or_nan(pred.detach().float().cpu(), cap.images, valid_mask(cap))
         out[spec] = {"psnr": vals, "mean": float(np.mean(vals)), "seconds": seconds, "chroma": chroma,
-                     "chroma_mean": float(np.nanmean(chroma)) if any(c == c for c in chroma) else float("nan")}
+                     "chroma_mean": float(np.nanmean(chroma)) if any(c == c for c in chroma) else float("nan"),
+                     "in_sample": in_sample}
         if gallery is not None and spec == "default":
             out[spec]["gallery"] = [str(_gallery_png(gallery / f"{name}_shot{k}.png", cap.images[k], renders[k][0]))
                                     for k in range(min(len(renders), int(cfg.get("gallery_shots", 3))))]

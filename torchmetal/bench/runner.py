@@ -264,7 +264,7 @@ class Bench(SweepSection):
         for name, r in zip(names, res):
             msg = problem(r)
             if msg:
-                rows.append([name, msg, "", "", "", ""])
+                rows.append([name, msg, "", "", "", "", ""])
                 continue
             for spec in p.real_speculars:
                 v = r.get(spec)
@@ -272,7 +272,7 @@ class Bench(SweepSection):
                     continue
                 rows.append([f"{name} ({r['size'][0]}×{r['size'][1]}, {r['shots']} shots)", spec, fmt(v["mean"], ".2f"),
                              " ".join(fmt(x, ".2f") for x in v["psnr"]), fmt(v.get("chroma_mean"), ".1%"),
-                             fmt(v["seconds"], ".1f")])
+                             fmt(v.get("in_sample"), ".2f"), fmt(v["seconds"], ".1f")])
                 galleries += [Path(g).name for g in v.get("gallery", [])]
             if r.get("default") and r.get("paper"):
                 d, q = r["default"]["mean"], r["paper"]["mean"]
@@ -280,14 +280,16 @@ class Bench(SweepSection):
                 verdicts.append(f"{name}: default {d:.2f} dB, paper {q:.2f} dB → default ≥ paper: "
                                 f"{'yes' if d >= q else 'NO'} (mean); worse on {worse} of {len(r['paper']['psnr'])} "
                                 "left-out shots")
-        self.add(md_table(["capture", "fit", "mean PSNR dB", "per left-out shot (dB)", "chroma artifacts", "seconds"], rows))
+        self.add(md_table(["capture", "fit", "mean PSNR dB", "per left-out shot (dB)", "chroma artifacts",
+                           "in-sample PSNR dB", "seconds"], rows))
         self.add("\n*fit*: global / clustered are `fit_phong` (refine scheme) with that specular; default is "
                  "`fit_material` as `torchmetal fit` runs it (flakes, lobe, normals and maps decided by it), paper_model "
                  "the same with the paper's model forced (`--normals given --lobe phong`, the default before the lobe and the normals were chosen on left-out shots) "
                  "and paper the paper's scheme (`--scheme paper --flakes off`), all rendered by the material's renderer. "
                  "PSNR: linear, peak 1, mask pixels not saturated. *chroma artifacts*: share of 8×8-px blocks of the "
                  "left-out shots where photo and render differ by a CIELAB chroma distance > 15 (sRGB block means, "
-                 "`torchmetal.metrics.chroma_artifact_share`), mean over the shots.")
+                 "`torchmetal.metrics.chroma_artifact_share`), mean over the shots. *in-sample*: the same fit on every shot, "
+                 "scored on those shots (what the model explains at all). *seconds*: the leave-one-out fits.")
         if galleries:
             self.add(f"\nGallery (default pipeline; photo | render | error ×4, sRGB): `real_gallery/` — "
                      f"{', '.join(galleries)}")
