@@ -18,7 +18,7 @@ the chunk, and passes skip that work.
 
 Weights: ``valid`` (N, 3, P) uint8 0/1 = inside the mask, not saturated, n·l > 0, not an
 outlier (None when streamed without robust weights or outlier masks: recomputed per chunk);
-``weight`` (N, 3, P) holds robust IRLS weights when a robust loss is on (else None).
+``weight`` (N, 3, P) holds IRLS weights when a robust loss or the noise model is on (else None).
 Chunks see weights as floats (multiplying by a 0/1 float mask is ~6× cheaper than ``where``
 on a bool mask on CPU, and uint8 → float ~4× cheaper than bool → float). Per-pixel
 constants for the current weights: Σ w·a² (``saa``), the diffuse-only solution ``d0``, its exact
@@ -132,7 +132,7 @@ class Observations:
     L: Tensor | None  # (N, 1, P)
     inten: Tensor  # (N, 3, 1)
     valid: Tensor | None  # (N, 3, P) uint8 0/1; None when streamed without weights
-    weight: Tensor | None  # (N, 3, P) robust weights (0 where invalid) or None
+    weight: Tensor | None  # (N, 3, P) robust or noise weights (0 where invalid) or None
     chunks: list[tuple[int, int]]
     lmax: Tensor  # (N, n_chunks)
     saa: Tensor  # (3, P)
@@ -377,10 +377,10 @@ def build_observations(
 
     chunks = chunk_ranges(p, chunk)
     new = lambda *shape, dtype=dt: torch.empty(*shape, dtype=dtype, device=dev)  # noqa: E731
-    robust = weighting is not None and weighting.weighs  # per-observation weights stored
+    weighs = weighting is not None and weighting.weighs  # per-observation weights stored (robust or noise)
     valid_all = new(n_shots, 3, p, dtype=torch.uint8) if not stream or weighting is not None else None
     wstore = torch.float16 if dt == torch.float32 else torch.float32
-    weight_all = new(n_shots, 3, p, dtype=wstore) if robust else None
+    weight_all = new(n_shots, 3, p, dtype=wstore) if weighs else None
     saa, d0, A = new(3, 3, p).unbind(0)
     cnt = new(3, p, dtype=torch.int16 if n_shots < 2**15 else torch.int32)  # a count per pixel and channel
     fb = None  # (3, P), allocated at the first pixel without a valid observation
@@ -432,7 +432,7 @@ def build_observations(
         s_aa = (wa * a).sum(0)
         if weighting is not None and b is not None:
             target = torch.addcmul(yc, s_c.unsqueeze(0), b, value=-1.0)  # y − s·b
-            if robust:
+            if weighs:
                 wts = _irls_chunk(target, a, base, weighting, yc - target)
                 weight_all[:, :, sl] = wts.to(wstore)
                 wts = weight_all[:, :, sl].to(dt)  # the stored (rounded) weights define the cost
