@@ -354,6 +354,12 @@ class TestBadCaptureFiles:
         edit_json(cap_dir, lambda m: m.update(mask="mask.png"))
         load_error(cap_dir, "mask.png", "expected a mask of size 5x6", "found shape (5, 5)")
 
+    def test_mask_empty(self, cap_dir):
+        # no pixel on the sample: a clear error at load (it had reached the fit and died writing an inf to JSON)
+        cv2.imwrite(str(cap_dir / "mask.png"), np.zeros((6, 5), np.uint8))
+        edit_json(cap_dir, lambda m: m.update(mask="mask.png"))
+        load_error(cap_dir, "Capture.mask", "expected at least one pixel on the sample", "found none")
+
     def test_mask_unreadable(self, cap_dir):
         (cap_dir / "mask.png").write_bytes(b"nope")
         edit_json(cap_dir, lambda m: m.update(mask="mask.png"))

@@ -265,6 +265,8 @@ class Capture:
                 raise CaptureError(f"Capture.{name}: expected dtype {dtype}, found {t.dtype}")
             if t.device != x.device:
                 raise CaptureError(f"Capture.{name}: expected device {x.device} (as images), found {t.device}")
+        if not bool(self.mask.view(torch.uint8).amax()):  # uint8 amax: no full-size bool reduction
+            raise CaptureError("Capture.mask: expected at least one pixel on the sample (True), found none")
         if len(self.names) != n:
             raise CaptureError(f"Capture.names: expected {n} image names, found {len(self.names)}")
         if self.color_space not in COLOR_SPACES:
