@@ -69,7 +69,12 @@ def test_serves_until_interrupted(scene, tmp_path):
             img = np.frombuffer(r.read(), "<f4")
         assert img.shape == (3 * SIZE * SIZE,) and np.isfinite(img).all() and img.max() > 0
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=90)  # a loaded 2-core machine took over 30 s to shut the server down
+        try:
+            out, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+            raise AssertionError(f"still serving 60 s after Ctrl-C; stderr: {err[-2000:]!r}") from None
         assert proc.returncode == 0 and "stopped" in err
         assert "exporting renderer-noflakes.onnx (64x64, flakes off)" in err and "exporting renderer.onnx" not in err
     finally:

@@ -85,6 +85,8 @@ class Viewer:
         self._lock = threading.Lock()
 
     def close(self) -> None:
+        """Release the onnxruntime sessions (here, not at interpreter teardown) and remove the exported graphs."""
+        self.sessions = {}
         shutil.rmtree(self.graph_dir, ignore_errors=True)
 
     def photo(self, k: int) -> bytes:
