@@ -22,9 +22,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.fit.lm import solve_2x2
-from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, weighted
-from torchmetal.fit.refine import SpecFit, chunk_terms, fit_specular, pinned_terms, spec_sums, texture_map
+from torchmetal.fit.refine import SpecFit, chunk_model, fit_specular, pinned_terms, spec_sums, texture_map
 
 EVIDENCE_REL = 1e-3  # the specular term must explain this fraction of the diffuse-only residual…
 EVIDENCE_ABS = 1e-6  # …and this fraction of Σ w·y²
@@ -296,8 +295,8 @@ def heldout_mse(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor, l
     texture = texture.clamp_min(0.0)
     sse = torch.zeros((), dtype=torch.float64, device=texture.device)
     cnt = 0.0
-    for j, (p0, p1), (y, g, u, L, w, inten), sp, ap in chunk_terms(hold, s, alpha, labels):
-        r = y - inten * g * texture[:, p0:p1] - sp * (inten * u) * lobe_factor(L, ap, hold.geo_chunk(j), hold.lobe)
+    for y, w, diffuse, spec in chunk_model(hold, texture, s, alpha, labels):
+        r = y - diffuse - spec
         sse += (weighted(r, w) * r).double().sum()
         cnt += float(w.sum())
     return float(sse) / max(cnt, 1.0)

@@ -31,10 +31,6 @@ def _sigma_floor(capture) -> float:
     return SIGMA_FLOOR * float(capture.images.detach().abs().amax().clamp_min(1e-30))
 
 
-def _sigma(obs: Observations, fit: SpecFit, capture) -> Tensor:
-    return residual_scale(obs, fit.s, fit.alpha, fit.eb).clamp_min(_sigma_floor(capture))
-
-
 def _hold_shot(obs: Observations, fit: SpecFit) -> int:
     """The shot whose observations carry the most specular energy (the most telling to hold out)."""
     return int(specular_energy(obs, fit).argmax())
@@ -94,8 +90,9 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
                                           torch.ones(1, 3, dtype=torch.float64, device=imgs.device))
             else:
                 glob0 = glob
-            sigma = _sigma(sub, glob0, capture)
-            variance = noise_model(sub, glob0.s, glob0.alpha, glob0.eb, floor=_sigma_floor(capture) ** 2) if noise else None
+            floor = _sigma_floor(capture)
+            sigma = residual_scale(sub, glob0.s, glob0.alpha, glob0.eb).clamp_min(floor)
+            variance = noise_model(sub, glob0.s, glob0.alpha, glob0.eb, floor=floor**2) if noise else None
             weighting = Weighting(sigma=sigma, robust=robust, outlier_k=outliers, variance=variance)
             n_base = float(sub.n.sum())
             for _ in range(2 if robust is not None else 1):

@@ -24,7 +24,7 @@ from torchmetal.fit.clusters import evidence
 from torchmetal.fit.decision import MIN_GAIN, Z_MIN, heldout_psnr, paired_choice
 from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.problem import Observations, build_observations
-from torchmetal.fit.refine import SpecFit, chunk_terms, fit_specular, grid_beta, texture_map
+from torchmetal.fit.refine import SpecFit, chunk_model, chunk_terms, fit_specular, grid_beta, texture_map
 from torchmetal.lobes import LOBES
 
 __all__ = ["LobeSelection", "choose_lobe", "LOBE_GRID", "HOLDS", "FOLDS"]
@@ -73,8 +73,8 @@ def heldout_errors(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor
     s, α (K, 3) per element, ``labels`` (P,) the fit's pixel labels when K > 1."""
     texture = texture.clamp_min(0.0)
     out = []
-    for j, (p0, p1), (y, g, u, L, w, inten), s3, a3 in chunk_terms(hold, s, alpha, labels):
-        r = y - inten * g * texture[:, p0:p1] - s3 * (inten * u) * lobe_factor(L, a3, hold.geo_chunk(j), hold.lobe)
+    for y, w, diffuse, spec in chunk_model(hold, texture, s, alpha, labels):
+        r = y - diffuse - spec
         out.append((r * r)[w > 0].double())
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)
 

@@ -260,13 +260,13 @@ def tmin_chunk(y: Tensor, a: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(torch.isfinite(t), t, torch.zeros_like(t)), k
 
 
-def _irls_chunk(target: Tensor, a: Tensor, base: Tensor, weighting: Weighting, spec: Tensor | None = None) -> Tensor:
+def _irls_chunk(target: Tensor, a: Tensor, base: Tensor, weighting: Weighting, y: Tensor | None = None) -> Tensor:
     """Per-pixel IRLS of the texture against ``target`` = y − specular; float weights (n, 3, c).
 
     ``base`` (n, 3, c) 0/1 float. Starts from the median over shots of target/a (one glint cannot
     drag the start), and never rejects every observation of a pixel. With a noise model
     (``weighting.variance``) the weights carry :meth:`Weighting.noise_weight` of the model value
-    a·d + ``spec`` (the specular term (n|1, 3, c), 0 when None).
+    a·d + (``y`` − ``target``), the specular term (a·d alone when ``y`` is None).
     """
     dt = a.dtype
     zero = torch.zeros((), dtype=dt, device=a.device)
@@ -290,7 +290,7 @@ def _irls_chunk(target: Tensor, a: Tensor, base: Tensor, weighting: Weighting, s
         else:
             w = base
         if weighting.variance is not None:
-            pred = a * d if spec is None else torch.addcmul(spec, a, d)
+            pred = a * d if y is None else torch.addcmul(y - target, a, d)
             w = w * weighting.noise_weight(pred)
     lost = (w.sum(0) == 0) & (base.sum(0) > 0)
     if bool(lost.any()):
@@ -433,7 +433,7 @@ def build_observations(
         if weighting is not None and b is not None:
             target = torch.addcmul(yc, s_c.unsqueeze(0), b, value=-1.0)  # y − s·b
             if weighs:
-                wts = _irls_chunk(target, a, base, weighting, yc - target)
+                wts = _irls_chunk(target, a, base, weighting, yc)
                 weight_all[:, :, sl] = wts.to(wstore)
                 wts = weight_all[:, :, sl].to(dt)  # the stored (rounded) weights define the cost
             elif weighting.outlier_k is not None:  # a least-squares pass; IRLS only where something exceeds k·σ

@@ -90,6 +90,14 @@ def chunk_terms(obs: Observations, s: Tensor, alpha: Tensor, labels: Tensor | No
         yield j, (p0, p1), obs.chunk(j), sp.unsqueeze(0), ap.unsqueeze(0)
 
 
+def chunk_model(obs: Observations, texture: Tensor, s: Tensor, alpha: Tensor, labels: Tensor | None):
+    """Per chunk of ``obs``: (y, w, a·d, s·b) (N, 3, c) each — the photos, weights, diffuse and specular terms of
+    the texture d (3, P) and the elements s, α (K, 3) on pixel ``labels`` (P,) (ignored for K = 1): what the
+    residual scale, the noise model and the held-out errors are taken from (residual y − a·d − s·b)."""
+    for j, (p0, p1), (y, g, u, L, w, inten), sp, ap in chunk_terms(obs, s, alpha, labels):
+        yield y, w, inten * g * texture[:, p0:p1], sp * (inten * u) * lobe_factor(L, ap, obs.geo_chunk(j), obs.lobe)
+
+
 def spec_sums(obs: Observations, alpha: Tensor, *, per_pixel: bool = False) -> tuple[Tensor, Tensor, float]:
     """One pass: per-element stats (6, K, 3) float64 and e_b (3, P) for α (K, 3).
 
@@ -306,16 +314,10 @@ def texture_map(obs: Observations, s: Tensor, eb: Tensor) -> Tensor:
 def residual_scale(obs: Observations, s: Tensor, alpha: Tensor, eb: Tensor, max_samples: int = 1 << 20) -> Tensor:
     """Robust residual scale σ (3,) = 1.4826·median |r| over valid observations (subsampled)."""
     d = texture_map(obs, s, eb)
-    labels = obs.labels if s.shape[0] > 1 else None
-    s_pix = pixel_map(s.to(obs.dtype), labels)
-    a_pix = pixel_map(alpha.to(obs.dtype), labels)
     parts: list[list[Tensor]] = [[], [], []]
     budget = max(1, max_samples // max(1, len(obs.chunks)))
-    for j, (p0, p1) in enumerate(obs.chunks):
-        y, g, u, L, w, inten = obs.chunk(j)
-        sp = s_pix if s_pix.shape[1] == 1 else s_pix[:, p0:p1]
-        ap = a_pix if a_pix.shape[1] == 1 else a_pix[:, p0:p1]
-        r = y - inten * g * d[:, p0:p1] - sp * (inten * u) * lobe_factor(L, ap, obs.geo_chunk(j), obs.lobe)
+    for y, w, diffuse, spec in chunk_model(obs, d, s, alpha, obs.labels):
+        r = y - diffuse - spec
         ok = w > 0
         for c in range(3):
             v = r[:, c][ok[:, c]].abs()
@@ -350,12 +352,11 @@ def noise_model(obs: Observations, s: Tensor, alpha: Tensor, eb: Tensor, *, floo
     a black patch weighted its highlights 500× down (s 17 % off; uniform 3.7 %), and capping the range at 10×
     (4.2 %) let two_materials' misfit choose other clusters and GGX (CI zoo 45.3 dB; uniform 54.5)."""
     d = texture_map(obs, s, eb)
-    labels = obs.labels if s.shape[0] > 1 else None
     preds: list[list[Tensor]] = [[], [], []]
     sq: list[list[Tensor]] = [[], [], []]
     budget = max(1, max_samples // max(1, len(obs.chunks)))
-    for j, (p0, p1), (y, g, u, L, w, inten), sp, ap in chunk_terms(obs, s, alpha, labels):
-        pred = inten * g * d[:, p0:p1] + sp * (inten * u) * lobe_factor(L, ap, obs.geo_chunk(j), obs.lobe)
+    for y, w, diffuse, spec in chunk_model(obs, d, s, alpha, obs.labels):
+        pred = diffuse + spec
         ok = w > 0
         for c in range(3):
             m = ok[:, c]
