@@ -183,9 +183,9 @@ def fit_material(
             :mod:`~torchmetal.fit.lobe_choice`; phong, docs/design.md §2.2, unless another lobe predicts them
             better beyond noise; the refits keep that choice), "phong", "blinn" or "ggx".
         normals: "auto" (the default: the capture's normals.npy when it has one; else estimated where
-            left-out shots prefer them to the flat plane, :mod:`~torchmetal.fit.normals_choice`), "given"
+            left-out shots prefer them to the flat plane, :mod:`~torchmetal.normals.choice`), "given"
             (the capture's normals.npy; flat without one), "flat" (0, 0, 1), or "estimate" (photometric
-            stereo with the Phong terms, :func:`~torchmetal.fit.normals.estimate_normals`; the material keeps them).
+            stereo with the Phong terms, :func:`~torchmetal.normals.estimate_normals`; the material keeps them).
         weights: "uniform" (the default: plain least squares) or "noise" (each observation weighted by the
             inverse of its expected noise variance, ``fit_phong(noise_weights=True)``).
 
@@ -204,7 +204,7 @@ def fit_material(
         raise InputError(f"weights: expected one of {WEIGHTS}, found {weights!r}")
     auto = robust == "auto"
     t0 = time.perf_counter()
-    from torchmetal.fit.normals import with_normals
+    from torchmetal.normals import with_normals
 
     capture, normals_report = with_normals(capture, normals, fit_kwargs=dict(tol=tol, max_iters=max_iters))
     kw = dict(scheme=scheme, specular=specular, tol=tol, max_iters=max_iters, progress=progress,

@@ -376,7 +376,7 @@ KIND_NOTES = {
     "ggx": "global GGX lobe (torchmetal's own GGX), flat",
     "clustered": "two specular clusters (Phong, alpha 15 and 80-120), flat",
     "gloss": "per-pixel gloss maps (Phong, alpha 40-300, s 0.1-0.3), flat",
-    "normals": "normal map estimated from 12 synthetic shots (fit.normals.estimate_normals), Phong lobe",
+    "normals": "normal map estimated from 12 synthetic shots (normals.estimate_normals), Phong lobe",
     "normals-ggx": "the same estimated normal map, GGX lobe",
     "flakes": "Phong + flake model (baked into the glTF maps)",
     "flakes-ggx": "GGX + flake model (baked into the glTF maps)",
@@ -388,7 +388,7 @@ def parity_kinds(height: int = 64, width: int = 80, kinds=None) -> dict:
     """{kind: Material} of :data:`KIND_NOTES`, built deterministically on one procedural texture.
 
     The normal map of ``normals*`` is estimated from a synthetic bumpy capture of the same texture
-    (:func:`torchmetal.fit.normals.estimate_normals`, 12 shots), as ``fit --normals estimate`` does.
+    (:func:`torchmetal.normals.estimate_normals`, 12 shots), as ``fit --normals estimate`` does.
     """
     from torchmetal.flakes.model import FlakeModel
     from torchmetal.material import Material
@@ -420,7 +420,7 @@ def parity_kinds(height: int = 64, width: int = 80, kinds=None) -> dict:
             gs = (0.1 + 0.2 * yy).expand(3, height, width).clone()
             out[kind] = Material(tex, gs.mean((1, 2)), ga.mean((1, 2)), size, gloss_s=gs, gloss_alpha=ga)
         elif kind in ("normals", "normals-ggx"):
-            from torchmetal.fit.normals import estimate_normals
+            from torchmetal.normals import estimate_normals
 
             if "_normals" not in out:
                 out["_normals"] = estimate_normals(truth.capture).normals.float()

@@ -1,4 +1,4 @@
-"""Normals from the photos (torchmetal.fit.normals): accuracy against the generator's truth,
+"""Normals from the photos (torchmetal.normals.estimate_normals): accuracy against the generator's truth,
 flat when flat, robustness to clipped highlights and glints, bad input, the pipeline/CLI option,
 and the material (save/load, ONNX parity) with estimated normals.
 
@@ -15,9 +15,9 @@ import pytest
 import torch
 
 from torchmetal.errors import InputError
-from torchmetal.fit.normals import angular_error, estimate_normals, with_normals
 from torchmetal.io.capture import load_capture
 from torchmetal.io.shared_data import shared_data_dir
+from torchmetal.normals import angular_error, estimate_normals, with_normals
 from torchmetal.synth.zoo_render import Scene, make_case
 
 DATA = shared_data_dir()

@@ -1,5 +1,5 @@
 """The neighbourhood's normal where it explains a pixel as well: a step of
-:func:`~torchmetal.fit.normals.estimate_normals` before the flat test.
+:func:`~torchmetal.normals.estimate.estimate_normals` before the flat test.
 
 A glint (a flake, a speck of dust) lit in one shot can be explained by tilting the pixel's
 normal until the Phong highlight falls on that shot; noise in a dark pixel can pull its normal
@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchmetal.fit.normals_refine import (
+from torchmetal.normals.refine import (
     CAUCHY_C,
     _active_blocks,
     _cauchy_weights,

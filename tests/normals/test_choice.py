@@ -1,13 +1,12 @@
-"""normals="auto" (torchmetal.fit.normals_choice): estimated normals only where left-out shots prefer them."""
+"""normals="auto" (torchmetal.normals.choice): estimated normals only where left-out shots prefer them."""
 
 from dataclasses import replace
 
 import pytest
 import torch
 
-from torchmetal.fit.normals import with_normals
-from torchmetal.fit.normals_choice import choose_normals, strided_capture
 from torchmetal.geometry import surface_points
+from torchmetal.normals import choose_normals, strided_capture, with_normals
 from torchmetal.synth import synth_capture
 
 

@@ -1,12 +1,12 @@
 """Joint refinement of the per-pixel normals and the global specular terms (the last stage of
-:func:`~torchmetal.fit.normals.estimate_normals`).
+:func:`~torchmetal.normals.estimate.estimate_normals`).
 
 Alternating "normals under fixed s, α" with "s, α under fixed normals" has a biased fixed point:
 the Phong fit takes the normals as exact, so their errors broaden the lobe it sees (lower α and
 s), and normals refined under a broader lobe keep their errors. Here both move together:
 unknowns θ_p (the surface gradient of every pixel, 2 each) and two global log-scales
 g = (u, w) with s = s₀·e^u and α = α₀·e^w (all channels together); the texture is eliminated per
-pixel as in :mod:`~torchmetal.fit.normals` (variable projection). Each Gauss–Newton step solves
+pixel as in :mod:`~torchmetal.normals.estimate` (variable projection). Each Gauss–Newton step solves
 the per-pixel 2×2 blocks and the 2×2 global block through the Schur complement
 
     (H_gg − Σ_p H_gpH_pp⁻¹H_pg)·δg = b_g − Σ_p H_gpH_pp⁻¹b_p,   δθ_p = H_pp⁻¹(b_p − H_pg·δg)
@@ -22,7 +22,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchmetal.fit.normals_refine import (
+from torchmetal.normals.refine import (
     CAUCHY_C,
     _active_blocks,
     _cauchy_weights,

@@ -1,4 +1,4 @@
-"""Flat where the photos cannot tell: the last step of :func:`~torchmetal.fit.normals.estimate_normals`.
+"""Flat where the photos cannot tell: the last step of :func:`~torchmetal.normals.estimate.estimate_normals`.
 
 A per-pixel normal has two free parameters, so on a flat sample the estimate is the flat normal
 plus noise (about 0.3° on the zoo's 8-bit photo_srgb8), and the noise costs held-out PSNR (sharp
@@ -23,7 +23,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchmetal.fit.normals_refine import (
+from torchmetal.normals.refine import (
     CAUCHY_C,
     _active_blocks,
     _cauchy_weights,

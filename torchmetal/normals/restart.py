@@ -1,5 +1,5 @@
 """Second chances for pixels the per-pixel refinement left in a wrong minimum: a step of
-:func:`~torchmetal.fit.normals.estimate_normals` after the joint refinement.
+:func:`~torchmetal.normals.estimate.estimate_normals` after the joint refinement.
 
 Near highlights (and on dark, noisy texture) a pixel's robust cost has several minima; its start
 (the Lambertian init, a neighbour's normal) can fall into a wrong one, and whole patches then
@@ -15,7 +15,7 @@ minimum costs several times the right one, while small gains are what a model th
    grid of normals (tilts ``GRID_TILTS_DEG`` × ``GRID_AZIMUTHS`` azimuths, and flat); the best
    start is refined (Cauchy IRLS around the per-pixel LM);
 2. **propagation until settled**: each pixel tries its neighbours' normals at the
-   :data:`~torchmetal.fit.normals_refine.PROPAGATE` shifts across the whole image (not only
+   :data:`~torchmetal.normals.refine.PROPAGATE` shifts across the whole image (not only
    inside its chunk); the pixels that take one are refined; the next pass looks only at the
    pixels next to one that moved, until none moves or after ``SETTLE_PASSES`` passes.
 
@@ -31,7 +31,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchmetal.fit.normals_refine import (
+from torchmetal.normals.refine import (
     CAUCHY_C,
     PROPAGATE,
     _active_blocks,

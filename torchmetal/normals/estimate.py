@@ -23,18 +23,18 @@ l, v, E come from :mod:`torchmetal.geometry` (point and directional lights, any 
    (:func:`~torchmetal.fit.fit_phong`, specular "global") with the current normals and refines the
    normals under them, then tries the 4 neighbours' normals (local minima near highlights).
 4. **Joint refinement** of the normals with the global s, α
-   (:func:`~torchmetal.fit.normals_joint.joint_refine`): the alternation alone has a biased fixed
+   (:func:`~torchmetal.normals.joint.joint_refine`): the alternation alone has a biased fixed
    point (normal errors broaden the lobe the Phong fit sees). When the Phong fits saw no highlight
    (s = 0), a weak, broad lobe is still tried from a small start
-   (:func:`~torchmetal.fit.normals_joint.try_weak_lobe`): Lambertian normals tilted towards the half
+   (:func:`~torchmetal.normals.joint.try_weak_lobe`): Lambertian normals tilted towards the half
    vectors absorb such a lobe, and then no residual shows it; kept when it explains the shots better.
-5. **Second chances** (:mod:`~torchmetal.fit.normals_restart`): pixels whose robust cost stands out
+5. **Second chances** (:mod:`~torchmetal.normals.restart`): pixels whose robust cost stands out
    try a grid of starts, then neighbours' normals propagate across the image until settled, each
    move kept where it cuts the pixel's robust cost by 30 % (patches caught in a wrong minimum near
    highlights, which one propagation pass does not reach).
-6. **The neighbourhood's normal where it explains a pixel as well** (:mod:`~torchmetal.fit.normals_median`,
+6. **The neighbourhood's normal where it explains a pixel as well** (:mod:`~torchmetal.normals.median`,
    a truncated loss: a glint explained by a tilted normal), then
-   **flat where the photos cannot tell** (:mod:`~torchmetal.fit.normals_flat`): a per-pixel
+   **flat where the photos cannot tell** (:mod:`~torchmetal.normals.flat`): a per-pixel
    likelihood-ratio test against (0, 0, 1).
 
 The normals are fitted to the channel sum of each shot, z_k = Σ_c y_kc (shots with a clipped
@@ -54,7 +54,8 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
-from torchmetal.fit.normals_refine import (
+from torchmetal.geometry import direction_to, surface_points
+from torchmetal.normals.refine import (
     _Chunk,
     _chunk,
     _normals_of,
@@ -64,9 +65,7 @@ from torchmetal.fit.normals_refine import (
     _work_dtype,
     refine_normals,
 )
-from torchmetal.geometry import direction_to, surface_points
 
-NORMALS_MODES = ("auto", "given", "flat", "estimate")
 DARK = 0.02  # init: shots darker than this fraction of the pixel's brightest are left out
 SHADOW = 0.05  # init: shots with predicted n·l below this are attached shadow
 INIT_K = 3.0  # init: |residual| > INIT_K·σ leaves a shot out (highlights, glints, cast shadows)
@@ -148,16 +147,16 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         rounds: Phong rounds after the Lambertian refinement (0: Lambertian only).
         iters: LM iterations per pixel and round.
         joint: finish with the joint refinement of the normals and s, α
-            (:func:`~torchmetal.fit.normals_joint.joint_refine`).
+            (:func:`~torchmetal.normals.joint.joint_refine`).
         weak_lobe: with ``joint``, when the Phong fits saw no highlight (s = 0), still try a weak, broad
             lobe jointly with the normals, kept when it explains the shots better
-            (:func:`~torchmetal.fit.normals_joint.try_weak_lobe`).
+            (:func:`~torchmetal.normals.joint.try_weak_lobe`).
         restart: give high-cost pixels a grid of starts, then propagate neighbours' normals until
-            settled (:func:`~torchmetal.fit.normals_restart.restart_and_settle`: wrong minima near highlights).
+            settled (:func:`~torchmetal.normals.restart.restart_and_settle`: wrong minima near highlights).
         median_test: take the 5×5 neighbourhood's median normal where it explains a pixel as well
-            (:func:`~torchmetal.fit.normals_median.median_where_as_good`: glints, noisy dark pixels).
+            (:func:`~torchmetal.normals.median.median_where_as_good`: glints, noisy dark pixels).
         flat_test: keep (0, 0, 1) where the estimate does not explain the shots significantly
-            better (:func:`~torchmetal.fit.normals_flat.flat_where_unresolved`).
+            better (:func:`~torchmetal.normals.flat.flat_where_unresolved`).
         fit_kwargs: extra arguments of :func:`~torchmetal.fit.fit_phong` for the rounds' fits
             (e.g. ``tol``, ``max_iters``); specular is "global".
 
@@ -212,7 +211,7 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         history.append({"round": k, "s": s.tolist(), "alpha": alpha.tolist(), "phong_rmse": float(fit.rmse), **rep,
                         "time": time.perf_counter() - t1})
     if joint and not bool((s > 0).any()) and weak_lobe:  # no highlight seen: a weak, broad lobe may hide
-        from torchmetal.fit.normals_joint import try_weak_lobe
+        from torchmetal.normals.joint import try_weak_lobe
 
         t1 = time.perf_counter()
         inside = capture.mask[0]
@@ -220,7 +219,7 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         normals, s, alpha, rep = try_weak_lobe(capture, normals, tex, iters=iters, active=solvable)
         history.append({"round": "weak_lobe", **rep, "time": time.perf_counter() - t1})
     if joint and bool((s > 0).any()):
-        from torchmetal.fit.normals_joint import joint_refine
+        from torchmetal.normals.joint import joint_refine
 
         t1 = time.perf_counter()
         normals, s, alpha, rep = joint_refine(capture, normals, s, alpha, active=solvable)
@@ -230,19 +229,19 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
         history.append({"round": "polish", **rep, "time": time.perf_counter() - t1})
     if restart:
-        from torchmetal.fit.normals_restart import restart_and_settle
+        from torchmetal.normals.restart import restart_and_settle
 
         t1 = time.perf_counter()
         normals, rep = restart_and_settle(capture, normals, s, alpha, iters=iters, active=solvable)
         history.append({"round": "restart", **rep, "time": time.perf_counter() - t1})
     n_median = 0
     if median_test:
-        from torchmetal.fit.normals_median import median_where_as_good
+        from torchmetal.normals.median import median_where_as_good
 
         normals, n_median = median_where_as_good(capture, normals, s, alpha, active=solvable)
     n_flat = 0
     if flat_test:
-        from torchmetal.fit.normals_flat import flat_where_unresolved
+        from torchmetal.normals.flat import flat_where_unresolved
 
         normals, n_flat = flat_where_unresolved(capture, normals, s, alpha, active=solvable)
     if not bool(torch.isfinite(normals).all()):
@@ -260,39 +259,6 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
     return NormalsEstimate(normals.to(out_dt), s.to(out_dt), alpha.to(out_dt), report)
 
 
-def with_normals(capture, mode: str, **kw):
-    """The capture with the normals ``mode`` asks for, and a report entry.
-
-    "auto": the capture's own when it has them, else "estimate" or "flat" as shots left out of the fit
-    prefer (:func:`~torchmetal.fit.normals_choice.choose_normals`; the report's "decision" says why);
-    "given": the capture's own (its normals.npy, flat (0, 0, 1) without one); "flat": (0, 0, 1)
-    everywhere; "estimate": :func:`estimate_normals` (``kw`` passed on).
-
-    Returns:
-        (capture, report dict).
-    """
-    if mode not in NORMALS_MODES:
-        raise InputError(f"normals: expected one of {list(NORMALS_MODES)}, found {mode!r}")
-    if mode == "auto":
-        from torchmetal.fit.normals_choice import choose_normals
-
-        t0 = time.perf_counter()
-        chosen, decision = choose_normals(capture, fit_kwargs=kw.get("fit_kwargs"))
-        record = {"decision": decision.to_dict(), "decision_time": time.perf_counter() - t0}
-        cap, report = with_normals(capture, chosen, **kw)
-        return cap, {**report, "mode": "auto", "chosen": chosen, **record}
-    if mode == "given":
-        return capture, {"mode": "given", "flat": capture.flat}
-    if mode == "flat":
-        if capture.flat:
-            return capture, {"mode": "flat"}
-        n = torch.zeros_like(capture.normals)
-        n[2] = 1.0
-        return replace(capture, normals=n), {"mode": "flat", "ignored": "the capture's normals"}
-    est = estimate_normals(capture, **kw)
-    return replace(capture, normals=est.normals), est.report
-
-
 def angular_error(a: Tensor, b: Tensor, mask: Tensor | None = None) -> Tensor:
     """Angle in degrees between unit normal maps a, b (3, H, W) → (M,) over ``mask`` (H, W) pixels."""
     c = (a.double() * b.double()).sum(0) / (a.double().norm(dim=0) * b.double().norm(dim=0)).clamp_min(1e-30)
@@ -300,4 +266,4 @@ def angular_error(a: Tensor, b: Tensor, mask: Tensor | None = None) -> Tensor:
     return ang.reshape(-1) if mask is None else ang[mask]
 
 
-__all__ = ["NORMALS_MODES", "NormalsEstimate", "estimate_normals", "refine_normals", "with_normals", "angular_error"]
+__all__ = ["NormalsEstimate", "estimate_normals", "angular_error"]

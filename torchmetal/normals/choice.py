@@ -5,7 +5,7 @@ A capture with given normals (its ``normals.npy``) keeps them. Without, the choi
 pixel grid of the capture (:func:`strided_capture`, ≤ ``PIXELS`` pixels; per-pixel photometric stereo
 needs no more to say whether the sample has relief): the shots are dealt into up to ``FOLDS`` groups,
 and for each group a fit (:func:`~torchmetal.fit.fit_phong`, its default specular structure) on the other
-shots with flat normals, and the same after :func:`~torchmetal.fit.normals.estimate_normals` on those
+shots with flat normals, and the same after :func:`~torchmetal.normals.estimate.estimate_normals` on those
 shots, render the group. Per pixel, the median squared error over the group's observations
 (:func:`pixel_errors`: the shape shows in every shot, a glint in one) pairs up pixel by pixel, and
 :func:`~torchmetal.fit.decision.paired_choice` keeps the flat plane unless the estimate lowers them beyond
@@ -86,7 +86,7 @@ def choose_normals(capture, *, fit_kwargs: dict | None = None, max_pixels: int =
         (mode, the :class:`~torchmetal.fit.decision.Decision` behind it).
     """
     from torchmetal.fit.api import fit_phong
-    from torchmetal.fit.normals import estimate_normals
+    from torchmetal.normals.estimate import estimate_normals
 
     n = int(capture.images.shape[0])
     if not capture.flat:

@@ -1,4 +1,4 @@
-"""The per-pixel refinement behind :func:`~torchmetal.fit.normals.estimate_normals`: observations
+"""The per-pixel refinement behind :func:`~torchmetal.normals.estimate.estimate_normals`: observations
 of a row chunk, the model and its Jacobian in the surface gradient, and the robust LM.
 
 Per pixel, with n = (−θx, −θy, 1)/√(1 + θx² + θy²) (n·z > 0 by construction) and the channel

@@ -1,0 +1,32 @@
+"""Normals from the photos: per-pixel photometric stereo with the known lights, refined with the
+Phong terms (``fit --normals``; docs/design.md §2.2, the choice in §4).
+
+Modules, in the order the estimate runs them:
+
+* :mod:`~torchmetal.normals.estimate`: :func:`estimate_normals`, the whole estimate stage by stage;
+* :mod:`~torchmetal.normals.refine`: the per-pixel robust refinement (:func:`refine_normals`);
+* :mod:`~torchmetal.normals.joint`: the normals jointly with the global s, α (:func:`joint_refine`,
+  :func:`try_weak_lobe`);
+* :mod:`~torchmetal.normals.restart`: second chances for pixels in a wrong minimum (:func:`restart_and_settle`);
+* :mod:`~torchmetal.normals.median`: the neighbourhood's normal where it explains a pixel as well
+  (:func:`median_where_as_good`);
+* :mod:`~torchmetal.normals.flat`: flat where the photos cannot tell (:func:`flat_where_unresolved`);
+* :mod:`~torchmetal.normals.choice`: ``normals="auto"``, estimated or flat as left-out shots prefer
+  (:func:`choose_normals`);
+* :mod:`~torchmetal.normals.modes`: the normals a fit uses, by mode (:func:`with_normals`).
+"""
+
+from torchmetal.normals.choice import choose_normals, pixel_errors, strided_capture
+from torchmetal.normals.estimate import NormalsEstimate, angular_error, estimate_normals
+from torchmetal.normals.flat import flat_where_unresolved
+from torchmetal.normals.joint import joint_refine, try_weak_lobe
+from torchmetal.normals.median import median_where_as_good
+from torchmetal.normals.modes import NORMALS_MODES, with_normals
+from torchmetal.normals.refine import refine_normals
+from torchmetal.normals.restart import restart_and_settle
+
+__all__ = [
+    "NORMALS_MODES", "NormalsEstimate", "estimate_normals", "with_normals", "choose_normals", "strided_capture",
+    "pixel_errors", "refine_normals", "joint_refine", "try_weak_lobe", "restart_and_settle", "median_where_as_good",
+    "flat_where_unresolved", "angular_error",
+]
