@@ -55,14 +55,16 @@ from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
 from torchmetal.geometry import direction_to, surface_points
+from torchmetal.normals.core import (
+    Chunk,
+    normals_of,
+    robust_scale,
+    row_blocks,
+    row_chunk,
+    theta_of,
+    work_dtype,
+)
 from torchmetal.normals.refine import (
-    _Chunk,
-    _chunk,
-    _normals_of,
-    _robust_scale,
-    _row_blocks,
-    _theta_of,
-    _work_dtype,
     refine_normals,
 )
 
@@ -103,7 +105,7 @@ def _solve3(l: Tensor, z: Tensor, w: Tensor) -> Tensor:
     return torch.linalg.solve(a, b).T.to(z.dtype)
 
 
-def _lambert_init(ch: _Chunk) -> tuple[Tensor, Tensor]:
+def _lambert_init(ch: Chunk) -> tuple[Tensor, Tensor]:
     """Robust Lambertian photometric stereo: θ (2, P) and the pixels with ≥ MIN_SHOTS usable shots (P,)."""
     ok = ch.ok[:, 0]
     z = torch.where(ok, ch.y[:, 0] / torch.where(ok, ch.e[:, 0], torch.ones_like(ch.y[:, 0])), torch.zeros_like(ch.y[:, 0]))
@@ -114,11 +116,11 @@ def _lambert_init(ch: _Chunk) -> tuple[Tensor, Tensor]:
         rho = g.norm(dim=0).clamp_min(1e-30)
         zh = (g.unsqueeze(0) * ch.l).sum(1)
         res = (z - zh) / rho
-        sig = _robust_scale(res, w, 1e-6)
+        sig = robust_scale(res, w, 1e-6)
         keep = ok & (zh > SHADOW * rho) & (res.abs() <= INIT_K * sig)
         w = torch.where((keep.sum(0) >= MIN_SHOTS).unsqueeze(0), keep, w)
     g = _solve3(ch.l, z, w.to(z.dtype))
-    return _theta_of(g), (w.sum(0) >= MIN_SHOTS) & ch.pix
+    return theta_of(g), (w.sum(0) >= MIN_SHOTS) & ch.pix
 
 # ------------------------------------------------------------------------------- 3. the estimate
 
@@ -179,13 +181,13 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
             raise FitError(f"capture.{name}: expected finite values, found NaN/Inf")
     t0 = time.perf_counter()
     h, w = capture.height, capture.width
-    dt = _work_dtype(capture)
+    dt = work_dtype(capture)
     normals = torch.zeros(3, h, w, dtype=dt, device=capture.images.device)
     normals[2] = 1.0
     solvable = torch.zeros(h, w, dtype=torch.bool, device=normals.device)
-    for r0, r1 in _row_blocks(capture):
-        theta, good = _lambert_init(_chunk(capture, r0, r1, dt))
-        n, _ = _normals_of(theta)
+    for r0, r1 in row_blocks(capture):
+        theta, good = _lambert_init(row_chunk(capture, r0, r1, dt))
+        n, _ = normals_of(theta)
         normals[:, r0:r1] = torch.where(good.unsqueeze(0), n, normals[:, r0:r1].reshape(3, -1)).reshape(3, r1 - r0, w)
         solvable[r0:r1] = good.reshape(r1 - r0, w)
     kw = {k: v for k, v in (fit_kwargs or {}).items() if k not in ("specular", "robust")}

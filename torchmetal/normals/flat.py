@@ -23,14 +23,14 @@ import math
 import torch
 from torch import Tensor
 
-from torchmetal.normals.refine import (
+from torchmetal.normals.core import (
     CAUCHY_C,
-    _active_blocks,
-    _cauchy_weights,
-    _model,
-    _pass_setup,
-    _robust_scale,
-    _theta_of,
+    active_blocks,
+    cauchy_weights,
+    model_state,
+    pass_setup,
+    robust_scale,
+    theta_of,
 )
 
 FLAT_P = 1e-3  # the test's false-alarm rate on a flat pixel
@@ -40,19 +40,19 @@ FLAT_TILT_MAX = 0.0875  # tan 5°: steeper estimates are kept whatever the test 
 def flat_where_unresolved(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
                           active: Tensor | None = None) -> tuple[Tensor, int]:
     """Normals (3, H, W) with (0, 0, 1) where the test above keeps flat; returns them and the count."""
-    dt, spec, act, floor = _pass_setup(capture, s, alpha, active)
+    dt, spec, act, floor = pass_setup(capture, s, alpha, active)
     w = capture.width
     out = normals.clone()
     count = 0
-    for r0, r1, keep, sub in _active_blocks(capture, act, dt):
-        th = _theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
-        st = _model(sub, th, spec, sub.ok.to(dt), jac=False)
-        sigma = _robust_scale(st.r, sub.ok, floor)
+    for r0, r1, keep, sub in active_blocks(capture, act, dt):
+        th = theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
+        st = model_state(sub, th, spec, sub.ok.to(dt), jac=False)
+        sigma = robust_scale(st.r, sub.ok, floor)
         for _ in range(2):  # IRLS: a glint must not drag the texture and with it every residual
-            st = _model(sub, th, spec, _cauchy_weights(sub, st.r, CAUCHY_C * sigma), jac=False)
-        wt = (_cauchy_weights(sub, st.r, CAUCHY_C * sigma) > 0.5).to(dt)  # the inliers of the estimate
-        c_est = _model(sub, th, spec, wt, jac=False).cost
-        c_flat = _model(sub, torch.zeros_like(th), spec, wt, jac=False).cost
+            st = model_state(sub, th, spec, cauchy_weights(sub, st.r, CAUCHY_C * sigma), jac=False)
+        wt = (cauchy_weights(sub, st.r, CAUCHY_C * sigma) > 0.5).to(dt)  # the inliers of the estimate
+        c_est = model_state(sub, th, spec, wt, jac=False).cost
+        c_flat = model_state(sub, torch.zeros_like(th), spec, wt, jac=False).cost
         nu = wt.sum(0)[0] - 3.0  # shots that count, less D and θ
         gain = (c_flat - c_est).clamp_min(0.0) / c_est.clamp_min(1e-30 * float(sigma) ** 2 + 1e-30)
         flat = ~(0.5 * nu * torch.log1p(gain) > math.log(1.0 / FLAT_P)) | (nu < 1)

@@ -6,7 +6,7 @@ the Phong fit takes the normals as exact, so their errors broaden the lobe it se
 s), and normals refined under a broader lobe keep their errors. Here both move together:
 unknowns θ_p (the surface gradient of every pixel, 2 each) and two global log-scales
 g = (u, w) with s = s₀·e^u and α = α₀·e^w (all channels together); the texture is eliminated per
-pixel as in :mod:`~torchmetal.normals.estimate` (variable projection). Each Gauss–Newton step solves
+pixel as in :mod:`~torchmetal.normals.core` (variable projection). Each Gauss–Newton step solves
 the per-pixel 2×2 blocks and the 2×2 global block through the Schur complement
 
     (H_gg − Σ_p H_gpH_pp⁻¹H_pg)·δg = b_g − Σ_p H_gpH_pp⁻¹b_p,   δθ_p = H_pp⁻¹(b_p − H_pg·δg)
@@ -22,17 +22,19 @@ import math
 import torch
 from torch import Tensor
 
-from torchmetal.normals.refine import (
+from torchmetal.normals.core import (
     CAUCHY_C,
-    _active_blocks,
-    _cauchy_weights,
-    _model,
-    _normals_of,
-    _robust_cost,
-    _robust_scale,
-    _Spec,
-    _theta_of,
-    _work_dtype,
+    Spec,
+    active_blocks,
+    cauchy_weights,
+    model_state,
+    normals_of,
+    robust_cost,
+    robust_scale,
+    theta_of,
+    work_dtype,
+)
+from torchmetal.normals.refine import (
     refine_normals,
 )
 
@@ -52,31 +54,31 @@ def joint_refine(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: i
     Returns:
         normals (3, H, W), s (3,), α (3,) and a report (iterations, accepted steps, the scales).
     """
-    dt = _work_dtype(capture)
+    dt = work_dtype(capture)
     w = capture.width
     s0, a0 = s.to(dt).reshape(3), alpha.to(dt).reshape(3)
     if not bool((s0 > 0).any()):
         return normals, s, alpha, {"skipped": "no specular (s = 0)"}
     act = capture.mask[0] if active is None else active
     floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
-    spec0 = _Spec(s0, a0)
+    spec0 = Spec(s0, a0)
     parts = []  # (r0, r1, keep, chunk of the active pixels, θ, weights)
-    for r0, r1, keep, sub in _active_blocks(capture, act, dt):
-        th = _theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
-        st = _model(sub, th, spec0, sub.ok.to(dt), jac=False)
-        scale = CAUCHY_C * _robust_scale(st.r, sub.ok, floor)
-        parts.append([r0, r1, keep, sub, th, _cauchy_weights(sub, st.r, scale)])
+    for r0, r1, keep, sub in active_blocks(capture, act, dt):
+        th = theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
+        st = model_state(sub, th, spec0, sub.ok.to(dt), jac=False)
+        scale = CAUCHY_C * robust_scale(st.r, sub.ok, floor)
+        parts.append([r0, r1, keep, sub, th, cauchy_weights(sub, st.r, scale)])
     g = torch.zeros(2, dtype=torch.float64, device=s0.device)
-    spec_of = lambda g: _Spec(s0 * math.exp(float(g[0])), a0 * math.exp(float(g[1])))  # noqa: E731
+    spec_of = lambda g: Spec(s0 * math.exp(float(g[0])), a0 * math.exp(float(g[1])))  # noqa: E731
     lam, accepted, it = 1e-3, 0, 0
-    cost = sum(float(_model(p[3], p[4], spec0, p[5], jac=False).cost.double().sum()) for p in parts)
+    cost = sum(float(model_state(p[3], p[4], spec0, p[5], jac=False).cost.double().sum()) for p in parts)
     for it in range(1, iters + 1):  # noqa: B007 (the count is reported after the loop)
         spec = spec_of(g)
         S = torch.zeros(2, 2, dtype=torch.float64, device=g.device)
         b = torch.zeros(2, dtype=torch.float64, device=g.device)
         blocks = []
         for _, _, _, sub, th, wt in parts:
-            st = _model(sub, th, spec, wt, glob=True)
+            st = model_state(sub, th, spec, wt, glob=True)
             j, gj = st.jac, st.gjac
             wj = [wt * x for x in j]
             a11, a12, a22 = (wj[0] * j[0]).sum(0)[0], (wj[0] * j[1]).sum(0)[0], (wj[1] * j[1]).sum(0)[0]
@@ -103,7 +105,7 @@ def joint_refine(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: i
             dth = ibp - (ib[:, 0] * dgt[0] + ib[:, 1] * dgt[1])
             t = (th + torch.where(torch.isfinite(dth), dth, torch.zeros_like(dth))).clamp(-57.0, 57.0)
             trial_th.append(t)
-            new_cost += float(_model(sub, t, trial_spec, wt, jac=False).cost.double().sum())
+            new_cost += float(model_state(sub, t, trial_spec, wt, jac=False).cost.double().sum())
         if math.isfinite(new_cost) and new_cost < cost:
             for p, t in zip(parts, trial_th):
                 p[4] = t
@@ -116,7 +118,7 @@ def joint_refine(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: i
                 break
     out = normals.to(dt).clone()
     for r0, r1, keep, _, th, _ in parts:
-        n, _ = _normals_of(th)
+        n, _ = normals_of(th)
         blk = out[:, r0:r1].reshape(3, -1)
         blk[:, keep] = n
         out[:, r0:r1] = blk.reshape(3, r1 - r0, w)
@@ -142,7 +144,7 @@ def try_weak_lobe(capture, normals: Tensor, texture_mean: Tensor, *, iters: int 
     Returns:
         normals (3, H, W), s (3,), α (3,) — the input and zeros when not kept — and a report.
     """
-    dt = _work_dtype(capture)
+    dt = work_dtype(capture)
     s0 = (WEAK_S * texture_mean.to(dt).reshape(3)).clamp_min(0.0)
     zero = torch.zeros(3, dtype=dt, device=normals.device)
     if not bool((s0 > 0).any()):
@@ -152,14 +154,14 @@ def try_weak_lobe(capture, normals: Tensor, texture_mean: Tensor, *, iters: int 
     out, s, alpha, rep = joint_refine(capture, start, s0, a0, iters=WEAK_ITERS, active=active)
     act = capture.mask[0] if active is None else active
     floor = 1e-6 * float(capture.images.detach().abs().amax().clamp_min(1e-30))
-    spec = _Spec(s.to(dt), alpha.to(dt))
+    spec = Spec(s.to(dt), alpha.to(dt))
     c_lam, c_lobe = 0.0, 0.0
-    for r0, r1, keep, sub in _active_blocks(capture, act, dt):
-        th0 = _theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
-        th1 = _theta_of(out[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
-        scale = CAUCHY_C * _robust_scale(_model(sub, th0, None, sub.ok.to(dt), jac=False).r, sub.ok, floor)
-        c_lam += float(_robust_cost(sub, th0, None, scale).double().sum())
-        c_lobe += float(_robust_cost(sub, th1, spec, scale).double().sum())
+    for r0, r1, keep, sub in active_blocks(capture, act, dt):
+        th0 = theta_of(normals[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
+        th1 = theta_of(out[:, r0:r1].reshape(3, -1).to(dt))[:, keep]
+        scale = CAUCHY_C * robust_scale(model_state(sub, th0, None, sub.ok.to(dt), jac=False).r, sub.ok, floor)
+        c_lam += float(robust_cost(sub, th0, None, scale).double().sum())
+        c_lobe += float(robust_cost(sub, th1, spec, scale).double().sum())
     kept = c_lobe < (1.0 - WEAK_GAIN) * c_lam
     rep = {"kept": kept, "cost_lambertian": c_lam, "cost_lobe": c_lobe, "s": s.tolist(), "alpha": alpha.tolist(), **rep}
     if not kept:

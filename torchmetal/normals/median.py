@@ -16,15 +16,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchmetal.normals.refine import (
+from torchmetal.normals.core import (
     CAUCHY_C,
-    _active_blocks,
-    _cauchy_weights,
-    _model,
-    _normals_of,
-    _pass_setup,
-    _robust_scale,
-    _theta_of,
+    active_blocks,
+    cauchy_weights,
+    model_state,
+    normals_of,
+    pass_setup,
+    robust_scale,
+    theta_of,
 )
 
 WINDOW = 5
@@ -45,9 +45,9 @@ def _median_theta(theta: Tensor, valid: Tensor) -> Tensor:
 
 
 def _truncated_cost(sub, th: Tensor, spec, sigma: Tensor) -> Tensor:
-    st = _model(sub, th, spec, sub.ok.to(sub.y.dtype), jac=False)
+    st = model_state(sub, th, spec, sub.ok.to(sub.y.dtype), jac=False)
     for _ in range(2):
-        st = _model(sub, th, spec, _cauchy_weights(sub, st.r, CAUCHY_C * sigma), jac=False)
+        st = model_state(sub, th, spec, cauchy_weights(sub, st.r, CAUCHY_C * sigma), jac=False)
     u2 = (st.r / sigma).square().clamp_max(TRUNC_K * TRUNC_K)
     return torch.where(sub.ok, u2, torch.zeros_like(u2)).sum(0)[0]
 
@@ -55,20 +55,20 @@ def _truncated_cost(sub, th: Tensor, spec, sigma: Tensor) -> Tensor:
 def median_where_as_good(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
                          active: Tensor | None = None) -> tuple[Tensor, int]:
     """Normals (3, H, W) with the neighbourhood median taken where it costs no more; and the count."""
-    dt, spec, act, floor = _pass_setup(capture, s, alpha, active)
+    dt, spec, act, floor = pass_setup(capture, s, alpha, active)
     h, w = capture.height, capture.width
-    theta = _theta_of(normals.to(dt).reshape(3, -1)).view(2, h, w)
+    theta = theta_of(normals.to(dt).reshape(3, -1)).view(2, h, w)
     med = _median_theta(theta, act)
     out = normals.clone()
     count = 0
-    for r0, r1, keep, sub in _active_blocks(capture, act, dt):
+    for r0, r1, keep, sub in active_blocks(capture, act, dt):
         own = theta[:, r0:r1].reshape(2, -1)[:, keep]
         cand = med[:, r0:r1].reshape(2, -1)[:, keep]
-        sigma = _robust_scale(_model(sub, own, spec, sub.ok.to(dt), jac=False).r, sub.ok, floor)
+        sigma = robust_scale(model_state(sub, own, spec, sub.ok.to(dt), jac=False).r, sub.ok, floor)
         take = (_truncated_cost(sub, cand, spec, sigma) <= _truncated_cost(sub, own, spec, sigma)) & (cand != own).any(0)
         idx = keep[take]
         if idx.numel():
-            n, _ = _normals_of(cand[:, take])
+            n, _ = normals_of(cand[:, take])
             blk = out[:, r0:r1].reshape(3, -1)
             blk[:, idx] = n.to(out.dtype)
             out[:, r0:r1] = blk.reshape(3, r1 - r0, w)

@@ -31,20 +31,22 @@ import math
 import torch
 from torch import Tensor
 
-from torchmetal.normals.refine import (
+from torchmetal.normals.core import (
     CAUCHY_C,
+    active_blocks,
+    chunk_subset,
+    model_state,
+    normals_of,
+    pass_setup,
+    robust_cost,
+    robust_scale,
+    theta_of,
+)
+from torchmetal.normals.refine import (
     PROPAGATE,
-    _active_blocks,
-    _best_of,
-    _model,
-    _normals_of,
-    _pass_setup,
-    _refine_kept,
-    _robust_cost,
-    _robust_scale,
-    _shifted,
-    _subset,
-    _theta_of,
+    best_of,
+    refine_kept,
+    shifted,
 )
 
 RESTART_K = 3.0  # a pixel costing more than this × its chunk's median robust cost gets the grid of starts
@@ -72,25 +74,25 @@ def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, it
     Returns:
         normals (3, H, W) and a report: pixels restarted, restarts kept, propagation passes, moves.
     """
-    dt, spec, act, floor = _pass_setup(capture, s, alpha, active)
+    dt, spec, act, floor = pass_setup(capture, s, alpha, active)
     h, w = capture.height, capture.width
-    theta = _theta_of(normals.to(dt).reshape(3, -1))  # (2, H·W)
+    theta = theta_of(normals.to(dt).reshape(3, -1))  # (2, H·W)
     cost = torch.zeros(h * w, dtype=dt, device=theta.device)
     grid = _grid(dt, theta.device)
     scales, tried, kept = [], 0, 0
-    for r0, _, keep, sub in _active_blocks(capture, act, dt):  # 1. restart
+    for r0, _, keep, sub in active_blocks(capture, act, dt):  # 1. restart
         idx = r0 * w + keep
         th = theta[:, idx]
-        scale = CAUCHY_C * _robust_scale(_model(sub, th, spec, sub.ok.to(dt), jac=False).r, sub.ok, floor)
+        scale = CAUCHY_C * robust_scale(model_state(sub, th, spec, sub.ok.to(dt), jac=False).r, sub.ok, floor)
         scales.append(scale)
-        c = _robust_cost(sub, th, spec, scale)
+        c = robust_cost(sub, th, spec, scale)
         bad = (c > RESTART_K * c.median()).nonzero().squeeze(1)
         if bad.numel():
-            part = _subset(sub, bad)
+            part = chunk_subset(sub, bad)
             n_b = bad.numel()
             starts = [grid[:, g:g + 1].expand(2, n_b) for g in range(grid.shape[1])]
-            t0, c0, _ = _best_of(part, th[:, bad], torch.full_like(c[bad], math.inf), starts, spec, scale)
-            t1, c1, _ = _refine_kept(part, t0, c0, spec, scale, iters)
+            t0, c0, _ = best_of(part, th[:, bad], torch.full_like(c[bad], math.inf), starts, spec, scale)
+            t1, c1, _ = refine_kept(part, t0, c0, spec, scale, iters)
             better = c1 < (1.0 - MOVE_GAIN) * c[bad]
             th[:, bad] = torch.where(better, t1, th[:, bad])
             c[bad] = torch.where(better, c1, c[bad])
@@ -101,19 +103,19 @@ def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, it
     passes, moves = 0, 0
     for passes in range(1, SETTLE_PASSES + 1):  # noqa: B007 (reported after the loop)  2. propagation until settled
         new = (front & act_flat).view(1, -1)  # a neighbour's normal is a candidate where it is new
-        src = [(_shifted(theta, w, dy, dx), _shifted(new, w, dy, dx)[0]) for dy, dx in PROPAGATE]
+        src = [(shifted(theta, w, dy, dx), shifted(new, w, dy, dx)[0]) for dy, dx in PROPAGATE]
         moved = torch.zeros_like(front)
-        for (r0, _, keep, sub), scale in zip(_active_blocks(capture, act, dt), scales):
+        for (r0, _, keep, sub), scale in zip(active_blocks(capture, act, dt), scales):
             idx = r0 * w + keep
             look = torch.stack([f[idx] for _, f in src]).any(0).nonzero().squeeze(1)
             if not look.numel():
                 continue
-            part, at = _subset(sub, look), idx[look]
+            part, at = chunk_subset(sub, look), idx[look]
             cands = [torch.where(f[at].unsqueeze(0), t[:, at], theta[:, at]) for t, f in src]
-            th, c, won = _best_of(part, theta[:, at], cost[at], cands, spec, scale, MOVE_GAIN)
+            th, c, won = best_of(part, theta[:, at], cost[at], cands, spec, scale, MOVE_GAIN)
             hit = won.nonzero().squeeze(1)
             if hit.numel():
-                th[:, hit], c[hit], _ = _refine_kept(_subset(part, hit), th[:, hit], c[hit], spec, scale, iters)
+                th[:, hit], c[hit], _ = refine_kept(chunk_subset(part, hit), th[:, hit], c[hit], spec, scale, iters)
             theta[:, at], cost[at] = th, c
             moved[at] = won
         n_moved = int(moved.sum())
@@ -121,6 +123,6 @@ def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, it
         front = moved
         if n_moved == 0:
             break
-    n, _ = _normals_of(theta)
+    n, _ = normals_of(theta)
     out = torch.where(act_flat.unsqueeze(0), n, normals.to(dt).reshape(3, -1)).reshape(3, h, w)
     return out, {"restarted": tried, "restart_kept": kept, "passes": passes, "moves": moves}
