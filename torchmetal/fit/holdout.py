@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import InputError
+from torchmetal.fit.api import fit_phong
 from torchmetal.metrics import psnr
 
 
@@ -31,8 +32,6 @@ def leave_one_out(capture, specular: str = "auto", *, peak: float = 1.0, **fit_k
     Returns:
         N PSNR values (dB), over mask pixels that are not saturated (NaN for a shot with none).
     """
-    from torchmetal.fit.api import fit_phong
-
     def fit_render(train, one):
         fit = fit_phong(train, specular=specular, **fit_kwargs)
         with torch.no_grad():

@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 from typing import Callable
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
@@ -426,8 +427,6 @@ def fill_unobserved(tex: Tensor, bad: Tensor, max_iters: int = 64) -> Tensor:
     ring by ring), then the per-channel median; tex (3, H, W)."""
     if not bool(bad.any()):
         return tex
-    import torch.nn.functional as F
-
     tex = tex.clone()
     known = (~bad).to(tex.dtype)
     for _ in range(max_iters):

@@ -18,7 +18,7 @@ class FitRun:
         self.skipped: list[str] = []
         self.bar = None
         if progress:
-            from tqdm.auto import tqdm
+            from tqdm.auto import tqdm  # deferred: in a notebook tqdm.auto imports ipywidgets
 
             self.bar = tqdm(desc="fit_phong", unit="it", leave=False)
 

@@ -24,8 +24,10 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
+from torchmetal.fit.api import fit_phong
 from torchmetal.fit.decision import Decision, paired_choice
 from torchmetal.fit.holdout import valid_pixels
+from torchmetal.normals.estimate import estimate_normals
 
 PIXELS = 64 * 64  # the decision's pixel grid
 FOLDS = 3  # shot groups left out in turn
@@ -85,9 +87,6 @@ def choose_normals(capture, *, fit_kwargs: dict | None = None, max_pixels: int =
     Returns:
         (mode, the :class:`~torchmetal.fit.decision.Decision` behind it).
     """
-    from torchmetal.fit.api import fit_phong
-    from torchmetal.normals.estimate import estimate_normals
-
     n = int(capture.images.shape[0])
     if not capture.flat:
         return "given", Decision("normals", ("given",), "given", reason="the capture's own normals (normals.npy)")

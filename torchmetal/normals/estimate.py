@@ -54,6 +54,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import FitError, InputError
+from torchmetal.fit.api import fit_phong
 from torchmetal.geometry import direction_to, surface_points
 from torchmetal.normals.core import (
     Chunk,
@@ -64,9 +65,13 @@ from torchmetal.normals.core import (
     theta_of,
     work_dtype,
 )
+from torchmetal.normals.flat import flat_where_unresolved
+from torchmetal.normals.joint import joint_refine, try_weak_lobe
+from torchmetal.normals.median import median_where_as_good
 from torchmetal.normals.refine import (
     refine_normals,
 )
+from torchmetal.normals.restart import restart_and_settle
 
 DARK = 0.02  # init: shots darker than this fraction of the pixel's brightest are left out
 SHADOW = 0.05  # init: shots with predicted n·l below this are attached shadow
@@ -169,8 +174,6 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         InputError: fewer than 3 shots, or lights that cannot determine a normal.
         FitError: the estimate went non-finite.
     """
-    from torchmetal.fit.api import fit_phong
-
     if not (isinstance(rounds, int) and rounds >= 0):
         raise InputError(f"rounds: expected an int >= 0, found {rounds!r}")
     if not (isinstance(iters, int) and iters >= 1):
@@ -213,16 +216,12 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         history.append({"round": k, "s": s.tolist(), "alpha": alpha.tolist(), "phong_rmse": float(fit.rmse), **rep,
                         "time": time.perf_counter() - t1})
     if joint and not bool((s > 0).any()) and weak_lobe:  # no highlight seen: a weak, broad lobe may hide
-        from torchmetal.normals.joint import try_weak_lobe
-
         t1 = time.perf_counter()
         inside = capture.mask[0]
         tex = fit.texture.to(dt)[:, inside].mean(1) if bool(inside.any()) else torch.zeros_like(zero)
         normals, s, alpha, rep = try_weak_lobe(capture, normals, tex, iters=iters, active=solvable)
         history.append({"round": "weak_lobe", **rep, "time": time.perf_counter() - t1})
     if joint and bool((s > 0).any()):
-        from torchmetal.normals.joint import joint_refine
-
         t1 = time.perf_counter()
         normals, s, alpha, rep = joint_refine(capture, normals, s, alpha, active=solvable)
         history.append({"round": "joint", "s": s.tolist(), "alpha": alpha.tolist(), **rep,
@@ -231,20 +230,14 @@ def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool =
         normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
         history.append({"round": "polish", **rep, "time": time.perf_counter() - t1})
     if restart:
-        from torchmetal.normals.restart import restart_and_settle
-
         t1 = time.perf_counter()
         normals, rep = restart_and_settle(capture, normals, s, alpha, iters=iters, active=solvable)
         history.append({"round": "restart", **rep, "time": time.perf_counter() - t1})
     n_median = 0
     if median_test:
-        from torchmetal.normals.median import median_where_as_good
-
         normals, n_median = median_where_as_good(capture, normals, s, alpha, active=solvable)
     n_flat = 0
     if flat_test:
-        from torchmetal.normals.flat import flat_where_unresolved
-
         normals, n_flat = flat_where_unresolved(capture, normals, s, alpha, active=solvable)
     if not bool(torch.isfinite(normals).all()):
         raise FitError("estimate_normals: expected finite normals, found NaN/Inf")
