@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -29,13 +30,17 @@ from torchmetal.fit.decision import Decision, paired_choice
 from torchmetal.fit.holdout import valid_pixels
 from torchmetal.normals.estimate import estimate_normals
 
+if TYPE_CHECKING:
+    from torchmetal.fit.result import FitResult
+    from torchmetal.io.capture import Capture
+
 PIXELS = 64 * 64  # the decision's pixel grid
 FOLDS = 3  # shot groups left out in turn
 MIN_SHOTS = 4  # the estimate needs 3 shots besides a left-out one
 MIN_GAIN = 0.05  # a normal map (2 parameters a pixel) must lower the per-pixel median held-out error by 5 % (0.2 dB)
 
 
-def strided_capture(capture, max_pixels: int = PIXELS):
+def strided_capture(capture: Capture, max_pixels: int = PIXELS) -> Capture:
     """Every s-th pixel (s odd, the smallest with ≤ ``max_pixels`` pixels) as a capture of its own, its
     surface size chosen so that each kept pixel's centre is where it was: the same lights, cameras and
     geometry per pixel, at a fraction of the cost. Returns ``capture`` itself when it is small enough."""
@@ -62,7 +67,7 @@ def strided_capture(capture, max_pixels: int = PIXELS):
                    mask=pick(capture.mask), saturated=pick(capture.saturated), size=size)
 
 
-def pixel_errors(fit, hold) -> Tensor:
+def pixel_errors(fit: FitResult, hold: Capture) -> Tensor:
     """(P,) float64: per mask pixel, the median over ``hold``'s valid observations (shots × channels) of the
     squared error of rendering them with ``fit``; NaN where the pixel has none.
 
@@ -79,7 +84,7 @@ def pixel_errors(fit, hold) -> Tensor:
     return sq.permute(1, 0, 2, 3).reshape(-1, sq.shape[-2] * sq.shape[-1])[:, inside].nanmedian(0).values
 
 
-def choose_normals(capture, *, fit_kwargs: dict | None = None, max_pixels: int = PIXELS, folds: int = FOLDS,
+def choose_normals(capture: Capture, *, fit_kwargs: dict | None = None, max_pixels: int = PIXELS, folds: int = FOLDS,
                    **rule) -> tuple[str, Decision]:
     """"given" for a capture with normals; else "estimate" or "flat", decided on left-out shots (module
     docstring). ``rule``: :func:`~torchmetal.fit.decision.paired_choice`'s ``z_min`` / ``min_gain``.

@@ -14,13 +14,18 @@ per pixel, so the work runs in row chunks (memory only; the robust scale is the 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from torchmetal.geometry import direction_to, surface_points
 from torchmetal.phong import log1p_exact
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 CAUCHY_C = 5.0  # Cauchy scale in units of σ
 SLOPE_MAX = 57.0  # |θ| cap: normals at most ~89° from z
@@ -44,7 +49,7 @@ class Chunk:
     pix: Tensor  # (P,) bool: in the mask
 
 
-def row_chunk(capture, r0: int, r1: int, dt: torch.dtype) -> Chunk:
+def row_chunk(capture: Capture, r0: int, r1: int, dt: torch.dtype) -> Chunk:
     """The observations of rows r0 to r1 (exclusive) in the work dtype ``dt``."""
     h, w = capture.height, capture.width
     dev = capture.images.device
@@ -62,13 +67,13 @@ def row_chunk(capture, r0: int, r1: int, dt: torch.dtype) -> Chunk:
     return Chunk(y, e, kappa.view(n, 3, 1), l.reshape(n, 3, -1), v.reshape(n, 3, -1), ok, pix)
 
 
-def row_blocks(capture) -> list[tuple[int, int]]:
+def row_blocks(capture: Capture) -> list[tuple[int, int]]:
     """Row ranges (r0, r1) of about ``CHUNK_OBS`` observations each."""
     rows = max(1, CHUNK_OBS // (capture.num_shots * capture.width))
     return [(r0, min(capture.height, r0 + rows)) for r0 in range(0, capture.height, rows)]
 
 
-def active_blocks(capture, act: Tensor, dt: torch.dtype):
+def active_blocks(capture: Capture, act: Tensor, dt: torch.dtype) -> Iterator[tuple[int, int, Tensor, Chunk]]:
     """Per row block with active pixels: (r0, r1, keep (k,) indices into the block, the block's chunk of them)."""
     for r0, r1 in row_blocks(capture):
         keep = act[r0:r1].reshape(-1).nonzero().squeeze(1)
@@ -144,7 +149,8 @@ class Spec:
         return torch.where(inside, spec, zero), torch.where(inside, dspec, zero)
 
 
-def pass_setup(capture, s: Tensor, alpha: Tensor, active: Tensor | None):
+def pass_setup(capture: Capture, s: Tensor, alpha: Tensor,
+               active: Tensor | None) -> tuple[torch.dtype, Spec | None, Tensor, float]:
     """The common start of a per-pixel pass over the normals: the work dtype, the specular terms
     (None when s = 0 everywhere), the pixels that may change (H, W) (default the mask) and the
     cost floor (1e-6 of the brightest value)."""
@@ -232,6 +238,6 @@ def robust_cost(ch: Chunk, theta: Tensor, spec: Spec | None, scale: Tensor) -> T
     return torch.where(ch.ok, torch.log1p(u * u), torch.zeros_like(u)).sum(0)[0]
 
 
-def work_dtype(capture) -> torch.dtype:
+def work_dtype(capture: Capture) -> torch.dtype:
     """float64 for float64 photos, else float32 (per-pixel sums over a few dozen observations)."""
     return torch.float64 if capture.images.dtype == torch.float64 else torch.float32

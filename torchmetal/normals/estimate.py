@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -72,6 +73,9 @@ from torchmetal.normals.refine import (
     refine_normals,
 )
 from torchmetal.normals.restart import restart_and_settle
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 DARK = 0.02  # init: shots darker than this fraction of the pixel's brightest are left out
 SHADOW = 0.05  # init: shots with predicted n·l below this are attached shadow
@@ -130,7 +134,7 @@ def _lambert_init(ch: Chunk) -> tuple[Tensor, Tensor]:
 # ------------------------------------------------------------------------------- 3. the estimate
 
 
-def _check_capture(capture) -> None:
+def _check_capture(capture: Capture) -> None:
     n = capture.num_shots
     if n < MIN_SHOTS:
         raise InputError(f"normals='estimate': expected at least {MIN_SHOTS} shots (photometric stereo), found {n}")
@@ -144,7 +148,7 @@ def _check_capture(capture) -> None:
                          f"directions of rank < 3 (singular values {[round(float(x), 4) for x in sv]})")
 
 
-def estimate_normals(capture, *, rounds: int = 1, iters: int = 12, joint: bool = True, weak_lobe: bool = True,
+def estimate_normals(capture: Capture, *, rounds: int = 1, iters: int = 12, joint: bool = True, weak_lobe: bool = True,
                      restart: bool = True, median_test: bool = True, flat_test: bool = True,
                      fit_kwargs: dict | None = None) -> NormalsEstimate:
     """Per-pixel normals from the photos and the known lights (see the module docstring).

@@ -19,6 +19,7 @@ the shots resolve pass easily (a sphere, the zoo's bumps); noise does not.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -33,11 +34,14 @@ from torchmetal.normals.core import (
     theta_of,
 )
 
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
+
 FLAT_P = 1e-3  # the test's false-alarm rate on a flat pixel
 FLAT_TILT_MAX = 0.0875  # tan 5°: steeper estimates are kept whatever the test (few usable shots: no power)
 
 
-def flat_where_unresolved(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
+def flat_where_unresolved(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
                           active: Tensor | None = None) -> tuple[Tensor, int]:
     """Normals (3, H, W) with (0, 0, 1) where the test above keeps flat; returns them and the count."""
     dt, spec, act, floor = pass_setup(capture, s, alpha, active)

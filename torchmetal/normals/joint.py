@@ -18,6 +18,7 @@ start fixed. Chunks are held in memory between passes (the observations of the a
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -38,6 +39,9 @@ from torchmetal.normals.refine import (
     refine_normals,
 )
 
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
+
 
 def _inv2(a11: Tensor, a12: Tensor, a22: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     det = a11 * a22 - a12 * a12
@@ -47,7 +51,7 @@ def _inv2(a11: Tensor, a12: Tensor, a22: Tensor) -> tuple[Tensor, Tensor, Tensor
     return torch.where(ok, a22 / det, z), torch.where(ok, -a12 / det, z), torch.where(ok, a11 / det, z)
 
 
-def joint_refine(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: int = 8,
+def joint_refine(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: int = 8,
                  active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, dict]:
     """Refine normals (3, H, W) and the global s, α (3,) together (see the module docstring).
 
@@ -132,7 +136,7 @@ WEAK_ITERS = 30
 WEAK_GAIN = 0.01  # kept when it lowers the total robust cost by more than this fraction
 
 
-def try_weak_lobe(capture, normals: Tensor, texture_mean: Tensor, *, iters: int = 12,
+def try_weak_lobe(capture: Capture, normals: Tensor, texture_mean: Tensor, *, iters: int = 12,
                   active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, dict]:
     """When :func:`~torchmetal.fit.fit_phong` saw no highlight (s = 0): a weak, broad lobe (s ≈ 10 %
     of the diffuse, α ≈ 10) hides in Lambertian normals tilted towards the half vectors, and then no

@@ -12,6 +12,8 @@ pixel's own normal up to noise, so little changes there.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -26,6 +28,9 @@ from torchmetal.normals.core import (
     robust_scale,
     theta_of,
 )
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 WINDOW = 5
 TRUNC_K = 3.0  # the truncated quadratic's cap, in units of σ
@@ -52,7 +57,7 @@ def _truncated_cost(sub, th: Tensor, spec, sigma: Tensor) -> Tensor:
     return torch.where(sub.ok, u2, torch.zeros_like(u2)).sum(0)[0]
 
 
-def median_where_as_good(capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
+def median_where_as_good(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor, *,
                          active: Tensor | None = None) -> tuple[Tensor, int]:
     """Normals (3, H, W) with the neighbourhood median taken where it costs no more; and the count."""
     dt, spec, act, floor = pass_setup(capture, s, alpha, active)

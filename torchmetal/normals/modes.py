@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -12,10 +13,13 @@ from torchmetal.errors import InputError
 from torchmetal.normals.choice import choose_normals
 from torchmetal.normals.estimate import estimate_normals
 
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
+
 NORMALS_MODES = ("auto", "given", "flat", "estimate")
 
 
-def with_normals(capture, mode: str, **kw):
+def with_normals(capture: Capture, mode: str, **kw) -> tuple[Capture, dict]:
     """The capture with the normals ``mode`` asks for, and a report entry.
 
     "auto": the capture's own when it has them, else "estimate" or "flat" as shots left out of the fit

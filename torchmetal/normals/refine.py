@@ -7,6 +7,7 @@ pixel the best of several starts is kept, and neighbours' normals are tried (:da
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -27,6 +28,9 @@ from torchmetal.normals.core import (
     theta_of,
     work_dtype,
 )
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 IRLS_ROUNDS = 3  # Cauchy weights recomputed this many times
 STEP_TOL = 1e-4  # a pixel stops when its θ step is below this (relative; ~0.006°)
@@ -161,7 +165,7 @@ def _solve_chunk(ch: Chunk, width: int, active: Tensor, candidates: list, iters:
 
 
 def refine_normals(
-    capture, candidates, *, iters: int = 12, active: Tensor | None = None, propagate: bool = True,
+    capture: Capture, candidates: list[tuple[Tensor, Tensor, Tensor]], *, iters: int = 12, active: Tensor | None = None, propagate: bool = True,
 ) -> tuple[Tensor, dict]:
     """Refine per-pixel normals under global Phong terms (texture eliminated, Cauchy IRLS).
 

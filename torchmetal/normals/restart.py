@@ -27,6 +27,7 @@ row chunks that ends the joint stage runs before, with any gain taken.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -49,6 +50,9 @@ from torchmetal.normals.refine import (
     shifted,
 )
 
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
+
 RESTART_K = 3.0  # a pixel costing more than this × its chunk's median robust cost gets the grid of starts
 GRID_TILTS_DEG = (5.0, 10.0, 15.0, 20.0, 30.0, 45.0)
 GRID_AZIMUTHS = 8
@@ -66,7 +70,7 @@ def _grid(dt: torch.dtype, device) -> Tensor:
     return torch.tensor(pts, dtype=dt, device=device).T
 
 
-def restart_and_settle(capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: int = 12,
+def restart_and_settle(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor, *, iters: int = 12,
                        active: Tensor | None = None) -> tuple[Tensor, dict]:
     """Normals (3, H, W) after the restart of high-cost pixels and propagation until settled (see
     the module docstring); ``active`` (H, W) the pixels that may change (default: the mask).
