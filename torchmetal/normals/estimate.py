@@ -8,15 +8,15 @@ n = (−θx, −θy, 1)/√(1 + θx² + θy²) (so n·z > 0 by construction), fo
 
 l, v, E come from :mod:`torchmetal.geometry` (point and directional lights, any camera).
 
-1. **Robust Lambertian init.** Per pixel, the channel sum of y/E is g·l_k (g = (Σ_c d_c)·n),
-   solved by weighted least squares over the shots that are lit, unsaturated and not dark, then
-   again without the shots the fit predicts in attached shadow (n·l below ``SHADOW``) or whose
-   residual exceeds ``INIT_K``·σ (highlights, glints, cast shadows); σ is the chunk's robust scale.
-2. **Robust refinement** (:func:`refine_normals`): a 2-parameter Levenberg–Marquardt per pixel on
-   θ with the texture d eliminated in closed form (variable projection, Kaufman's Jacobian) and
-   Cauchy weights (IRLS), so highlights the model does not explain, glints and shadows the
-   Lambertian init mistook for shading are down-weighted, never fitted. max(n·l, 0) models
-   attached shadows.
+1. **Robust Lambertian init** (:mod:`~torchmetal.normals.lambert`). Per pixel, the channel sum of
+   y/E is g·l_k (g = (Σ_c d_c)·n), solved by weighted least squares over the shots that are lit,
+   unsaturated and not dark, then again without the shots the fit predicts in attached shadow or
+   whose residual stands out (highlights, glints, cast shadows).
+2. **Robust refinement** (:func:`~torchmetal.normals.refine.refine_normals`): a 2-parameter
+   Levenberg–Marquardt per pixel on θ with the texture d eliminated in closed form (variable
+   projection, Kaufman's Jacobian) and Cauchy weights (IRLS), so highlights the model does not
+   explain, glints and shadows the Lambertian init mistook for shading are down-weighted, never
+   fitted. max(n·l, 0) models attached shadows.
 3. **Alternation** (:func:`estimate_normals`): round 0 refines, per pixel, the best of three
    starts — the Lambertian init under s = 0, it and the flat normal under the Phong terms fitted
    with flat normals; each further round fits the global Phong terms
@@ -57,31 +57,17 @@ from torch import Tensor
 from torchmetal.errors import FitError, InputError
 from torchmetal.fit.api import fit_phong
 from torchmetal.geometry import direction_to, surface_points
-from torchmetal.normals.core import (
-    Chunk,
-    normals_of,
-    robust_scale,
-    row_blocks,
-    row_chunk,
-    theta_of,
-    work_dtype,
-)
+from torchmetal.normals.core import work_dtype
 from torchmetal.normals.flat import flat_where_unresolved
 from torchmetal.normals.joint import joint_refine, try_weak_lobe
+from torchmetal.normals.lambert import MIN_SHOTS, lambertian_normals
 from torchmetal.normals.median import median_where_as_good
-from torchmetal.normals.refine import (
-    refine_normals,
-)
+from torchmetal.normals.refine import refine_normals
 from torchmetal.normals.restart import restart_and_settle
 
 if TYPE_CHECKING:
+    from torchmetal.fit.result import FitResult
     from torchmetal.io.capture import Capture
-
-DARK = 0.02  # init: shots darker than this fraction of the pixel's brightest are left out
-SHADOW = 0.05  # init: shots with predicted n·l below this are attached shadow
-INIT_K = 3.0  # init: |residual| > INIT_K·σ leaves a shot out (highlights, glints, cast shadows)
-INIT_ROUNDS = 4
-MIN_SHOTS = 3
 
 
 @dataclass
@@ -98,40 +84,6 @@ class NormalsEstimate:
     s: Tensor
     alpha: Tensor
     report: dict = field(default_factory=dict)
-
-
-# ------------------------------------------------------------------------------- 1. Lambertian init
-
-
-def _solve3(l: Tensor, z: Tensor, w: Tensor) -> Tensor:
-    """Per-pixel weighted least squares z_k = g·l_k: l (N, 3, P), z, w (N, P) → g (3, P)."""
-    wl = l * w.unsqueeze(1)
-    a = torch.einsum("nip,njp->pij", wl, l).double()
-    b = torch.einsum("nip,np->pi", wl, z).double()
-    tr = a.diagonal(dim1=1, dim2=2).sum(-1)
-    ridge = torch.where(tr > 0, 1e-9 * tr, torch.ones_like(tr))  # no observation: g = 0
-    a = a + ridge.view(-1, 1, 1) * torch.eye(3, dtype=a.dtype, device=a.device)
-    return torch.linalg.solve(a, b).T.to(z.dtype)
-
-
-def _lambert_init(ch: Chunk) -> tuple[Tensor, Tensor]:
-    """Robust Lambertian photometric stereo: θ (2, P) and the pixels with ≥ MIN_SHOTS usable shots (P,)."""
-    ok = ch.ok[:, 0]
-    z = torch.where(ok, ch.y[:, 0] / torch.where(ok, ch.e[:, 0], torch.ones_like(ch.y[:, 0])), torch.zeros_like(ch.y[:, 0]))
-    zmax = z.amax(0)
-    w = ok & (z > DARK * zmax)
-    for _ in range(INIT_ROUNDS):
-        g = _solve3(ch.l, z, w.to(z.dtype))
-        rho = g.norm(dim=0).clamp_min(1e-30)
-        zh = (g.unsqueeze(0) * ch.l).sum(1)
-        res = (z - zh) / rho
-        sig = robust_scale(res, w, 1e-6)
-        keep = ok & (zh > SHADOW * rho) & (res.abs() <= INIT_K * sig)
-        w = torch.where((keep.sum(0) >= MIN_SHOTS).unsqueeze(0), keep, w)
-    g = _solve3(ch.l, z, w.to(z.dtype))
-    return theta_of(g), (w.sum(0) >= MIN_SHOTS) & ch.pix
-
-# ------------------------------------------------------------------------------- 3. the estimate
 
 
 def _check_capture(capture: Capture) -> None:
@@ -178,61 +130,17 @@ def estimate_normals(capture: Capture, *, rounds: int = 1, iters: int = 12, join
         InputError: fewer than 3 shots, or lights that cannot determine a normal.
         FitError: the estimate went non-finite.
     """
-    if not (isinstance(rounds, int) and rounds >= 0):
-        raise InputError(f"rounds: expected an int >= 0, found {rounds!r}")
-    if not (isinstance(iters, int) and iters >= 1):
-        raise InputError(f"iters: expected an int >= 1, found {iters!r}")
-    _check_capture(capture)
-    for name in ("images", "intensities", "lights", "cameras"):
-        if not bool(torch.isfinite(getattr(capture, name)).all()):
-            raise FitError(f"capture.{name}: expected finite values, found NaN/Inf")
+    _check_inputs(capture, rounds, iters)
     t0 = time.perf_counter()
-    h, w = capture.height, capture.width
-    dt = work_dtype(capture)
-    normals = torch.zeros(3, h, w, dtype=dt, device=capture.images.device)
-    normals[2] = 1.0
-    solvable = torch.zeros(h, w, dtype=torch.bool, device=normals.device)
-    for r0, r1 in row_blocks(capture):
-        theta, good = _lambert_init(row_chunk(capture, r0, r1, dt))
-        n, _ = normals_of(theta)
-        normals[:, r0:r1] = torch.where(good.unsqueeze(0), n, normals[:, r0:r1].reshape(3, -1)).reshape(3, r1 - r0, w)
-        solvable[r0:r1] = good.reshape(r1 - r0, w)
+    normals, solvable = lambertian_normals(capture, work_dtype(capture))
     kw = {k: v for k, v in (fit_kwargs or {}).items() if k not in ("specular", "robust")}
-    flat = torch.zeros_like(normals)
-    flat[2] = 1.0
-    zero = torch.zeros(3, dtype=dt, device=normals.device)
-    # round 0: the Lambertian start under s = 0, and it and the flat normals under the Phong terms
-    # fitted with flat normals; per pixel the one that explains the shots best
-    fit = fit_phong(replace(capture, normals=flat.to(capture.images.dtype)), specular="global", **kw)
-    s, alpha = fit.s.to(dt), fit.alpha.to(dt)
-    cands = [(normals, zero, torch.ones_like(zero))]
-    if bool((s > 0).any()):
-        cands += [(flat, s, alpha), (normals, s, alpha)]
-    normals, rep = refine_normals(capture, cands, iters=iters, active=solvable, propagate=False)
-    history = [{"round": 0, "candidates": ["lambertian"] + (["flat+phong", "lambertian+phong"] if len(cands) > 1 else []),
-                "flat_fit": {"s": s.tolist(), "alpha": alpha.tolist()}, **rep}]
-    history[0]["time"] = time.perf_counter() - t0
+    normals, s, alpha, fit, first = _round_zero(capture, normals, solvable, iters, kw)
+    history = [{**first, "time": time.perf_counter() - t0}]
     for k in range(1, rounds + 1):
-        t1 = time.perf_counter()
-        fit = fit_phong(replace(capture, normals=normals.to(capture.images.dtype)), specular="global", **kw)
-        s, alpha = fit.s.to(dt), fit.alpha.to(dt)
-        normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
-        history.append({"round": k, "s": s.tolist(), "alpha": alpha.tolist(), "phong_rmse": float(fit.rmse), **rep,
-                        "time": time.perf_counter() - t1})
-    if joint and not bool((s > 0).any()) and weak_lobe:  # no highlight seen: a weak, broad lobe may hide
-        t1 = time.perf_counter()
-        inside = capture.mask[0]
-        tex = fit.texture.to(dt)[:, inside].mean(1) if bool(inside.any()) else torch.zeros_like(zero)
-        normals, s, alpha, rep = try_weak_lobe(capture, normals, tex, iters=iters, active=solvable)
-        history.append({"round": "weak_lobe", **rep, "time": time.perf_counter() - t1})
-    if joint and bool((s > 0).any()):
-        t1 = time.perf_counter()
-        normals, s, alpha, rep = joint_refine(capture, normals, s, alpha, active=solvable)
-        history.append({"round": "joint", "s": s.tolist(), "alpha": alpha.tolist(), **rep,
-                        "time": time.perf_counter() - t1})
-        t1 = time.perf_counter()  # the joint terms: refine and propagate once more
-        normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
-        history.append({"round": "polish", **rep, "time": time.perf_counter() - t1})
+        normals, s, alpha, fit, entry = _phong_round(capture, normals, solvable, iters, kw, k)
+        history.append(entry)
+    if joint:
+        normals, s, alpha = _joint_stages(capture, normals, s, alpha, fit, solvable, iters, weak_lobe, history)
     if restart:
         t1 = time.perf_counter()
         normals, rep = restart_and_settle(capture, normals, s, alpha, iters=iters, active=solvable)
@@ -243,6 +151,83 @@ def estimate_normals(capture: Capture, *, rounds: int = 1, iters: int = 12, join
     n_flat = 0
     if flat_test:
         normals, n_flat = flat_where_unresolved(capture, normals, s, alpha, active=solvable)
+    counts = {"took_median": n_median, "kept_flat": n_flat}
+    return _finish(capture, normals, s, alpha, solvable, history, counts, t0)
+
+
+def _check_inputs(capture: Capture, rounds: int, iters: int) -> None:
+    """:func:`estimate_normals`'s arguments: InputError for bad counts, shots or lights; FitError for non-finite input."""
+    if not (isinstance(rounds, int) and rounds >= 0):
+        raise InputError(f"rounds: expected an int >= 0, found {rounds!r}")
+    if not (isinstance(iters, int) and iters >= 1):
+        raise InputError(f"iters: expected an int >= 1, found {iters!r}")
+    _check_capture(capture)
+    for name in ("images", "intensities", "lights", "cameras"):
+        if not bool(torch.isfinite(getattr(capture, name)).all()):
+            raise FitError(f"capture.{name}: expected finite values, found NaN/Inf")
+
+
+def _round_zero(capture: Capture, lambertian: Tensor, solvable: Tensor, iters: int,
+                kw: dict) -> tuple[Tensor, Tensor, Tensor, FitResult, dict]:
+    """Round 0: the Lambertian start under s = 0, and (when the Phong fit with flat normals saw a
+    highlight) it and the flat normals under that fit's terms; per pixel the one that explains the
+    shots best, refined. Returns normals, s, α, the flat fit and the round's report entry."""
+    dt = lambertian.dtype
+    flat = torch.zeros_like(lambertian)
+    flat[2] = 1.0
+    zero = torch.zeros(3, dtype=dt, device=lambertian.device)
+    fit = fit_phong(replace(capture, normals=flat.to(capture.images.dtype)), specular="global", **kw)
+    s, alpha = fit.s.to(dt), fit.alpha.to(dt)
+    cands = [(lambertian, zero, torch.ones_like(zero))]
+    if bool((s > 0).any()):
+        cands += [(flat, s, alpha), (lambertian, s, alpha)]
+    normals, rep = refine_normals(capture, cands, iters=iters, active=solvable, propagate=False)
+    entry = {"round": 0, "candidates": ["lambertian"] + (["flat+phong", "lambertian+phong"] if len(cands) > 1 else []),
+             "flat_fit": {"s": s.tolist(), "alpha": alpha.tolist()}, **rep}
+    return normals, s, alpha, fit, entry
+
+
+def _phong_round(capture: Capture, normals: Tensor, solvable: Tensor, iters: int, kw: dict,
+                 k: int) -> tuple[Tensor, Tensor, Tensor, FitResult, dict]:
+    """Round k ≥ 1: the global Phong terms fitted with the current normals, the normals refined under
+    them (neighbours' normals tried). Returns normals, s, α, the fit and the round's report entry."""
+    t1 = time.perf_counter()
+    dt = normals.dtype
+    fit = fit_phong(replace(capture, normals=normals.to(capture.images.dtype)), specular="global", **kw)
+    s, alpha = fit.s.to(dt), fit.alpha.to(dt)
+    normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
+    entry = {"round": k, "s": s.tolist(), "alpha": alpha.tolist(), "phong_rmse": float(fit.rmse), **rep,
+             "time": time.perf_counter() - t1}
+    return normals, s, alpha, fit, entry
+
+
+def _joint_stages(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor, fit: FitResult, solvable: Tensor,
+                  iters: int, weak_lobe: bool, history: list) -> tuple[Tensor, Tensor, Tensor]:
+    """The weak-lobe try (with ``weak_lobe``, when the rounds saw no highlight: s = 0), then, with a
+    lobe, the joint refinement of the normals and s, α and one more refinement under its terms.
+    Appends the stages' report entries to ``history``; returns normals, s, α."""
+    if not bool((s > 0).any()) and weak_lobe:  # no highlight seen: a weak, broad lobe may hide
+        t1 = time.perf_counter()
+        inside = capture.mask[0]
+        zero = torch.zeros(3, dtype=normals.dtype, device=normals.device)
+        tex = fit.texture.to(normals.dtype)[:, inside].mean(1) if bool(inside.any()) else torch.zeros_like(zero)
+        normals, s, alpha, rep = try_weak_lobe(capture, normals, tex, iters=iters, active=solvable)
+        history.append({"round": "weak_lobe", **rep, "time": time.perf_counter() - t1})
+    if bool((s > 0).any()):
+        t1 = time.perf_counter()
+        normals, s, alpha, rep = joint_refine(capture, normals, s, alpha, active=solvable)
+        history.append({"round": "joint", "s": s.tolist(), "alpha": alpha.tolist(), **rep,
+                        "time": time.perf_counter() - t1})
+        t1 = time.perf_counter()  # the joint terms: refine and propagate once more
+        normals, rep = refine_normals(capture, [(normals, s, alpha)], iters=iters, active=solvable)
+        history.append({"round": "polish", **rep, "time": time.perf_counter() - t1})
+    return normals, s, alpha
+
+
+def _finish(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor, solvable: Tensor, history: list,
+            counts: dict, t0: float) -> NormalsEstimate:
+    """The estimate, unit length in the photos' dtype, and its report (``counts``: pixels the last
+    steps changed); FitError when the normals went non-finite."""
     if not bool(torch.isfinite(normals).all()):
         raise FitError("estimate_normals: expected finite normals, found NaN/Inf")
     normals = normals / normals.norm(dim=0, keepdim=True)
@@ -250,7 +235,7 @@ def estimate_normals(capture: Capture, *, rounds: int = 1, iters: int = 12, join
     tilt = torch.rad2deg(torch.acos(normals[2][inside].clamp(-1, 1)))
     report = {
         "mode": "estimate", "rounds": history, "time": time.perf_counter() - t0,
-        "pixels": int(inside.sum()), "unsolved_pixels": int((inside & ~solvable).sum()), "took_median": n_median, "kept_flat": n_flat,
+        "pixels": int(inside.sum()), "unsolved_pixels": int((inside & ~solvable).sum()), **counts,
         "tilt_deg": {"mean": float(tilt.mean()) if tilt.numel() else 0.0,
                      "max": float(tilt.max()) if tilt.numel() else 0.0},
     }

@@ -35,9 +35,7 @@ from torchmetal.normals.core import (
     theta_of,
     work_dtype,
 )
-from torchmetal.normals.refine import (
-    refine_normals,
-)
+from torchmetal.normals.refine import refine_normals
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture

@@ -43,12 +43,7 @@ from torchmetal.normals.core import (
     robust_scale,
     theta_of,
 )
-from torchmetal.normals.refine import (
-    PROPAGATE,
-    best_of,
-    refine_kept,
-    shifted,
-)
+from torchmetal.normals.refine import PROPAGATE, best_of, refine_kept, shifted
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
