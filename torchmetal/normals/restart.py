@@ -34,6 +34,7 @@ from torch import Tensor
 
 from torchmetal.normals.core import (
     CAUCHY_C,
+    Spec,
     active_blocks,
     chunk_subset,
     model_state,
@@ -77,9 +78,24 @@ def restart_and_settle(capture: Capture, normals: Tensor, s: Tensor, alpha: Tens
     h, w = capture.height, capture.width
     theta = theta_of(normals.to(dt).reshape(3, -1))  # (2, H·W)
     cost = torch.zeros(h * w, dtype=dt, device=theta.device)
+    scales, tried, kept = _restart(capture, theta, cost, spec, act, floor, iters)
+    passes, moves = _settle(capture, theta, cost, scales, spec, act, iters)
+    act_flat = act.reshape(-1)
+    n, _ = normals_of(theta)
+    out = torch.where(act_flat.unsqueeze(0), n, normals.to(dt).reshape(3, -1)).reshape(3, h, w)
+    return out, {"restarted": tried, "restart_kept": kept, "passes": passes, "moves": moves}
+
+
+def _restart(capture: Capture, theta: Tensor, cost: Tensor, spec: Spec | None, act: Tensor, floor: float,
+             iters: int) -> tuple[list[Tensor], int, int]:
+    """1. restart: in each row block, the pixels whose robust cost exceeds ``RESTART_K`` × the block's
+    median try the grid of starts, kept where the refined best cuts their cost by ``MOVE_GAIN``.
+    Writes θ (2, H·W) and the robust cost (H·W,) in place; returns the blocks' Cauchy scales, the
+    pixels restarted and the restarts kept."""
+    dt, w = theta.dtype, capture.width
     grid = _grid(dt, theta.device)
     scales, tried, kept = [], 0, 0
-    for r0, _, keep, sub in active_blocks(capture, act, dt):  # 1. restart
+    for r0, _, keep, sub in active_blocks(capture, act, dt):
         idx = r0 * w + keep
         th = theta[:, idx]
         scale = CAUCHY_C * robust_scale(model_state(sub, th, spec, sub.ok.to(dt), jac=False).r, sub.ok, floor)
@@ -97,10 +113,20 @@ def restart_and_settle(capture: Capture, normals: Tensor, s: Tensor, alpha: Tens
             c[bad] = torch.where(better, c1, c[bad])
             tried, kept = tried + n_b, kept + int(better.sum())
         theta[:, idx], cost[idx] = th, c
+    return scales, tried, kept
+
+
+def _settle(capture: Capture, theta: Tensor, cost: Tensor, scales: list[Tensor], spec: Spec | None, act: Tensor,
+            iters: int) -> tuple[int, int]:
+    """2. propagation until settled: each pixel next to one whose normal is new tries its
+    neighbours' normals (:data:`PROPAGATE` shifts, across the whole image), taken where they cut its
+    cost by ``MOVE_GAIN`` and then refined; until none moves or ``SETTLE_PASSES``. Writes θ and the
+    cost in place; returns the passes run and the moves made."""
+    dt, w = theta.dtype, capture.width
     act_flat = act.reshape(-1)
     front = act_flat.clone()  # pixels whose normal is new to their neighbours
     passes, moves = 0, 0
-    for passes in range(1, SETTLE_PASSES + 1):  # noqa: B007 (reported after the loop)  2. propagation until settled
+    for passes in range(1, SETTLE_PASSES + 1):  # noqa: B007 (reported after the loop)
         new = (front & act_flat).view(1, -1)  # a neighbour's normal is a candidate where it is new
         src = [(shifted(theta, w, dy, dx), shifted(new, w, dy, dx)[0]) for dy, dx in PROPAGATE]
         moved = torch.zeros_like(front)
@@ -122,6 +148,4 @@ def restart_and_settle(capture: Capture, normals: Tensor, s: Tensor, alpha: Tens
         front = moved
         if n_moved == 0:
             break
-    n, _ = normals_of(theta)
-    out = torch.where(act_flat.unsqueeze(0), n, normals.to(dt).reshape(3, -1)).reshape(3, h, w)
-    return out, {"restarted": tried, "restart_kept": kept, "passes": passes, "moves": moves}
+    return passes, moves
