@@ -12,8 +12,7 @@ shots, render the group. Per pixel, the median squared error over the group's ob
 noise and by ``MIN_GAIN`` (5 %: a normal map is two parameters a pixel).
 
 The fits have the default specular structure, not one global lobe: a global lobe misfits a sample of two
-materials (the zoo's two_materials, flat), and estimated normals that bend its highlights won the test by
-16 % with it; with the clusters the fit keeps, flat wins (held-out MSE 2.6e-5 vs 4.0e-4).
+materials, and estimated normals that bend its highlights would then win the test (docs/design.md §4).
 """
 
 from __future__ import annotations
@@ -73,9 +72,8 @@ def pixel_errors(fit: FitResult, hold: Capture) -> Tensor:
 
     The median, not the mean: the question is the surface's shape, which every shot of a pixel shows, and
     a flake sample's glints are single bright observations. Its glinting pixels are tilted mirrors, and
-    per-pixel normals fitted to them predict their glints in other shots — with the mean, notebook 03's flat
-    flake sample took the estimate (2–18 % lower held-out MSE) and its flake model then failed: the glints
-    were in the normals."""
+    per-pixel normals fitted to them predict their glints in other shots: with the mean, a flat flake sample
+    would take the estimate and carry its glints in the normals (docs/design.md §4)."""
     with torch.no_grad():
         pred = fit.render(hold.lights, hold.intensities, hold.cameras)
     v = valid_pixels(hold)

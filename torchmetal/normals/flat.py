@@ -1,8 +1,7 @@
 """Flat where the photos cannot tell: the last step of :func:`~torchmetal.normals.estimate.estimate_normals`.
 
 A per-pixel normal has two free parameters, so on a flat sample the estimate is the flat normal
-plus noise (about 0.3° on the zoo's 8-bit photo_srgb8), and the noise costs held-out PSNR (sharp
-lobes move with it). Each pixel keeps its estimate only when it explains its own shots
+plus noise, and the noise costs held-out PSNR (sharp lobes move with it). Each pixel keeps its estimate only when it explains its own shots
 significantly better than (0, 0, 1) does — an F-test of the two extra parameters against the
 pixel's own residual (noise that grows with the signal, misfit and quantisation included): with
 the texture re-solved for both over the estimate's inliers (Cauchy weight > 1/2: glints and
@@ -12,8 +11,8 @@ and ν = (inlier shots) − 3,
     F = (Δ/2)/(c/ν),   p = P(F(2, ν) > F) = (1 + Δ/c)^(−ν/2)   (closed form for 2 numerator dof)
 
 and the estimate is kept when p < FLAT_P, or when it is steeper than 5° (where a pixel has few
-usable shots the test has no power, e.g. at a sphere's limb; noise about flat is ~0.3°). Tilts
-the shots resolve pass easily (a sphere, the zoo's bumps); noise does not.
+usable shots the test has no power, e.g. at a sphere's limb; the noise about flat stays well
+below that, docs/design.md §4). Tilts the shots resolve pass easily; noise does not.
 """
 
 from __future__ import annotations

@@ -4,12 +4,10 @@
 Near highlights (and on dark, noisy texture) a pixel's robust cost has several minima; its start
 (the Lambertian init, a neighbour's normal) can fall into a wrong one, and whole patches then
 agree with each other, so neither one propagation pass inside a row chunk nor the median test
-can tell (photo_bumpy_noise2: blobs of 100–300 px, 20–50° off, where the true normal costs a
-tenth of the estimate's). Two moves, each kept only where it cuts the pixel's robust cost
+can tell, though the true normal costs a fraction of the estimate's (docs/design.md §4). Two moves, each kept only where it cuts the pixel's robust cost
 (Cauchy, with the scale of its row chunk fixed at the start) by at least ``MOVE_GAIN``: a wrong
 minimum costs several times the right one, while small gains are what a model that does not fit
-(a second material's sharper lobe) buys with more tilt; taking those spreads the tilt
-(two_materials@128: 2.96° mean without this step, 3.13° with any gain taken, 2.96° with ``MOVE_GAIN``):
+(a second material's sharper lobe) buys with more tilt; taking those spreads the tilt:
 
 1. **restart**: pixels whose robust cost exceeds ``RESTART_K`` × their chunk's median try a polar
    grid of normals (tilts ``GRID_TILTS_DEG`` × ``GRID_AZIMUTHS`` azimuths, and flat); the best
