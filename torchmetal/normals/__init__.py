@@ -1,9 +1,12 @@
 """Normals from the photos: per-pixel photometric stereo with the known lights, refined with the
 Phong terms (``fit --normals``; docs/design.md §2.2, the choice in §4).
 
-Modules, in the order the estimate runs them:
+Modules: the estimate, the core its steps share, the steps in the order they run, and the choice:
 
 * :mod:`~torchmetal.normals.estimate`: :func:`estimate_normals`, the whole estimate stage by stage;
+* :mod:`~torchmetal.normals.core`: what the steps share (row chunks of observations, normals ↔ surface
+  gradients, the model and its Jacobian, robust weights, scales and costs);
+* :mod:`~torchmetal.normals.lambert`: the robust Lambertian start;
 * :mod:`~torchmetal.normals.refine`: the per-pixel robust refinement (:func:`refine_normals`);
 * :mod:`~torchmetal.normals.joint`: the normals jointly with the global s, α (:func:`joint_refine`,
   :func:`try_weak_lobe`);
