@@ -113,6 +113,13 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
     assert kept.material.flakes is not None and ch["kept"]
     mean = lambda rows: sum(r["md"] for r in rows) / len(rows)  # noqa: E731
     assert mean(ch["flakes"]) <= mean(ch["none"])
+    records = {d["name"]: d for d in kept.report["decisions"]}  # one record per choice, in one list
+    assert records["flakes"]["chosen"] == "flakes" and records["flakes"]["scores"]["flakes"]["md"] == mean(ch["flakes"])
+    assert records["lobe"]["chosen"] == kept.material.lobe and "specular evidence" in records
+    assert records["observed flakes"]["chosen"] == ("observed" if kept.material.observed_flakes is not None
+                                                    else "statistical")
+    assert set(records) <= {"normals", "lobe", "specular evidence", "specular clusters", "relabel", "gloss maps",
+                            "observed flakes", "flakes", "density map"}
     times = kept.report["stage_times"]  # the total counts the flake choices too
     assert kept.report["total_time"] >= times["flakes"] + times["flakes.observed"] + times["flakes.choice"]
     monkeypatch.setattr(choice, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))
@@ -141,3 +148,6 @@ def test_default_chooses_lobe_and_normals_on_left_out_shots():
     given = fit_material(cap, flakes="off")
     assert given.report["normals"]["chosen"] == "given" and given.material.normals is not None
     assert given.report["lobe"] == "ggx" == given.report["lobe_selection"]["lobe"], given.report["lobe_selection"]
+    names = [d["name"] for d in rep["decisions"]]
+    assert names[:2] == ["normals", "lobe"] and rep["decisions"][0]["chosen"] == "estimate"
+    assert [d["chosen"] for d in given.report["decisions"] if d["name"] == "lobe"] == ["ggx"]

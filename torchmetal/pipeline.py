@@ -74,6 +74,23 @@ def _without_glints(capture, labels: torch.Tensor):
     return replace(capture, saturated=sat | hit)
 
 
+FLAKE_CHOICES = ("observed_choice", "flakes_choice", "density_map_choice")  # flake report entries holding a decision
+
+
+def decision_records(first, fit, normals_report: dict | None, flake_result) -> list[dict]:
+    """Every choice made on left-out shots, in the order made, as :class:`~torchmetal.fit.decision.Decision`
+    dicts: normals, the lobe (``first``, the first fit, chose it), the final fit's specular choices
+    (evidence, clusters, relabelling, gloss maps), then the flake choices."""
+    out = []
+    if normals_report and normals_report.get("decision"):
+        out.append(normals_report["decision"])
+    out += [d for d in first.decisions if d["name"] == "lobe"]
+    out += [d for d in fit.decisions if d["name"] != "lobe"]
+    flakes = {} if flake_result is None else flake_result.report
+    out += [flakes[k]["decision"] for k in FLAKE_CHOICES if (flakes.get(k) or {}).get("decision")]
+    return out
+
+
 def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     """Detect; stop when the detections do not exceed the mirrored residual's (misfit, not
     glints); otherwise, with ``refit`` given, detect again on ``refit()`` (the Huber fit); re-solve
@@ -286,5 +303,6 @@ def fit_material(
         t = time.perf_counter()
         material.flakes, flake_result.report["density_map_choice"] = choose_density_map(capture, material, flake_result)
         stage_times["flakes.density_map"] = time.perf_counter() - t
+    material.report["decisions"] = decision_records(first, fit, normals_report, flake_result)
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
     return PipelineResult(material=material, fit=fit, flakes=flake_result, report=material.report)

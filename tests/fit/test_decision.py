@@ -32,3 +32,13 @@ def test_record_is_json_ready():
     rec = d.to_dict()
     assert isinstance(d, Decision) and rec["chosen"] == "estimate" and rec["candidates"] == ["flat", "estimate"]
     assert math.isclose(rec["psnr_heldout"]["estimate"], 10 * math.log10(2.0))
+
+
+def test_floor_keeps_the_reference_against_rounding_gains():
+    """A gain far beyond its standard error but below the absolute floor (float rounding) is no gain."""
+    g = torch.Generator().manual_seed(2)
+    ref = 1e-10 * (1 + torch.rand(4000, dtype=torch.float64, generator=g))
+    better = 0.7 * ref
+    assert paired_choice("clusters", {"global": ref, "K=2": better}, "global").chosen == "K=2"
+    d = paired_choice("clusters", {"global": ref, "K=2": better}, "global", floor=1e-9)
+    assert d.chosen == "global" and d.z["K=2"] > 4

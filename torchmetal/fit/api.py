@@ -183,13 +183,14 @@ def fit_phong(
                       noise=noise_weights)
             decided = None
             if lobe == "auto":  # the structure (clusters) with Phong first, then the lobes compete on it
-                n_skipped = len(run.skipped)
+                n_skipped, n_decided = len(run.skipped), len(run.decisions)
                 decided = subsample_decisions(capture, run, lobe="phong", **kw)
                 lobe, lobe_sel = _choose_lobe(capture, run, decided, tol=tol, max_iters=max_iters,
                                               select_pixels=select_pixels, chunk=max_pixels_per_chunk)
                 if lobe != "phong":
                     decided = None  # the decisions again, with the chosen lobe (Phong's notes no longer apply)
                     del run.skipped[n_skipped:]
+                    run.decisions[n_decided:] = run.decisions[-1:]  # the lobe's own record stays
             res = _fit_refine(capture, run, lobe=lobe, decided=decided, **kw)
     finally:
         run.close()
@@ -209,6 +210,8 @@ def _choose_lobe(capture, run: FitRun, d, *, tol, max_iters, select_pixels, chun
         sel = choose_lobe(capture, stride=grid_stride(h, w, select_pixels), tol=max(tol, 1e-4), max_iters=max_iters,
                           dtype=compute_dtype(capture.images), chunk=chunk,
                           labeler=d.labeler if d.spec is not None else None)
+    if sel.decision is not None:
+        run.decisions.append(sel.decision)
     return sel.lobe, sel
 
 
@@ -216,7 +219,8 @@ def _result(capture, run: FitRun, texture: Tensor, s: Tensor, alpha: Tensor, **k
     dt = texture.dtype
     return FitResult(
         texture=texture, s=s.to(dt), alpha=alpha.to(dt), normals=capture.normals.to(dt), size=tuple(float(v) for v in capture.size),
-        history=run.history, stage_times=run.times, iterations=run.iterations, skipped=run.skipped, flat=is_flat(capture.normals), **kw,
+        history=run.history, stage_times=run.times, iterations=run.iterations, skipped=run.skipped,
+        decisions=run.decisions, flat=is_flat(capture.normals), **kw,
     )
 
 

@@ -5,7 +5,8 @@ from a lucky one (on the zoo's blinn scene Blinn is 1.2 dB closer to the clean t
 0.1 % lower in held-out MSE). The candidates' squared errors are taken on the same observations (same
 pixels, same shots, same noise) and pair up element by element: the paired difference's mean over its
 standard error, z, measures a gain against that noise. A candidate replaces the reference (the simpler
-model) when z > ``z_min`` and its MSE is lower by at least ``min_gain``; among several, the lowest MSE.
+model) when z > ``z_min`` and its MSE is lower by at least ``min_gain`` (and by ``floor`` in absolute terms:
+rounding noise, :data:`MIN_GAIN_ABS` of the held-out signal's mean square); among several, the lowest MSE.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from torch import Tensor
 
 Z_MIN = 4.0  # the gain over the reference must exceed 4 standard errors of the paired difference …
 MIN_GAIN = 5e-4  # … and lower the held-out MSE by 0.05 %
+MIN_GAIN_ABS = 1e-8  # … and by 1e-8 of the held-out mean square (−80 dB: not float rounding), where a caller gives it
 
 
 @dataclass
@@ -32,12 +34,13 @@ class Decision:
     holds: list = field(default_factory=list)  # the left-out shots (or groups of shots)
     pixels: int = 0  # pixels the decision looked at
     reason: str = ""
+    scores: dict = field(default_factory=dict)  # candidate → other held-out scores ({"md": …}) where MSE is not the rule
 
     def to_dict(self) -> dict:
         psnr = heldout_psnr(self.mse)
         return {"name": self.name, "candidates": list(self.candidates), "chosen": self.chosen,
                 "reference": self.reference, "mse": dict(self.mse), "psnr_heldout": psnr, "z": dict(self.z),
-                "holds": list(self.holds), "pixels": self.pixels, "reason": self.reason}
+                "holds": list(self.holds), "pixels": self.pixels, "reason": self.reason, "scores": dict(self.scores)}
 
 
 def heldout_psnr(mse: dict) -> dict:
@@ -56,16 +59,17 @@ def paired_z(err: Tensor, ref: Tensor) -> float:
 
 
 def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: float = Z_MIN,
-                  min_gain: float = MIN_GAIN) -> Decision:
+                  min_gain: float = MIN_GAIN, floor: float = 0.0) -> Decision:
     """The module's rule on held-out squared errors ``errors`` (candidate → (M,), the same M observations
-    in the same order for every candidate); ``ref`` is kept unless another candidate wins."""
+    in the same order for every candidate); ``ref`` is kept unless another candidate wins (its MSE lower
+    than the reference's by ``min_gain`` of it and by ``floor``, z > ``z_min``)."""
     d = Decision(name, tuple(errors), ref, reference=ref)
     for k, e in errors.items():
         d.mse[k] = float(e.mean()) if e.numel() else math.inf
     for k, e in errors.items():
         if k != ref:
             d.z[k] = paired_z(e, errors[ref])
-    wins = [k for k in d.z if d.z[k] > z_min and d.mse[k] < (1.0 - min_gain) * d.mse[ref]]
+    wins = [k for k in d.z if d.z[k] > z_min and d.mse[k] < (1.0 - min_gain) * d.mse[ref] - floor]
     d.chosen = min(wins, key=d.mse.get) if wins else ref
     others = ", ".join(f"{k} {d.mse[k]:.4g} (z {d.z[k]:.1f})" for k in d.z)
     if d.chosen != ref:

@@ -123,12 +123,12 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
                       f"({float(glob.explained().max()):.1%} of the diffuse-only residual)")
         elif n_shots >= 3:
             with run.stage("select"):
-                kept, mse_s, mse_d = heldout_evidence(capture, glob, stride=sel_stride, hold=_hold_shot(sub, glob),
-                                                      tol=sub_tol, max_iters=max_iters, dtype=dt, chunk=chunk,
-                                                      weighting=weighting)
-            if not kept:
-                reason = (f"no highlight evidence on a held-out shot (MSE {mse_s:.4g} with the specular term vs "
-                          f"{mse_d:.4g} diffuse only)")
+                ev_decision = heldout_evidence(capture, glob, stride=sel_stride, hold=_hold_shot(sub, glob),
+                                               tol=sub_tol, max_iters=max_iters, dtype=dt, chunk=chunk,
+                                               weighting=weighting)
+            run.decisions.append(ev_decision.to_dict())
+            if ev_decision.chosen != "specular":
+                reason = f"no highlight evidence on a held-out shot ({ev_decision.reason})"
         if reason is not None:
             run.skipped.append(f"specular: {reason}; s = 0")
             glob = None
@@ -150,6 +150,7 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
                 sel = choose_specular(capture, glob, candidates=clusters, stride=sel_stride, hold=hold,
                                       force=specular == "clustered", tol=sub_tol, max_iters=max_iters, dtype=dt,
                                       chunk=chunk, weighting=weighting, seed=seed)
+            run.decisions += [d.to_dict() for d in sel.decisions]
             if sel.k == 1:
                 run.skipped.append(f"specular clusters: not kept ({sel.reason})")
     labeler: Labeler | None = sel.labeler if sel is not None and sel.k > 1 else None
@@ -157,6 +158,8 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
     use_maps, maps_info = _maps_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, sub=sub,
                                          sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
                                          weighting=weighting, lobe=lobe)
+    if maps_info is not None and maps_info.get("decision") is not None:
+        run.decisions.append(maps_info["decision"])
     if use_maps:
         labeler = None
     if labeler is not None:
@@ -190,13 +193,13 @@ def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, sub, s
     if specular == "auto" and sel is not None and sel.k > 1:  # a kept clustered result stays as it was
         run.skipped.append("gloss maps: not tried (clustered specular kept)")
         return False, None
-    have_sel = sel is not None and sel.hold >= 0 and sel.mse
+    have_sel = sel is not None and sel.hold >= 0 and sel.errors is not None
     hold = sel.hold if have_sel else _hold_shot(sub, glob)
-    base_mse = min(sel.mse.values()) if have_sel and sel.k > 1 else (sel.mse.get("global") if have_sel else None)
+    base_errors = sel.errors if have_sel else None  # the kept candidate's errors on the same held-out shot
     with run.stage("select"):
         ms = choose_maps(capture, Reference(glob.s, glob.alpha), stride=sel_stride, hold=hold, force=specular == "maps",
                          tol=tol, max_iters=max_iters, dtype=dt, chunk=chunk, weighting=weighting, lobe=lobe,
-                         base_mse=base_mse)
+                         base_errors=base_errors)
     if not ms.kept:
         run.skipped.append(f"gloss maps: not kept ({ms.reason})")
     return ms.kept, ms.to_dict()

@@ -22,7 +22,7 @@ a Jacobi sweep per LM iteration), plus a ridge prior towards the base fit (globa
 with C_ref, H_ref the median pooled curvatures at the base, so pixels with much less highlight
 evidence than typical (no mirror direction seen, outside the mask) keep the base terms.
 :func:`choose_maps` fits the base and the maps on all shots but one and keeps the maps only
-when they lower that shot's error by more than ``MIN_GAIN``.
+when they lower that shot's errors beyond noise (the paired rule of :mod:`torchmetal.fit.decision`).
 """
 
 from __future__ import annotations
@@ -34,7 +34,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchmetal.fit.clusters import MIN_GAIN, MIN_GAIN_ABS, colour_features, heldout_mse, mean_square
+from torchmetal.fit.clusters import colour_features, heldout_errors, mean_square
+from torchmetal.fit.decision import MIN_GAIN_ABS, Decision, paired_choice
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations
 from torchmetal.fit.refine import (
@@ -211,15 +212,20 @@ class MapsSelection:
     hold: int
     mse: dict = field(default_factory=dict)  # "base" / "maps" → held-out MSE
     reason: str = ""
+    decision: Decision | None = None
+    iterations: int = 0  # LM iterations of the maps' trial
+    stopped_early: bool = False  # the trial lost to its base after EARLY_ITERS iterations and went no further
 
     def to_dict(self) -> dict:
-        return {"kept": self.kept, "hold": self.hold, "mse": dict(self.mse), "reason": self.reason}
+        return {"kept": self.kept, "hold": self.hold, "mse": dict(self.mse), "reason": self.reason,
+                "iterations": self.iterations, "stopped_early": self.stopped_early,
+                "decision": None if self.decision is None else self.decision.to_dict()}
 
 
-def _maps_mse(ho: Observations, obs: Observations, maps: GlossMaps) -> float:
-    """Held-out MSE of ``maps`` fitted on ``obs``, their texture included."""
+def _maps_errors(ho: Observations, obs: Observations, maps: GlossMaps) -> Tensor:
+    """Held-out squared errors (M,) of ``maps`` fitted on ``obs``, their texture included."""
     s_p, a_p, ar = maps.per_pixel()
-    return heldout_mse(ho, maps.texture(obs), s_p, a_p, ar)
+    return heldout_errors(ho, maps.texture(obs), s_p, a_p, ar)
 
 
 def choose_maps(
@@ -236,21 +242,18 @@ def choose_maps(
     chunk: int,
     weighting: Weighting | None,
     lobe: str = "phong",
-    min_gain: float = MIN_GAIN,
-    base_mse: float | None = None,
+    base_errors: Tensor | None = None,
     pinned: Tensor | None = None,
 ) -> MapsSelection:
     """Fit the base specular (global, or clustered with ``labeler``) and gloss maps from it on all
-    shots but ``hold``; keep the maps when they lower ``hold``'s MSE by more than ``min_gain``
-    (``base_mse``: the error to beat, default the base's own on ``hold``; ``pinned`` (K, 3): base
-    elements held at their terms, as in :func:`~torchmetal.fit.clusters.fit_clustered`).
+    shots but ``hold``; keep the maps when they lower ``hold``'s errors beyond noise
+    (:func:`~torchmetal.fit.decision.paired_choice`; ``base_errors`` (M,): the errors to beat on the same
+    held-out observations, default the base's own; ``pinned`` (K, 3): base elements held at their
+    terms, as in :func:`~torchmetal.fit.clusters.fit_clustered`).
 
     Decided early when the maps lose: after :data:`EARLY_ITERS` LM iterations, maps whose held-out
-    MSE is not below the error to beat are not kept and not fitted further. On the scene zoo every
-    rejected trial was already worse than its base there, and stayed worse to convergence (held-out
-    MSE rising with the iterations: the maps fit noise); every kept trial of tests/fit's clustered
-    samples was 50–97 % below its base at 2–3 iterations. The trial was 40–75 % of the whole fit
-    (up to 100 LM iterations) on the zoo's 256² scenes."""
+    MSE is not below the base's are not kept and not fitted further (docs/design.md §4, gloss maps:
+    a trial that loses there has stayed worse to convergence on every zoo scene)."""
     n = int(capture.images.shape[0])
     obs = build_observations(capture, stride=stride, shots=[i for i in range(n) if i != hold], dtype=dtype, chunk=chunk,
                              ref=base, weighting=weighting, want_tmin=True, labeler=labeler, lobe=lobe)
@@ -259,22 +262,21 @@ def choose_maps(
     s_fix, b_fix = pinned_terms(pinned, base.s, base.alpha)  # clusters without evidence keep the global terms
     g: SpecFit = fit_specular(obs, torch.log(base.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix)
     lab = obs.labels if k > 1 else None
-    mse = {"base": heldout_mse(ho, texture_map(obs, g.s, g.eb), g.s, g.alpha, lab)}
-    ref_mse = mse["base"] if base_mse is None else base_mse
+    errors = {"base": heldout_errors(ho, texture_map(obs, g.s, g.eb), g.s, g.alpha, lab) if base_errors is None
+              else base_errors}
     s0, a0 = pixel_map(g.s, lab), pixel_map(g.alpha, lab)
     maps = fit_gloss_maps(obs, s0, a0, stride=stride, tol=tol, max_iters=min(EARLY_ITERS, max_iters))
-    mse["maps"] = _maps_mse(ho, obs, maps)
-    if not force and maps.status != "converged" and mse["maps"] >= ref_mse:
-        return MapsSelection(False, hold, mse, (
-            f"held-out shot {hold}: gloss maps MSE {mse['maps']:.4g} vs {ref_mse:.4g} after {maps.iterations} "
-            f"iterations (higher; not kept, stopped early)"))
-    if maps.status != "converged" and max_iters > maps.iterations:
+    errors["maps"] = _maps_errors(ho, obs, maps)
+    early = not force and maps.status != "converged" and float(errors["maps"].mean()) >= float(errors["base"].mean())
+    if not early and maps.status != "converged" and max_iters > maps.iterations:
         maps = fit_gloss_maps(obs, s0, a0, stride=stride, tol=tol, max_iters=max_iters - maps.iterations,
                               alpha_start=maps.alpha)
-        mse["maps"] = _maps_mse(ho, obs, maps)
-    gain = ref_mse - mse["maps"]
-    kept = force or gain > min_gain * ref_mse + MIN_GAIN_ABS * mean_square(ho)
-    verdict = "lower" if gain > 0 else "higher"
-    reason = (f"held-out shot {hold}: gloss maps MSE {mse['maps']:.4g} vs {ref_mse:.4g} ({verdict}; "
-              f"{'kept' if kept else 'not kept'}, the gain must exceed {min_gain:.1%})")
-    return MapsSelection(kept, hold, mse, reason)
+        errors["maps"] = _maps_errors(ho, obs, maps)
+    d = paired_choice("gloss maps", errors, "base", floor=MIN_GAIN_ABS * mean_square(ho))
+    d.holds, d.pixels = [hold], ho.num_pixels
+    if early:
+        d.reason += f" (stopped early, after {maps.iterations} iterations)"
+    if force:
+        d.chosen, d.reason = "maps", f"forced (specular='maps'); {d.reason}"
+    return MapsSelection(d.chosen == "maps", hold, dict(d.mse), f"held-out shot {hold}: {d.reason}", d,
+                         iterations=maps.iterations, stopped_early=early)

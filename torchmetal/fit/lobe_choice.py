@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from torchmetal.fit.clusters import evidence
+from torchmetal.fit.clusters import evidence, heldout_errors
 from torchmetal.fit.decision import MIN_GAIN, Z_MIN, heldout_psnr, paired_choice
 from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.problem import Observations, build_observations
-from torchmetal.fit.refine import SpecFit, chunk_model, chunk_terms, fit_specular, grid_beta, texture_map
+from torchmetal.fit.refine import SpecFit, chunk_terms, fit_specular, grid_beta, texture_map
 from torchmetal.lobes import LOBES
 
 __all__ = ["LobeSelection", "choose_lobe", "LOBE_GRID", "HOLDS", "FOLDS"]
@@ -45,6 +45,7 @@ class LobeSelection:
     alpha: dict = field(default_factory=dict)  # lobe → fitted α (3,) on the first fold (mean over clusters)
     clusters: int = 1  # specular elements each lobe was fitted with (the kept clusters)
     reason: str = ""
+    decision: dict | None = None  # the Decision record (as a dict), when the lobes were compared
 
     def to_dict(self) -> dict:
         return {"lobe": self.lobe, "holds": list(self.holds), "mse": dict(self.mse), "psnr_heldout": heldout_psnr(self.mse),
@@ -64,19 +65,6 @@ def specular_energy(obs: Observations, fit: SpecFit) -> Tensor:
         b = s3 * inten * u * lobe_factor(L, a3, obs.geo_chunk(j), obs.lobe)
         energy += (w * b * b).sum((1, 2)).double()
     return energy
-
-
-def heldout_errors(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor, labels: Tensor | None = None) -> Tensor:
-    """Squared errors (M,) float64 of the valid held-out observations, in a fixed order (the valid
-    set does not depend on the lobe, so two lobes' errors pair up element by element). The texture
-    is clamped at 0 as the material stores it (see :func:`~torchmetal.fit.clusters.heldout_mse`);
-    s, α (K, 3) per element, ``labels`` (P,) the fit's pixel labels when K > 1."""
-    texture = texture.clamp_min(0.0)
-    out = []
-    for y, w, diffuse, spec in chunk_model(hold, texture, s, alpha, labels):
-        r = y - diffuse - spec
-        out.append((r * r)[w > 0].double())
-    return torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)
 
 
 def choose_lobe(
@@ -123,4 +111,6 @@ def choose_lobe(
                       min_gain=min_gain)
     sel.lobe, sel.mse, sel.z = d.chosen, d.mse, d.z
     sel.reason = f"shots {held}: {d.reason}"
+    d.holds, d.pixels = held, int(ho.num_pixels)
+    sel.decision = d.to_dict()
     return sel

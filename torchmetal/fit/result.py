@@ -77,6 +77,8 @@ class FitResult:
         flat: True when every normal is (0, 0, 1).
         lobe: the specular lobe ("phong", docs/design.md §2.2; "blinn"; "ggx"), see :mod:`torchmetal.lobes`.
         lobe_selection: the held-out comparison behind lobe="auto", if any.
+        decisions: the :class:`~torchmetal.fit.decision.Decision` records (as dicts) of every choice made
+            on left-out shots (specular evidence, clusters, relabelling, gloss maps, lobe), in order.
         noise: the noise model the least squares were weighted by, {"a": [3], "b": [3]} (variance
             a + b·ŷ per channel, :func:`~torchmetal.fit.refine.noise_model`), or None (unweighted).
     """
@@ -105,6 +107,7 @@ class FitResult:
     gloss_alpha: Tensor | None = None
     maps_selection: dict | None = None
     noise: dict | None = None
+    decisions: list[dict] = field(default_factory=list)
 
     @property
     def clustered(self) -> bool:
@@ -126,7 +129,7 @@ class FitResult:
                            self.lobe)
 
     def report(self) -> dict:
-        """JSON-able summary: stage times, iterations, history summary, status, skipped."""
+        """JSON-able summary: stage times, iterations, history summary, status, skipped, decisions."""
         stages: dict[str, dict] = {}
         for h in self.history:
             st = stages.setdefault(h["stage"], {"iterations": 0, "rmse_first": h["rmse"]})
@@ -140,6 +143,7 @@ class FitResult:
             "selection": self.selection,
             "lobe": self.lobe, "lobe_selection": self.lobe_selection,
             "maps_selection": self.maps_selection, "noise": self.noise,
+            "decisions": list(self.decisions),
         }
 
     def to_material(self, report_extra: dict | None = None) -> Material:

@@ -1,4 +1,5 @@
-"""The state of one fit: stage timers, the iteration history, what was skipped, the progress bar."""
+"""The state of one fit: stage timers, the iteration history, what was skipped, the choices made on
+left-out shots, the progress bar."""
 
 from __future__ import annotations
 
@@ -9,13 +10,14 @@ from torchmetal.fit.result import IterationCounts
 
 
 class FitRun:
-    """Timers, history and the progress bar of one fit."""
+    """Timers, history, skipped stages, decisions and the progress bar of one fit."""
 
     def __init__(self, progress: bool) -> None:
         self.times: dict[str, float] = {}
         self.history: list[dict] = []
         self.iterations = IterationCounts()
         self.skipped: list[str] = []
+        self.decisions: list[dict] = []  # Decision.to_dict() of each choice made on left-out shots, in order
         self.bar = None
         if progress:
             from tqdm.auto import tqdm  # deferred: in a notebook tqdm.auto imports ipywidgets

@@ -23,6 +23,8 @@ from dataclasses import replace
 
 import torch
 
+from torchmetal.fit.decision import Decision
+
 HELD = 2  # left-out shots (the ones with the most associated detections)
 MD_WINDOW = 16  # MD's block (px) in the left-out scores: smaller images cannot be scored
 
@@ -113,6 +115,10 @@ def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tup
     report["kept"] = better
     report["reason"] = (f"left-out shots: observed flakes {o_psnr:.2f} dB, MD {o_md:.2f}; statistical field "
                         f"{s_psnr:.2f} dB, MD {s_md:.2f} (kept when higher PSNR and no higher MD)")
+    report["decision"] = Decision(
+        "observed flakes", ("statistical", "observed"), "observed" if better else "statistical", reference="statistical",
+        holds=list(report["held"]), pixels=int(capture.mask.sum()), reason=report["reason"],
+        scores={"statistical": {"psnr": s_psnr, "md": s_md}, "observed": {"psnr": o_psnr, "md": o_md}}).to_dict()
     return (observed_flakes(capture, parts, fid, model) if better else None), report
 
 
@@ -167,4 +173,7 @@ def keep_flakes(capture, material, plain, flake_result, observed_report: dict | 
     rep["kept"] = f_md <= n_md
     rep["reason"] = (f"left-out shots {rep['held']}: MD {f_md:.2f} with the flake model, {n_md:.2f} without "
                      "(kept when no higher)")
+    rep["decision"] = Decision("flakes", ("none", "flakes"), "flakes" if rep["kept"] else "none", reference="none",
+                               holds=list(rep["held"]), pixels=int(capture.mask.sum()), reason=rep["reason"],
+                               scores={"none": {"md": n_md}, "flakes": {"md": f_md}}).to_dict()
     return rep["kept"], rep

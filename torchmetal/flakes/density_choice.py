@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchmetal.fit.decision import Decision
 from torchmetal.flakes.choice import HELD, MD_WINDOW, _held_shots, _mean, _observed_without
 from torchmetal.flakes.density_map import DETECT_MODES, estimate_map, with_map
 from torchmetal.flakes.field import map_blocks
@@ -156,6 +157,9 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
     if winner != "uniform" and (final is None or final.uniform):
         winner, reason = "uniform", reason + "; the map from every shot is uniform"
     rep.update({"kept": winner != "uniform", "winner": winner, "reason": reason})
+    rep["decision"] = Decision("density map", tuple(cands), winner, reference="uniform", holds=list(rep["held"]),
+                               pixels=int(capture.mask.sum()), reason=reason,
+                               scores={c: dict(v) for c, v in rep["scores"].items()}).to_dict()
     if winner == "uniform":
         return model, rep
     rep["map_estimate"] = final.report
