@@ -13,7 +13,6 @@ of :mod:`torchmetal.fit.decision`). Clusters without highlight evidence keep the
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
