@@ -35,7 +35,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchmetal.flakes.md import metallic_difference
+from torchmetal.geometry import shading_geometry, surface_points
+from torchmetal.io.images import linear_to_srgb
 from torchmetal.metrics import psnr  # re-exported: the notebooks import it from here
+from torchmetal.pipeline import render_shots
+from torchmetal.renderer import MaterialRenderer
 
 __all__ = [
     "psnr",
@@ -85,8 +90,6 @@ def to_display(img: Tensor | np.ndarray, exposure: float | None = None) -> np.nd
         img: (3, H, W), (1, 3, H, W), (H, W, 3) or (H, W) linear values.
         exposure: multiply before encoding; default from :func:`exposure_for`.
     """
-    from torchmetal.io.images import linear_to_srgb
-
     x = _chw(img)
     k = exposure_for(x) if exposure is None else exposure
     return linear_to_srgb((x * k).clamp(0.0, 1.0)).permute(1, 2, 0).numpy()
@@ -134,8 +137,6 @@ def lobe_samples(
         the pixels of every shot, half among those within 5° of the mirror direction (the few that
         pin down the lobe's peak); unlit, masked and saturated observations are dropped.
     """
-    from torchmetal.geometry import shading_geometry, surface_points
-
     g = torch.Generator().manual_seed(seed)
     n_shots, _, h, w = capture.images.shape
     normals = _normals(capture).reshape(3, 1, h * w)
@@ -384,14 +385,10 @@ def report_figure(
         matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from torchmetal.pipeline import render_shots
-
     material = result.material
     fit = result.fit
     n_shots = capture.images.shape[0]
     if render_fn is None:
-        from torchmetal.renderer import MaterialRenderer
-
         renderer = MaterialRenderer(material).eval()
 
         def render_fn(l, e, c):  # noqa: E306
@@ -463,8 +460,6 @@ def report_figure(
     plot_image(ax_p, photo, f"photo ({what})", exposure=ex)
     valid = ~src.saturated[k].any(0) if getattr(src, "saturated", None) is not None else None
     if getattr(material, "flakes", None) is not None:
-        from torchmetal.flakes.md import metallic_difference
-
         phong_k = fit.render(src.lights[k : k + 1], src.intensities[k : k + 1], src.cameras[k : k + 1])[0]
         md = metallic_difference(render, photo)
         md0 = metallic_difference(phong_k, photo)

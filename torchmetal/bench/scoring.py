@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from torchmetal.errors import InputError
+
 
 def holdout_indices(n_total: int, n_hold: int) -> list[int]:
     """``n_hold`` shot indices spread evenly over ``n_total`` (never the same one twice)."""
@@ -23,7 +25,6 @@ def psnr_or_nan(pred, ref, valid=None) -> float:
     A benchmark records a failed method instead of stopping: NaN when ``valid`` selects nothing
     or a compared value of ``pred`` is not finite.
     """
-    from torchmetal.errors import InputError
     from torchmetal.metrics import psnr as _psnr  # torch: imported when a task needs it
 
     try:
@@ -92,6 +93,7 @@ def render_params(texture, s, alpha, capture):
     """torch Phong render of all shots of ``capture`` for plain (texture, s, α) parameters."""
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.phong import phong_render
 
     t = torch.as_tensor(np.asarray(texture), dtype=torch.float32) if not hasattr(texture, "detach") else texture.detach().float()

@@ -28,6 +28,7 @@ METHODS = {
 
 
 def _psnr(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> float:
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.metrics import psnr
 
     return psnr(pred, ref, mask=None if mask is None else mask[None, None])
@@ -38,6 +39,7 @@ def render_material(material, lights: np.ndarray, intensities: np.ndarray, camer
     """(H, 3, n, n) float32 renders of a material for held-out shots (the torch renderer)."""
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.renderer import MaterialRenderer
 
     r = MaterialRenderer(material, flakes=flakes)
@@ -72,6 +74,7 @@ def score_fit(case, result, seconds: float) -> dict:
 
 def run_scene(scene, methods: dict | None = None, *, workdir: str | Path | None = None) -> dict:
     """Write, fit and score one scene; returns {"scene", "oracle", method name: row}."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.capture import load_capture
     from torchmetal.pipeline import fit_material
     from torchmetal.synth.zoo import make_case, oracle_render

@@ -69,6 +69,7 @@ class Intrinsics:
         return cls(size, k, dist, meta.get("rms_px"), f"read from {label}", meta.get("camera"))
 
     def save(self, path: str | os.PathLike) -> Path:
+        # on use: loads torch (this module imports numpy only)
         from torchmetal.io.images import atomic_write_bytes
 
         atomic_write_bytes(path, (json.dumps(self.to_json(), indent=1) + "\n").encode())

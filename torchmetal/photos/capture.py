@@ -38,6 +38,7 @@ from torchmetal.photos.board import Board
 from torchmetal.photos.calibrate import Intrinsics, calibrate, camera_position, flash_position, project, solve_pose
 from torchmetal.photos.detect import Observation, inspect_photo
 from torchmetal.photos.rectify import Rectified, photo_scale, rectify, window_points
+from torchmetal.photos.report import contact_sheet as sheet
 from torchmetal.photos.white import WhiteReference, white_reference
 
 __all__ = ["PhotoCapture", "capture_from_photos", "save_photo_capture", "MIN_PHOTOS", "MIN_ELEVATION_DEG"]
@@ -236,6 +237,7 @@ def capture_from_photos(
     """
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.capture import Capture
 
     t0 = time.perf_counter()
@@ -367,6 +369,7 @@ def save_photo_capture(result: PhotoCapture, out: str | os.PathLike, *, contact_
     import json
     import shutil
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.capture_save import prepare_target, replace_dir, write_capture_files
 
     path, tmp = prepare_target(out)
@@ -374,8 +377,6 @@ def save_photo_capture(result: PhotoCapture, out: str | os.PathLike, *, contact_
         write_capture_files(result.capture, tmp, bits="npy")
         result.intrinsics.save(tmp / "intrinsics.json")
         if contact_sheet:
-            from torchmetal.photos.report import contact_sheet as sheet
-
             sheet(result, tmp / "contact.png")
         (tmp / "report.json").write_text(json.dumps(result.report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         replace_dir(tmp, path)

@@ -139,6 +139,7 @@ def _sample(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
 
 def rectify(obs: Observation, board: Board, intr: Intrinsics, pose, h: int, w: int, *, ss: int | None = None) -> Rectified:
     """Resample the window of ``obs`` onto the (h, w) capture grid with camera ``intr`` and ``pose``."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.images import code_table
 
     scale = photo_scale(board, pose, intr, h, w)

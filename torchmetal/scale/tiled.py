@@ -39,9 +39,11 @@ from torchmetal.fit.problem import Reference, compute_dtype
 from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms, pinned_terms
 from torchmetal.fit.result import FitResult
 from torchmetal.fit.run import FitRun
+from torchmetal.pipeline import PipelineResult
+from torchmetal.scale.engines import make_engine
 from torchmetal.scale.tile_tasks import _OPEN, TilePasses
 from torchmetal.scale.tiled_texture import SeenStats, fill_tiles
-from torchmetal.scale.tiles import TiledCapture
+from torchmetal.scale.tiles import TiledCapture, convert_capture, is_tiled
 
 SPECULARS = ("auto", "global", "clustered", "none")
 
@@ -146,8 +148,6 @@ def fit_tiled(
     eng = None
     if engine is not None:
         import os
-
-        from torchmetal.scale.engines import make_engine
 
         eng = make_engine(engine, workers, address)
         threads = threads or max(1, (os.cpu_count() or 1) // workers)
@@ -325,9 +325,6 @@ def fit_tiled_material(capture_path, *, tile: int, scheme: str = "refine", specu
     :func:`~torchmetal.pipeline.fit_material`; the tiled fit is the refine scheme by
     least squares (robust "auto" is that when no flakes are fitted), so other values are refused.
     """
-    from torchmetal.pipeline import PipelineResult
-    from torchmetal.scale.tiles import convert_capture, is_tiled
-
     if scheme != "refine":
         raise InputError(f"scheme: expected 'refine' with --tile (the tiled fit is the refine scheme), found {scheme!r}")
     if robust not in ("auto", None, "none"):
