@@ -15,13 +15,17 @@ from __future__ import annotations
 import ctypes
 import functools
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only: torchmetal.io.capture imports this module
+    from torchmetal.io.capture import Capture
 
 #: a capture whose float32 images exceed this is "large": its full-resolution fit streams the
 #: geometry (:mod:`torchmetal.fit.grid_terms`) and freed heap pages go back to the OS between stages.
 LARGE_BYTES = 64 << 20
 
 
-def is_large(capture) -> bool:
+def is_large(capture: Capture) -> bool:
     """Whether the capture's float32 images exceed :data:`LARGE_BYTES`."""
     return capture.images.numel() * 4 > LARGE_BYTES
 

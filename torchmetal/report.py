@@ -37,9 +37,10 @@ from torch import Tensor
 
 from torchmetal.flakes.md import metallic_difference
 from torchmetal.geometry import shading_geometry, surface_points
+from torchmetal.io.capture import Capture
 from torchmetal.io.images import linear_to_srgb
 from torchmetal.metrics import psnr  # re-exported: the notebooks import it from here
-from torchmetal.pipeline import render_shots
+from torchmetal.pipeline import PipelineResult, render_shots
 from torchmetal.renderer import MaterialRenderer
 
 __all__ = [
@@ -125,7 +126,7 @@ def plot_shots(axes, images: Tensor, *, indices=None, exposure: float | None = N
 
 
 def lobe_samples(
-    capture, texture: Tensor, *, max_samples: int = 4000, seed: int = 0
+    capture: Capture, texture: Tensor, *, max_samples: int = 4000, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Evidence for the specular lobe: per lit pixel and shot, the angle between r and v and the
     specular residual (photo − d·max(n·l, 0)·E)/E per channel.
@@ -346,12 +347,12 @@ def _mask(capture) -> Tensor | None:
 
 
 def report_figure(
-    capture,
-    result,
+    capture: Capture,
+    result: PipelineResult,
     out_png: str | Path | None = None,
     *,
     truth: dict | None = None,
-    heldout=None,
+    heldout: Capture | None = None,
     shot: int | None = None,
     flake_shot: int | None = None,
     render_fn=None,

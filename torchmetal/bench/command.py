@@ -30,6 +30,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,6 +40,9 @@ from torchmetal.bench.scoring import psnr_or_nan
 from torchmetal.bench.tables import md_table, speed_ratio
 from torchmetal.bench.zoo import render_material
 from torchmetal.memory import release_free_memory
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
+    from torchmetal.io.capture import Capture
 
 MiB = 2**20
 
@@ -212,7 +216,7 @@ def run_section(plan_name: str, full: bool, workdir: Path, env: dict, timeout: f
 WARM_PIXELS = 128  # side of the central crop the in-process child fits first
 
 
-def central_crop(cap, side: int):
+def central_crop(cap: Capture, side: int) -> Capture:
     """The central ``side`` × ``side`` pixels of a capture, its plane size scaled to match: the same
     geometry on those pixels (the plane is centred on the origin)."""
     # on use: loads torch (this module imports numpy only)

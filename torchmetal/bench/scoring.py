@@ -6,9 +6,14 @@ torch is imported inside the functions that need it, so a task pays for it only 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from torchmetal.errors import InputError
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
+    from torchmetal.io.capture import Capture
 
 
 def holdout_indices(n_total: int, n_hold: int) -> list[int]:
@@ -52,7 +57,7 @@ def to_numpy(x):
     return np.asarray(x, np.float64)
 
 
-def valid_mask(capture):
+def valid_mask(capture: Capture):
     """(N, 3, H, W) bool: finite, inside the mask and not saturated."""
     import torch
 
@@ -70,7 +75,7 @@ def valid_mask(capture):
     return v
 
 
-def capture_nbytes_f32(capture) -> int:
+def capture_nbytes_f32(capture: Capture) -> int:
     return int(capture.images.numel()) * 4
 
 
@@ -89,7 +94,7 @@ def _normals(capture):
     return n.float()
 
 
-def render_params(texture, s, alpha, capture):
+def render_params(texture, s, alpha, capture: Capture):
     """torch Phong render of all shots of ``capture`` for plain (texture, s, α) parameters."""
     import torch
 

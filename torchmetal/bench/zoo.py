@@ -16,10 +16,14 @@ from __future__ import annotations
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from torchmetal.bench.scoring import rel_err
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
+    from torchmetal.pipeline import PipelineResult
 
 METHODS = {
     "default": {},
@@ -48,7 +52,7 @@ def render_material(material, lights: np.ndarray, intensities: np.ndarray, camer
         return r(f32(lights), f32(intensities), f32(cameras)).numpy()
 
 
-def score_fit(case, result, seconds: float) -> dict:
+def score_fit(case, result: PipelineResult, seconds: float) -> dict:
     """One method's numbers on one case."""
     m = result.material
     pred = render_material(m, case.held_lights, case.held_intensities, case.held_cameras)

@@ -34,6 +34,7 @@ from torchmetal.formats.engine import Coat, EngineMaterial, engine_material
 from torchmetal.formats.lobe_fit import resolve_views
 from torchmetal.formats.textures import decode_png, hwc, is_constant, png_bytes, specular_encoding, to_linear, to_srgb
 from torchmetal.geometry import is_flat
+from torchmetal.io.capture import Capture
 from torchmetal.io.images import atomic_write_bytes
 
 GENERATOR = "torchmetal"
@@ -166,7 +167,8 @@ def _json_safe(x):
     return x
 
 
-def write(material, path: str | os.PathLike, *, binary: bool | None = None, views=None, capture=None,
+def write(material, path: str | os.PathLike, *, binary: bool | None = None, views=None,
+          capture: Capture | str | os.PathLike | None = None,
           flakes: str = "auto", texels_per_pixel: int = 1) -> Path:
     """Write ``material`` as glTF 2.0 (``.gltf``, data-URI buffer) or GLB (``.glb``), atomically.
 

@@ -38,7 +38,7 @@ from torchmetal.errors import ExportError
 from torchmetal.flakes.field import FlakeField, sparkle_shading
 from torchmetal.formats.brent import minimize_bounded
 from torchmetal.geometry import ShadingGeometry
-from torchmetal.io.capture import load_capture
+from torchmetal.io.capture import Capture, load_capture
 from torchmetal.lobes import LOBES, lobe_value
 
 Target = Callable[[Tensor, Tensor], Tensor]
@@ -212,7 +212,7 @@ def capture_views(cameras: Tensor, min_z: float = 0.05) -> Tensor:
     return torch.unique(torch.round(d * 1e6) / 1e6, dim=0)
 
 
-def resolve_views(views=None, capture=None) -> Tensor | None:
+def resolve_views(views: Tensor | None = None, capture: Capture | str | os.PathLike | None = None) -> Tensor | None:
     """``views`` as given, else the views of ``capture`` (a Capture or a capture directory), else None
     (the default views)."""
     if views is not None or capture is None:

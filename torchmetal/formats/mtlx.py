@@ -53,6 +53,7 @@ from torchmetal.formats.textures import (
     write_texture_dir,
 )
 from torchmetal.geometry import is_flat
+from torchmetal.io.capture import Capture
 from torchmetal.io.images import atomic_write_bytes
 
 TARGETS = ("glsl", "osl", "mdl")
@@ -303,7 +304,7 @@ def generate(doc, target: str, lib=None) -> str:
     return shader.getSourceCode(stage)
 
 
-def write(material, path: str | os.PathLike, *, views=None, capture=None) -> Path:
+def write(material, path: str | os.PathLike, *, views=None, capture: Capture | str | os.PathLike | None = None) -> Path:
     """Write ``material`` as ``path`` (.mtlx) plus ``<stem>.textures/``; validated before it is
     written (an invalid document raises :class:`ExportError` and writes nothing). ``views`` /
     ``capture``: the views of the lobe fit (see :func:`torchmetal.formats.lobe_fit.resolve_views`)."""

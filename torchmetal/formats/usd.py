@@ -28,6 +28,7 @@ from torchmetal.formats.engine import EngineMaterial, engine_material
 from torchmetal.formats.lobe_fit import resolve_views
 from torchmetal.formats.textures import gray, hwc, is_constant, to_srgb, write_texture_dir
 from torchmetal.geometry import is_flat
+from torchmetal.io.capture import Capture
 from torchmetal.io.images import atomic_write_bytes
 
 ROOT = "/torchmetal"
@@ -234,7 +235,8 @@ def build_stage(material, tex_dir_name: str, *, views=None, flakes: str = "auto"
     return stage, textures
 
 
-def write(material, path: str | os.PathLike, *, views=None, capture=None, flakes: str = "auto",
+def write(material, path: str | os.PathLike, *, views=None, capture: Capture | str | os.PathLike | None = None,
+          flakes: str = "auto",
           texels_per_pixel: int = 1) -> Path:
     """Write ``material`` as ``path`` (.usda) plus ``<stem>.textures/`` (see the module docstring);
     ``views`` / ``capture``: the views of the lobe fit (:func:`torchmetal.formats.lobe_fit.resolve_views`)."""

@@ -30,6 +30,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,6 +41,9 @@ from torchmetal.photos.detect import Observation, inspect_photo
 from torchmetal.photos.rectify import Rectified, photo_scale, rectify, window_points
 from torchmetal.photos.report import contact_sheet as sheet
 from torchmetal.photos.white import WhiteReference, white_reference
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
+    from torchmetal.io.capture import Capture
 
 __all__ = ["PhotoCapture", "capture_from_photos", "save_photo_capture", "MIN_PHOTOS", "MIN_ELEVATION_DEG"]
 
@@ -56,7 +60,7 @@ REPORT_FORMAT = "torchmetal-photo-report"
 class PhotoCapture:
     """The capture built from photos, with everything the report and contact sheet show."""
 
-    capture: object  # torchmetal.io.capture.Capture
+    capture: Capture
     board: Board
     report: dict
     intrinsics: Intrinsics

@@ -27,9 +27,14 @@ import os
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from torchmetal.errors import ExportError, InputError, TorchmetalError
 from torchmetal.viewer import three
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports nothing heavy)
+    from torchmetal.io.capture import Capture
+    from torchmetal.material import Material
 
 CONFIG_FORMAT = "torchmetal-viewer"
 CONFIG_VERSION = 1
@@ -115,7 +120,7 @@ def export_graphs(material, out_dir: str | os.PathLike, *, reuse: Sequence[str |
     return graphs
 
 
-def shots_of(capture, material) -> list[dict]:
+def shots_of(capture: Capture, material: Material) -> list[dict]:
     """Config ``shots`` of a :class:`Capture` (light, intensity, camera, photo name)."""
     if tuple(capture.size) != tuple(material.size):
         raise InputError(f"capture: expected the material's surface {tuple(material.size)}, found {tuple(capture.size)}")
@@ -131,7 +136,7 @@ def shots_of(capture, material) -> list[dict]:
     return out
 
 
-def photo_png(capture, k: int) -> bytes:
+def photo_png(capture: Capture, k: int) -> bytes:
     """Shot ``k`` of ``capture`` as 8-bit sRGB PNG bytes (linear clipped to [0, 1], then encoded)."""
     # on use: loads torch (this module imports nothing heavy)
     from torchmetal.io.images import encode_image, linear_to_srgb
