@@ -35,7 +35,12 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import InputError
-from torchmetal.geometry import ShadingGeometry, _grid_direction, dot, shading_geometry
+from torchmetal.geometry import (
+    ShadingGeometry,
+    _grid_direction,  # the one separable direction builder
+    dot,
+    shading_geometry,
+)
 from torchmetal.phong import PhongModel, channel_map, phong_shading, specular_lobe
 
 __all__ = [
