@@ -12,8 +12,8 @@ import os
 import sys
 from pathlib import Path
 
-from torchmetal.errors import TorchmetalError
-from torchmetal.formats import FORMATS
+from torchmetal.errors import InputError, TorchmetalError
+from torchmetal.formats import FORMATS, default_output, export_material
 
 # Verbs that live beside their feature: each module imports only argparse at the top and has
 # ``register(sub)`` that adds its sub-parser(s), whose ``func`` does the heavy imports.
@@ -35,6 +35,7 @@ def _vec(n: int):
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
+    # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.io.capture import load_capture
     from torchmetal.material import save_material
     from torchmetal.pipeline import fit_material
@@ -46,16 +47,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
             import tempfile
 
             if args.normals not in ("given", "auto"):
-                from torchmetal.errors import InputError
-
                 raise InputError(f"--normals {args.normals}: expected 'given' or 'auto' with --tile (tiled fits use the "
                                  "capture's normals)")
 
             if args.lobe not in ("phong", "auto"):
-                from torchmetal.errors import InputError
-
                 raise InputError(f"--lobe {args.lobe}: expected 'phong' or 'auto' with --tile (tiled fits use the paper's "
                                  "lobe)")
+            # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
             from torchmetal.scale.tiled import fit_tiled_material
 
             Path(args.output).resolve().parent.mkdir(parents=True, exist_ok=True)
@@ -77,6 +75,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 weights=args.weights,
             )
         if args.export:
+            # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
             from torchmetal.onnx_export import export_onnx
 
             onnx_path = Path(args.output).with_name(Path(args.output).name + ".renderer.onnx.tmp")
@@ -110,6 +109,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
+    # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.io.images import linear_to_srgb, write_image
     from torchmetal.material import load_material
     from torchmetal.renderer import MaterialRenderer
@@ -119,6 +119,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     light = torch.tensor([args.light], dtype=torch.float32)
     camera = torch.tensor([args.camera], dtype=torch.float32)
     intensity = torch.tensor([args.intensity], dtype=torch.float32)
+    # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.io.capture import check_light_camera
 
     check_light_camera(light, intensity, camera)
@@ -135,7 +136,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from torchmetal.formats import default_output, export_material
+    # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.material import load_material
 
     material = load_material(args.material)
@@ -152,10 +153,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
+    # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.synth import synth_capture, write_synth
 
     flakes = None
     if args.flakes:
+        # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
         from torchmetal.flakes.model import FlakeModel
 
         flakes = FlakeModel(density=args.flake_density, seed=args.seed)
@@ -170,6 +173,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.demo import run_demo
 
     run_demo(args.output, size=args.size, quick=args.quick)
@@ -177,6 +181,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    # on use: loads numpy; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.bench.__main__ import main as bench_main
 
     return bench_main(args.rest)

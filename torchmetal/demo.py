@@ -40,6 +40,17 @@ from pathlib import Path
 
 import torch
 
+from torchmetal import pipeline
+from torchmetal.flakes.md import metallic_difference
+from torchmetal.flakes.model import FlakeModel
+from torchmetal.material import save_material
+from torchmetal.metrics import psnr
+from torchmetal.onnx_export import export_onnx
+from torchmetal.phong import phong_render
+from torchmetal.renderer import MaterialRenderer
+from torchmetal.report import _num_particles, report_figure
+from torchmetal.synth import synth_capture
+
 __all__ = ["run_demo", "demo_capture", "DEMO_FLAKES"]
 
 #: flake statistics of the embedded sample (densities are per pixel)
@@ -54,9 +65,6 @@ def demo_capture(size: int = 256, shots: int = 12, *, seed: int = 0, flake_seed:
     noise and 16-bit quantisation, point lights on a ring around the camera; exposed so that only
     the brightest highlights clip.
     """
-    from torchmetal.flakes.model import FlakeModel
-    from torchmetal.synth import synth_capture
-
     flakes = FlakeModel(**DEMO_FLAKES, seed=flake_seed)
     return synth_capture(size=size, shots=shots, seed=seed, texture="procedural", noise=0.005, bits=16,
                          exposure=0.8, flakes=flakes, layout="ring")
@@ -85,7 +93,6 @@ def _flake_stats(result, truth_model, truth_field) -> dict:
     fl = result.flakes
     model = result.material.flakes
     particles = getattr(fl, "particles", None) if fl is not None else None
-    from torchmetal.report import _num_particles
 
     out = {
         "detected": _num_particles(particles),
@@ -121,14 +128,6 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
     Raises:
         whatever a stage raises: the demo never hides a failure.
     """
-    from torchmetal.flakes.md import metallic_difference
-    from torchmetal.material import save_material
-    from torchmetal.metrics import psnr
-    from torchmetal.onnx_export import export_onnx
-    from torchmetal.pipeline import fit_material, render_shots
-    from torchmetal.renderer import MaterialRenderer
-    from torchmetal.report import report_figure
-
     t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -147,7 +146,7 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
     times["synth"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    result = fit_material(capture, scheme="refine", flakes="auto", seed=0, progress=False)
+    result = pipeline.fit_material(capture, scheme="refine", flakes="auto", seed=0, progress=False)
     times["fit"] = time.perf_counter() - t
     material, fit = result.material, result.fit
 
@@ -158,11 +157,11 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
     ok_fit = no_flake.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)  # (N, 1, H, W)
     ok_h = no_flake.unsqueeze(0) & ~heldout.saturated.any(1, keepdim=True)
     unsat_h = ~heldout.saturated.any(1, keepdim=True)
-    phong_fit = render_shots(fit, capture)
+    phong_fit = pipeline.render_shots(fit, capture)
     phong_psnr = psnr(phong_fit, capture.images, mask=ok_fit)
     del phong_fit
     photo_h = heldout.images
-    phong_h = render_shots(fit, heldout)
+    phong_h = pipeline.render_shots(fit, heldout)
     heldout_psnr = psnr(phong_h, photo_h, mask=ok_h)
     heldout_truth_psnr = psnr(_truth_phong(synth, heldout), photo_h, mask=ok_h)
     renderer = MaterialRenderer(material).eval()
@@ -222,8 +221,6 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
 
 def _truth_phong(synth, cap) -> torch.Tensor:
     """The true Phong part (no flakes, no noise) of the shots of ``cap``."""
-    from torchmetal.phong import phong_render
-
     t = synth.truth
     s, a = synth.specular_maps()
     return phong_render(t["texture"], s, a, cap.normals, cap.lights, cap.intensities, cap.cameras, cap.size)

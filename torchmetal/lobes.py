@@ -35,7 +35,12 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import InputError
-from torchmetal.geometry import ShadingGeometry, dot, shading_geometry
+from torchmetal.geometry import (
+    ShadingGeometry,
+    _grid_direction,  # the one separable direction builder
+    dot,
+    shading_geometry,
+)
 from torchmetal.phong import PhongModel, channel_map, phong_shading, specular_lobe
 
 __all__ = [
@@ -84,8 +89,6 @@ def grid_half_terms(
     Returns:
         1 − n·h, n·v, v·h, each (B, R, C).
     """
-    from torchmetal.geometry import _grid_direction  # the one separable direction builder
-
     (lx, ly, lz), _ = _grid_direction(light, x, y)
     (vx, vy, vz), _ = _grid_direction(camera, x, y)
     hx, hy, hz = lx + vx, ly + vy, lz + vz

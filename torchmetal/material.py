@@ -35,6 +35,7 @@ from torchmetal.errors import MaterialError
 from torchmetal.flakes.model import FlakeModel
 from torchmetal.flakes.observed import ObservedFlakes, load_observed, observed_json, save_observed
 from torchmetal.io.capture_save import replace_dir
+from torchmetal.lobes import LOBES
 
 FORMAT = "torchmetal-material"
 VERSION = 1
@@ -73,8 +74,6 @@ class Material:
     gloss_alpha: Tensor | None = None
 
     def __post_init__(self) -> None:
-        from torchmetal.lobes import LOBES
-
         if self.lobe not in LOBES:
             raise MaterialError(f"lobe: expected one of {list(LOBES)}, found {self.lobe!r}")
         t = self.texture

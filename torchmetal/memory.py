@@ -2,12 +2,11 @@
 
 glibc serves allocations below its (dynamic, up to 32 MiB) mmap threshold from the heap and keeps
 what is freed there for reuse: after a stage's temporaries are gone, the process still holds
-their pages, and the next stage's peak sits on top of them (measured at 1024² × 16 shots: 40–60 MiB,
-a quarter of the capture). ``malloc_trim(0)`` returns every free page; the pages the next stage
-allocates are then faulted in again, which on a small capture costs more than the memory is worth
-(measured: trimming before every stage made fits 20–45 % slower; before the flake screen, +30 ms
-on its 90 ms at 1024² × 8). So it runs only for a large capture (:func:`is_large`), twice: after
-loading and after the full-resolution LM. Elsewhere (macOS, Windows, musl) this is a no-op.
+their pages, and the next stage's peak sits on top of them. ``malloc_trim(0)`` returns every free
+page; the pages the next stage allocates are then faulted in again, which on a small capture costs
+more than the memory is worth (docs/design.md §6). So it runs only for a large capture
+(:func:`is_large`), twice: after loading and after the full-resolution LM. Elsewhere (macOS,
+Windows, musl) this is a no-op.
 """
 
 from __future__ import annotations
@@ -15,13 +14,17 @@ from __future__ import annotations
 import ctypes
 import functools
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only: torchmetal.io.capture imports this module
+    from torchmetal.io.capture import Capture
 
 #: a capture whose float32 images exceed this is "large": its full-resolution fit streams the
 #: geometry (:mod:`torchmetal.fit.grid_terms`) and freed heap pages go back to the OS between stages.
 LARGE_BYTES = 64 << 20
 
 
-def is_large(capture) -> bool:
+def is_large(capture: Capture) -> bool:
     """Whether the capture's float32 images exceed :data:`LARGE_BYTES`."""
     return capture.images.numel() * 4 > LARGE_BYTES
 

@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import InputError
+from torchmetal.io.images import linear_to_srgb
 
 __all__ = ["psnr", "mse", "srgb_encode", "md", "sparkle_count", "chroma_artifact_share"]
 
@@ -125,8 +126,6 @@ def srgb_encode(x: Tensor | np.ndarray) -> Tensor | np.ndarray:
     Returns:
         the same type, shape and dtype as ``x``.
     """
-    from torchmetal.io.images import linear_to_srgb  # on use: this module's import stays torch + numpy
-
     if isinstance(x, Tensor):
         return linear_to_srgb(x)
     a = np.asarray(x)
@@ -226,7 +225,7 @@ def md(
     Returns:
         MD in [0, 100].
     """
-    from torchmetal.flakes.md import metallic_difference
+    from torchmetal.flakes.md import metallic_difference  # on use: importing metrics loads no flakes code (tested)
 
     return metallic_difference(img_a, img_b, window, k=k, regions=regions, reduction=reduction)
 

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+import torchmetal
 from torchmetal.errors import ExportError, MaterialError
 from torchmetal.material import Material, load_material
 from torchmetal.renderer import MaterialRenderer
@@ -275,8 +276,6 @@ def export_onnx(
 
 
 def _annotate(proto, renderer: MaterialRenderer, opset: int) -> None:
-    import torchmetal
-
     proto.producer_name = "torchmetal"
     proto.producer_version = torchmetal.__version__
     proto.doc_string = (

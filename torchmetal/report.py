@@ -35,7 +35,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchmetal.flakes.md import metallic_difference
+from torchmetal.geometry import shading_geometry, surface_points
+from torchmetal.io.capture import Capture
+from torchmetal.io.images import linear_to_srgb
 from torchmetal.metrics import psnr  # re-exported: the notebooks import it from here
+from torchmetal.pipeline import PipelineResult, render_shots
+from torchmetal.renderer import MaterialRenderer
 
 __all__ = [
     "psnr",
@@ -85,8 +91,6 @@ def to_display(img: Tensor | np.ndarray, exposure: float | None = None) -> np.nd
         img: (3, H, W), (1, 3, H, W), (H, W, 3) or (H, W) linear values.
         exposure: multiply before encoding; default from :func:`exposure_for`.
     """
-    from torchmetal.io.images import linear_to_srgb
-
     x = _chw(img)
     k = exposure_for(x) if exposure is None else exposure
     return linear_to_srgb((x * k).clamp(0.0, 1.0)).permute(1, 2, 0).numpy()
@@ -122,7 +126,7 @@ def plot_shots(axes, images: Tensor, *, indices=None, exposure: float | None = N
 
 
 def lobe_samples(
-    capture, texture: Tensor, *, max_samples: int = 4000, seed: int = 0
+    capture: Capture, texture: Tensor, *, max_samples: int = 4000, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Evidence for the specular lobe: per lit pixel and shot, the angle between r and v and the
     specular residual (photo − d·max(n·l, 0)·E)/E per channel.
@@ -134,8 +138,6 @@ def lobe_samples(
         the pixels of every shot, half among those within 5° of the mirror direction (the few that
         pin down the lobe's peak); unlit, masked and saturated observations are dropped.
     """
-    from torchmetal.geometry import shading_geometry, surface_points
-
     g = torch.Generator().manual_seed(seed)
     n_shots, _, h, w = capture.images.shape
     normals = _normals(capture).reshape(3, 1, h * w)
@@ -345,12 +347,12 @@ def _mask(capture) -> Tensor | None:
 
 
 def report_figure(
-    capture,
-    result,
+    capture: Capture,
+    result: PipelineResult,
     out_png: str | Path | None = None,
     *,
     truth: dict | None = None,
-    heldout=None,
+    heldout: Capture | None = None,
     shot: int | None = None,
     flake_shot: int | None = None,
     render_fn=None,
@@ -384,19 +386,10 @@ def report_figure(
         matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from torchmetal.pipeline import render_shots
-
     material = result.material
-    fit = result.fit
     n_shots = capture.images.shape[0]
     if render_fn is None:
-        from torchmetal.renderer import MaterialRenderer
-
-        renderer = MaterialRenderer(material).eval()
-
-        def render_fn(l, e, c):  # noqa: E306
-            with torch.inference_mode():
-                return renderer(l, e, c)
+        render_fn = _material_render_fn(material)
 
     fig = plt.figure(figsize=(13.5, 8.4), dpi=dpi)
     gs = fig.add_gridspec(3, 6, height_ratios=[1, 1.25, 1.25], hspace=0.3, wspace=0.3, top=0.93, bottom=0.03)
@@ -407,72 +400,16 @@ def report_figure(
     plot_shots(shot_axes, capture.images, indices=show, labels=[f"input shot {i}" for i in show])
 
     # row 2: texture (fit | truth), lobe, flakes
-    ax_tex = fig.add_subplot(gs[1, 0:2])
-    tex = material.texture
-    tex_exp = exposure_for(truth["texture"] if truth is not None and truth.get("texture") is not None else tex, 100.0)
-    if truth is not None and truth.get("texture") is not None:
-        tt = torch.as_tensor(truth["texture"]).float()
-        both = torch.cat([tex.float(), torch.ones(3, tex.shape[1], max(2, tex.shape[2] // 40)), tt], dim=2)
-        plot_image(ax_tex, both, f"fitted texture d(p)  |  truth   (PSNR {psnr(tex, tt):.1f} dB)", exposure=tex_exp)
-    else:
-        plot_image(ax_tex, tex, "fitted texture d(p)", exposure=tex_exp)
-
-    ax_lobe = fig.add_subplot(gs[1, 2:4])
-    box = ax_lobe.get_position()  # leave room for the y label next to the texture panel
-    ax_lobe.set_position([box.x0 + 0.03, box.y0 + 0.02, box.width - 0.035, box.height - 0.02])
-    samples = lobe_samples(capture, tex)
-    t_sa = None
-    if truth is not None and truth.get("s") is not None and truth.get("alpha") is not None:
-        t_sa = (torch.as_tensor(truth["s"]), torch.as_tensor(truth["alpha"]))
-        if t_sa[0].dim() != 1 or t_sa[1].dim() != 1:
-            t_sa = None
-    plot_lobe(ax_lobe, material.s, material.alpha, truth=t_sa, samples=samples)
-    ax_lobe.set_title("specular lobe: fit (lines), truth (dashed),\nphoto − fitted diffuse (dots)", fontsize=9)
-
-    ax_fl = fig.add_subplot(gs[1, 4:6])
-    fl = getattr(result, "flakes", None)
-    particles = getattr(fl, "particles", None) if fl is not None else None
-    if flake_shot is None:
-        flake_shot = _busiest_shot(particles, n_shots)
-    phong = render_shots(fit, capture.subset([flake_shot]) if hasattr(capture, "subset") else capture)
-    if not hasattr(capture, "subset"):
-        phong = phong[flake_shot : flake_shot + 1]
-    resid = capture.images[flake_shot] - phong[0]
-    h, w = resid.shape[-2:]
-    zoom = h >= 192 and w >= 192  # small glints: show the central quarter of large images
-    window = (h // 4, h // 4 + h // 2, w // 4, w // 4 + w // 2) if zoom else None
-    count = plot_flakes(ax_fl, resid, particles, shot=flake_shot, window=window)
-    n_all = _num_particles(particles)
-    model = getattr(material, "flakes", None)
-    ax_fl.set_title(
-        f"detected flakes: photo − Phong of shot {flake_shot}" + (", centre" if zoom else "")
-        + f"\n{count} detections in this shot, {n_all} in all shots"
-        + ("" if model is not None else " (no flake model)"), fontsize=9)
+    _texture_panel(fig.add_subplot(gs[1, 0:2]), material.texture, truth)
+    _lobe_panel(fig.add_subplot(gs[1, 2:4]), capture, material, truth)
+    _flakes_panel(fig.add_subplot(gs[1, 4:6]), capture, result, flake_shot)
 
     # row 3: re-render beside the photo, error map
     if heldout is not None:
         src, k, what = heldout, 0, heldout_name
     else:
         src, k, what = capture, (n_shots // 2 if shot is None else shot), f"shot {shot if shot is not None else n_shots // 2}"
-    photo = src.images[k]
-    render = render_fn(src.lights[k : k + 1], src.intensities[k : k + 1], src.cameras[k : k + 1])[0]
-    ax_p = fig.add_subplot(gs[2, 0:2])
-    ax_r = fig.add_subplot(gs[2, 2:4])
-    ax_e = fig.add_subplot(gs[2, 4:6])
-    ex = exposure_for(photo)
-    plot_image(ax_p, photo, f"photo ({what})", exposure=ex)
-    valid = ~src.saturated[k].any(0) if getattr(src, "saturated", None) is not None else None
-    if getattr(material, "flakes", None) is not None:
-        from torchmetal.flakes.md import metallic_difference
-
-        phong_k = fit.render(src.lights[k : k + 1], src.intensities[k : k + 1], src.cameras[k : k + 1])[0]
-        md = metallic_difference(render, photo)
-        md0 = metallic_difference(phong_k, photo)
-        r_title = f"re-render (Phong + sparkles), same light and camera\nMD {md:.1f} (without sparkles: {md0:.1f}; lower = closer)"
-    else:
-        r_title = "re-render (Phong), same light and camera"
-    plot_image(ax_r, render, r_title, exposure=ex)
-    plot_error(ax_e, render, photo, valid=valid, fig=fig)
+    _rerender_row(fig, gs, src, k, what, result, render_fn)
 
     if title:
         fig.suptitle(title, fontsize=11, y=0.985)
@@ -482,6 +419,91 @@ def report_figure(
         fig.savefig(out_png, bbox_inches="tight")
         plt.close(fig)
     return fig
+
+
+def _material_render_fn(material):
+    """``render_fn(light, intensity, camera)`` of the material's full renderer, without autograd."""
+    renderer = MaterialRenderer(material).eval()
+
+    def render_fn(l, e, c):
+        with torch.inference_mode():
+            return renderer(l, e, c)
+
+    return render_fn
+
+
+def _texture_panel(ax, tex: Tensor, truth: dict | None) -> None:
+    """The fitted texture d(p), beside the true one (and their PSNR) when ``truth`` has it."""
+    tex_exp = exposure_for(truth["texture"] if truth is not None and truth.get("texture") is not None else tex, 100.0)
+    if truth is not None and truth.get("texture") is not None:
+        tt = torch.as_tensor(truth["texture"]).float()
+        both = torch.cat([tex.float(), torch.ones(3, tex.shape[1], max(2, tex.shape[2] // 40)), tt], dim=2)
+        plot_image(ax, both, f"fitted texture d(p)  |  truth   (PSNR {psnr(tex, tt):.1f} dB)", exposure=tex_exp)
+    else:
+        plot_image(ax, tex, "fitted texture d(p)", exposure=tex_exp)
+
+
+def _lobe_panel(ax, capture: Capture, material, truth: dict | None) -> None:
+    """The fitted specular lobe per channel, the true one when ``truth`` has global s and α, and the
+    photos' specular evidence (:func:`lobe_samples`)."""
+    box = ax.get_position()  # leave room for the y label next to the texture panel
+    ax.set_position([box.x0 + 0.03, box.y0 + 0.02, box.width - 0.035, box.height - 0.02])
+    samples = lobe_samples(capture, material.texture)
+    t_sa = None
+    if truth is not None and truth.get("s") is not None and truth.get("alpha") is not None:
+        t_sa = (torch.as_tensor(truth["s"]), torch.as_tensor(truth["alpha"]))
+        if t_sa[0].dim() != 1 or t_sa[1].dim() != 1:
+            t_sa = None
+    plot_lobe(ax, material.s, material.alpha, truth=t_sa, samples=samples)
+    ax.set_title("specular lobe: fit (lines), truth (dashed),\nphoto − fitted diffuse (dots)", fontsize=9)
+
+
+def _flakes_panel(ax, capture: Capture, result: PipelineResult, flake_shot: int | None) -> None:
+    """The flake detections over photo − Phong of ``flake_shot`` (default: the shot with most
+    detections), the central quarter of a large image."""
+    material = result.material
+    n_shots = capture.images.shape[0]
+    fl = getattr(result, "flakes", None)
+    particles = getattr(fl, "particles", None) if fl is not None else None
+    if flake_shot is None:
+        flake_shot = _busiest_shot(particles, n_shots)
+    phong = render_shots(result.fit, capture.subset([flake_shot]) if hasattr(capture, "subset") else capture)
+    if not hasattr(capture, "subset"):
+        phong = phong[flake_shot : flake_shot + 1]
+    resid = capture.images[flake_shot] - phong[0]
+    h, w = resid.shape[-2:]
+    zoom = h >= 192 and w >= 192  # small glints: show the central quarter of large images
+    window = (h // 4, h // 4 + h // 2, w // 4, w // 4 + w // 2) if zoom else None
+    count = plot_flakes(ax, resid, particles, shot=flake_shot, window=window)
+    n_all = _num_particles(particles)
+    model = getattr(material, "flakes", None)
+    ax.set_title(
+        f"detected flakes: photo − Phong of shot {flake_shot}" + (", centre" if zoom else "")
+        + f"\n{count} detections in this shot, {n_all} in all shots"
+        + ("" if model is not None else " (no flake model)"), fontsize=9)
+
+
+def _rerender_row(fig, gs, src: Capture, k: int, what: str, result: PipelineResult, render_fn) -> None:
+    """Row 3: shot ``k`` of ``src``, its re-render under the same light and camera (with the Metallic
+    Difference with and without sparkles when the material has flakes) and the error map."""
+    material, fit = result.material, result.fit
+    photo = src.images[k]
+    render = render_fn(src.lights[k : k + 1], src.intensities[k : k + 1], src.cameras[k : k + 1])[0]
+    ax_p = fig.add_subplot(gs[2, 0:2])
+    ax_r = fig.add_subplot(gs[2, 2:4])
+    ax_e = fig.add_subplot(gs[2, 4:6])
+    ex = exposure_for(photo)
+    plot_image(ax_p, photo, f"photo ({what})", exposure=ex)
+    valid = ~src.saturated[k].any(0) if getattr(src, "saturated", None) is not None else None
+    if getattr(material, "flakes", None) is not None:
+        phong_k = fit.render(src.lights[k : k + 1], src.intensities[k : k + 1], src.cameras[k : k + 1])[0]
+        md = metallic_difference(render, photo)
+        md0 = metallic_difference(phong_k, photo)
+        r_title = f"re-render (Phong + sparkles), same light and camera\nMD {md:.1f} (without sparkles: {md0:.1f}; lower = closer)"
+    else:
+        r_title = "re-render (Phong), same light and camera"
+    plot_image(ax_r, render, r_title, exposure=ex)
+    plot_error(ax_e, render, photo, valid=valid, fig=fig)
 
 
 def _num_particles(particles) -> int:

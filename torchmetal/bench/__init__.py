@@ -10,6 +10,7 @@ __all__ = ["BaselineResult", "paper_scheme_numpy", "adam_fit", "main"]
 
 
 def main(argv: list[str] | None = None) -> int:
+    # on use: imported with the package, __main__ would run twice under `python -m torchmetal.bench`
     from torchmetal.bench.__main__ import main as _main
 
     return _main(argv)

@@ -411,6 +411,7 @@ def adam_fit(
     """
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.geometry import shading_geometry
 
     t_start = time.perf_counter()

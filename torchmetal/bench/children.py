@@ -11,6 +11,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from torchmetal.bench.worker import MARKER
+
 THREADS_ENV = "TORCHMETAL_BENCH_THREADS"
 
 
@@ -47,8 +49,6 @@ class Server:
 
     def run(self, task: str, cfg: dict, timeout: float) -> dict:
         import selectors
-
-        from torchmetal.bench.worker import MARKER
 
         if self.proc is None or self.proc.poll() is not None:
             self._start()

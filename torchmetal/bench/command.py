@@ -30,8 +30,19 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from torchmetal.bench.baselines import np_render
+from torchmetal.bench.memory import PeakMemory
+from torchmetal.bench.scoring import psnr_or_nan
+from torchmetal.bench.tables import md_table, speed_ratio
+from torchmetal.bench.zoo import render_material
+from torchmetal.memory import release_free_memory
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
+    from torchmetal.io.capture import Capture
 
 MiB = 2**20
 
@@ -56,6 +67,7 @@ def command_plan(name: str, full: bool = False) -> dict:
 
 def fit_scene(size: int, shots: int):
     """The 8-bit capture of a fit row: global Phong on a procedural texture, hemisphere of lights."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.synth.zoo import Scene
 
     return Scene(f"fit{size}x{shots}", size=size, shots=shots, held=3, layout="hemisphere", s=0.5, alpha=60,
@@ -63,6 +75,7 @@ def fit_scene(size: int, shots: int):
 
 
 def dome_scene(size: int):
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.synth.zoo import SCENES
 
     return SCENES["dome72"].with_(size=size)
@@ -122,14 +135,12 @@ def startup(env: dict, repeats: int, timeout: float = 120.0) -> dict:
 
 
 def _score(pred: np.ndarray, case) -> float:
-    from torchmetal.bench.scoring import psnr_or_nan
-
     return psnr_or_nan(np.asarray(pred, np.float32), case.clean)
 
 
 def score_material(material_dir: Path, case) -> float:
     """Held-out PSNR (dB, against the clean renders) of the material ``torchmetal fit`` wrote."""
-    from torchmetal.bench.zoo import render_material
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.material import load_material
 
     m = load_material(material_dir)
@@ -138,8 +149,6 @@ def score_material(material_dir: Path, case) -> float:
 
 def score_paper(npz: Path, case) -> tuple[float, dict]:
     """Held-out PSNR of the numpy paper process's (texture, s, α), rendered by the numpy renderer."""
-    from torchmetal.bench.baselines import np_render
-
     r = np.load(npz)
     meta = json.loads((case.capture_dir / "capture.json").read_text())
     n = r["texture"].shape[-1]
@@ -158,6 +167,7 @@ def score_paper(npz: Path, case) -> tuple[float, dict]:
 
 def run_case(scene, workdir: Path, env: dict, timeout: float) -> dict:
     """Write ``scene``, then time and score the three processes on it."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.synth.zoo import make_case
 
     t0 = time.perf_counter()
@@ -206,9 +216,10 @@ def run_section(plan_name: str, full: bool, workdir: Path, env: dict, timeout: f
 WARM_PIXELS = 128  # side of the central crop the in-process child fits first
 
 
-def central_crop(cap, side: int):
+def central_crop(cap: Capture, side: int) -> Capture:
     """The central ``side`` × ``side`` pixels of a capture, its plane size scaled to match: the same
     geometry on those pixels (the plane is centred on the origin)."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.capture import Capture
 
     h, w = cap.height, cap.width
@@ -226,18 +237,17 @@ def inproc_main(capture_dir: str, out_json: str) -> int:
     and their peak memory above the start.
 
     The warm-up fit pages in the code the fit runs: torch's kernels are file-backed pages of its
-    libraries, counted in the RSS the first time they run (10–20 MiB at 1024² × 16) — code shared
-    with every process, not the fit's data; a user fitting twice pays it once.
+    libraries, counted in the RSS the first time they run (docs/design.md §6) — code shared with
+    every process, not the fit's data; a user fitting twice pays it once.
     """
     import gc
 
     import torch  # noqa: F401
 
+    # on use: loads torch (this module imports numpy only)
     import torchmetal.fit  # noqa: F401
     import torchmetal.flakes.stage  # noqa: F401
-    from torchmetal.bench.memory import PeakMemory
     from torchmetal.io.capture import load_capture
-    from torchmetal.memory import release_free_memory
     from torchmetal.pipeline import fit_material
 
     fit_material(central_crop(load_capture(capture_dir), WARM_PIXELS))
@@ -273,8 +283,6 @@ def _f(x, spec: str = ".2f") -> str:
 def speedup(row: dict) -> tuple[float | None, str]:
     """numpy paper whole-process time / torchmetal whole-command time, where torchmetal's held-out error
     is equal or better (tables.EQUAL_DB); else the reason."""
-    from torchmetal.bench.tables import speed_ratio
-
     return speed_ratio(row.get("torchmetal", {}), row.get("paper_numpy", {}))
 
 
@@ -305,8 +313,6 @@ def _torch_floor(res: dict, torch_s: float | None) -> str:
 
 
 def markdown(res: dict) -> str:
-    from torchmetal.bench.tables import md_table
-
     head = ["capture (8-bit sRGB)", "torchmetal fit, whole command s", "its CPU s", "in-process load+fit s",
             "start-up + writing s", "held-out PSNR vs truth dB", "numpy paper, whole process s", "its CPU s",
             "its fit s", "numpy held-out PSNR dB", "whole-process speed-up (wall)", "speed-up (CPU s)"]

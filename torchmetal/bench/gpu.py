@@ -18,6 +18,9 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from torchmetal.bench.scoring import psnr_or_nan, rel_err
+from torchmetal.bench.tables import md_table
+
 FIT_TARGET_S = 1.0
 S_TRUE = (0.6, 0.55, 0.5)
 ALPHA_TRUE = (40.0, 60.0, 80.0)
@@ -51,6 +54,7 @@ def device_capture(size: int, shots: int, device, seed: int = 0):
     """
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.capture import Capture
     from torchmetal.phong import phong_render
     from torchmetal.synth import synth_capture
@@ -84,7 +88,7 @@ def run_gpu(device: str = "cuda", size: int = 4096, shots: int = 16, flake_size:
     """Fit, flake-stage, renderer and ONNX timings on ``device``; every tensor lives there."""
     import torch
 
-    from torchmetal.bench.scoring import psnr_or_nan, rel_err
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.fit import fit_phong
     from torchmetal.flakes.model import FlakeModel
     from torchmetal.flakes.stage import flake_stage
@@ -140,6 +144,7 @@ def _onnx_cuda(material) -> dict:
     if "CUDAExecutionProvider" not in ort.get_available_providers():
         return {"not_available": f"onnxruntime {ort.__version__} has no CUDAExecutionProvider "
                                  f"(providers: {', '.join(ort.get_available_providers())}; onnxruntime-gpu provides it)"}
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.onnx_export import export_onnx, time_renderer
 
     with tempfile.TemporaryDirectory() as d:
@@ -153,8 +158,6 @@ def _onnx_cuda(material) -> dict:
 
 
 def markdown(res: dict) -> str:
-    from torchmetal.bench.tables import md_table
-
     if "skipped" in res:
         return f"skipped: {res['skipped']}"
     if "error" in res:

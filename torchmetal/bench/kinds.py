@@ -22,6 +22,8 @@ from collections import defaultdict
 from dataclasses import replace as dataclasses_replace
 from pathlib import Path
 
+from torchmetal.bench.tables import MiB, md_table
+
 TARGET_MS = 20.0  # a 1024² frame of every kind renders within 20 ms on a 2-core CPU
 THREADS = 2  # onnxruntime intra-op threads, as the onnx section
 
@@ -52,6 +54,7 @@ def kinds() -> list[str]:
     """:data:`KINDS`, plus the :data:`OPTIONAL_KINDS` whose Material field exists in this checkout."""
     import dataclasses
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.material import Material
 
     names = {f.name for f in dataclasses.fields(Material)}
@@ -66,6 +69,7 @@ def _optional(kind: str, mat, size: int, g):
     if kind == "flat · gloss maps":
         ramp = torch.linspace(0.0, 1.0, size).reshape(1, 1, size).expand(3, size, size)
         return dataclasses_replace(mat, gloss_s=(0.2 + 0.6 * ramp).contiguous(), gloss_alpha=(20.0 + 200.0 * ramp).contiguous())
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.flakes.observed import ObservedFlakes
     from torchmetal.onnx_export import parity_inputs
 
@@ -83,6 +87,7 @@ def make_material(kind: str, size: int):
     import torch
     import torch.nn.functional as F
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.flakes.model import FlakeModel
     from torchmetal.material import Material
 
@@ -111,6 +116,7 @@ def profile_ops(path: Path, threads: int = THREADS, frames: int = 5, top: int = 
     """The ``top`` operator types by mean ms per frame, from onnxruntime's profiler."""
     import onnxruntime as ort
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.onnx_export import parity_inputs, session_options
 
     with tempfile.TemporaryDirectory() as d:
@@ -132,6 +138,7 @@ def profile_ops(path: Path, threads: int = THREADS, frames: int = 5, top: int = 
 
 def run_kind(kind: str, size: int, repeats: int = 10) -> dict:
     """Export one kind and time it: file size, export seconds, onnxruntime ms per frame (and ops when slow)."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.onnx_export import export_onnx, time_renderer
 
     mat = make_material(kind, size)
@@ -151,8 +158,6 @@ def run_kind(kind: str, size: int, repeats: int = 10) -> dict:
 
 
 def markdown(rows: list[dict]) -> str:
-    from torchmetal.bench.tables import MiB, md_table
-
     table = []
     for r in rows:
         if "error" in r or "not_available" in r:

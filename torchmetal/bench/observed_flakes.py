@@ -16,6 +16,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from torchmetal.bench.zoo import _psnr, render_material
+
 NOISE = 0.005  # σ of the fixed noise the glint residuals are counted in
 MATCH_PX = 2.0
 
@@ -34,6 +36,7 @@ def _blobs(res: np.ndarray, k: float = 5.0) -> np.ndarray:
 def glint_scores(truth: np.ndarray, truth_base: np.ndarray, pred: np.ndarray, pred_base: np.ndarray,
                  seed: int = 0) -> dict:
     """Sparkle count ratio and share of truth glints matched within MATCH_PX, over (S, 3, H, W) shots."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.metrics import sparkle_count
 
     rng = np.random.default_rng(seed)
@@ -55,7 +58,7 @@ def score_observed(case, material) -> dict:
     """{"none", "statistical", "observed"} → {"psnr", "md", and for the flake renders the glint scores}."""
     import torch
 
-    from torchmetal.bench.zoo import _psnr, render_material
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.metrics import md
     from torchmetal.synth.zoo_render import render_clean
 

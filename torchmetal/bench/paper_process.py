@@ -20,6 +20,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from torchmetal.bench.baselines import paper_scheme_numpy
+
 
 def _srgb_decode(x: np.ndarray) -> np.ndarray:
     """The IEC 61966-2-1 curve, here rather than imported: torchmetal.io.images and torchmetal.synth
@@ -67,8 +69,6 @@ def read_capture(directory: str | Path) -> SimpleNamespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from torchmetal.bench.baselines import paper_scheme_numpy
-
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 2:
         print("usage: python -m torchmetal.bench.paper_process CAPTURE_DIR OUT.npz", file=sys.stderr)

@@ -13,6 +13,7 @@ import numpy as np
 
 from torchmetal.bench.available import need
 from torchmetal.bench.scoring import psnr_or_nan, valid_mask
+from torchmetal.bench.zoo import METHODS
 
 
 def task_real(cfg: dict) -> dict:
@@ -69,6 +70,7 @@ def _phong_fit_render(specular: str):
     """fit_render of :func:`~torchmetal.fit.holdout.leave_one_out` (``fit_phong`` with this specular)."""
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.fit.api import fit_phong
 
     def fit_render(train, one):
@@ -89,6 +91,7 @@ def _gallery_png(path: Path, photo, render) -> Path:
     import torch
     import torch.nn.functional as F
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.metrics import srgb_encode
 
     photo, render = photo.detach().float().cpu(), render.detach().float().cpu()
@@ -115,7 +118,7 @@ def _material_fit_render(method: str):
     options of the zoo's ``method``, rendered by the material's renderer."""
     import torch
 
-    from torchmetal.bench.zoo import METHODS
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.pipeline import fit_material
     from torchmetal.renderer import MaterialRenderer
 
@@ -136,6 +139,7 @@ def task_realflakes(cfg: dict) -> dict:
     rendered with and without the flake term, and the detections drawn on a fitted shot (PNG)."""
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.flakes.md import metallic_difference
     from torchmetal.flakes.report import save_detection_overlay
     from torchmetal.io.capture import load_capture

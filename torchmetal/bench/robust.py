@@ -18,6 +18,8 @@ import shutil
 import sys
 from pathlib import Path
 
+from torchmetal.bench.command import timed_process, torchmetal_argv
+
 #: option sets of the matrix: label → extra ``torchmetal fit`` arguments
 OPTION_SETS: dict[str, tuple[str, ...]] = {
     "default": (),
@@ -46,6 +48,7 @@ def _material_summary(mat: Path) -> dict:
         meta = json.loads((mat / "material.json").read_text())
     except (OSError, ValueError) as e:
         return {"complete": False, "why": str(e)[:120]}
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.material import load_material
 
     try:
@@ -58,8 +61,6 @@ def _material_summary(mat: Path) -> dict:
 
 
 def _paper_seconds(capture: Path, workdir: Path, env: dict, timeout: float) -> dict:
-    from torchmetal.bench.command import timed_process
-
     npz = workdir / f"{capture.name}.paper.npz"
     r = timed_process([sys.executable, "-m", "torchmetal.bench.paper_process", str(capture), str(npz)], env, timeout)
     npz.unlink(missing_ok=True)
@@ -68,8 +69,6 @@ def _paper_seconds(capture: Path, workdir: Path, env: dict, timeout: float) -> d
 
 def fit_row(capture: Path, label: str, args: tuple[str, ...], workdir: Path, env: dict, timeout: float) -> dict:
     """One ``torchmetal fit CAPTURE -o MAT ARGS -q`` in a fresh process, and what it left."""
-    from torchmetal.bench.command import timed_process, torchmetal_argv
-
     mat = workdir / f"{capture.name}.{label.replace(' ', '_')}.material"
     shutil.rmtree(mat, ignore_errors=True)
     r = timed_process(torchmetal_argv("fit", str(capture), "-o", str(mat), "-q", *args), env, timeout)
@@ -84,6 +83,7 @@ def fit_row(capture: Path, label: str, args: tuple[str, ...], workdir: Path, env
 
 def captures(workdir: Path, data_dir: Path | None, ci: bool, names: tuple[str, ...] = (*FLAKE_SCENES, SPHERE)) -> list[Path]:
     """The matrix's capture directories: zoo scenes ``names`` (written), the shared real ones."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.synth.zoo import SCENES, ci_scenes, make_case
 
     scenes = {s.name: s for s in (ci_scenes() if ci else SCENES.values())}
@@ -95,6 +95,7 @@ def captures(workdir: Path, data_dir: Path | None, ci: bool, names: tuple[str, .
 
 def share_captures(workdir: Path, data_dir: Path | None, ci: bool) -> list[Path]:
     """Every flake-free zoo scene (the sphere among them) and uw_gray_sphere."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.synth.zoo import SCENES, ci_scenes, make_case
 
     scenes = [s for s in (ci_scenes() if ci else SCENES.values()) if s.flakes is None]

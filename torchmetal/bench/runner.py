@@ -48,7 +48,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchmetal.bench import command, gpu, kinds, robust
 from torchmetal.bench.children import Server, _env, run_jobs
+from torchmetal.bench.command import timed_process
 from torchmetal.bench.plans import Plan
 from torchmetal.bench.sweep_section import SweepSection
 from torchmetal.bench.tables import ERR, MiB, _num, fmt, md_table, problem
@@ -347,14 +349,10 @@ class Bench(SweepSection):
     # -- command, onnx_kinds, gpu: speed of the command, of each material kind, on a GPU --
 
     def _child_json(self, argv: list[str], out: Path) -> dict:
-        from torchmetal.bench.command import timed_process
-
         r = timed_process([sys.executable, "-m", *argv, str(out)], _env(self.plan.threads), self.plan.timeout_s)
         return json.loads(out.read_text()) if "error" not in r else r
 
     def run_command(self) -> None:
-        from torchmetal.bench import command
-
         self.section("Whole command as the user runs it: torchmetal fit vs the numpy paper process (fresh processes)")
         res = command.run_section(self.plan.name, self.plan.full_rows, self.tmp, _env(self.plan.threads),
                                   self.plan.timeout_s, say=self.say)
@@ -362,8 +360,6 @@ class Bench(SweepSection):
         self.add(command.markdown(res))
 
     def run_onnx_kinds(self) -> None:
-        from torchmetal.bench import kinds
-
         size = self.plan.onnx_size
         self.section(f"ONNX renderer per material kind, {size}²")
         names = kinds.kinds() if self.plan.name == "full" else kinds.QUICK_KINDS
@@ -374,8 +370,6 @@ class Bench(SweepSection):
         self.add(kinds.markdown(rows))
 
     def run_gpu(self) -> None:
-        from torchmetal.bench import gpu
-
         self.section("GPU: fit, flake stage, renderer, ONNX CUDA provider")
         reason = gpu.skip_reason()
         size = 4096 if self.plan.name == "full" else 64
@@ -385,8 +379,6 @@ class Bench(SweepSection):
         self.add(gpu.markdown(res))
 
     def run_robust(self) -> None:
-        from torchmetal.bench import robust
-
         p = self.plan
         self.section("Robustness: every option set ends with a material; the flake stage's share on flake-free captures")
         res = robust.run_section(self.tmp, self.data_dir if p.robust_real else None, _env(p.threads), p.timeout_s,
@@ -430,6 +422,7 @@ def _machine(threads: int | None = None) -> str:
 
 def default_data_dir() -> Path | None:
     """The shared real captures (:func:`torchmetal.io.shared_data.shared_data_dir`), None when absent."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.shared_data import shared_data_dir
 
     d = shared_data_dir()

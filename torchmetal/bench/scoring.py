@@ -6,7 +6,14 @@ torch is imported inside the functions that need it, so a task pays for it only 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+from torchmetal.errors import InputError
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
+    from torchmetal.io.capture import Capture
 
 
 def holdout_indices(n_total: int, n_hold: int) -> list[int]:
@@ -23,7 +30,6 @@ def psnr_or_nan(pred, ref, valid=None) -> float:
     A benchmark records a failed method instead of stopping: NaN when ``valid`` selects nothing
     or a compared value of ``pred`` is not finite.
     """
-    from torchmetal.errors import InputError
     from torchmetal.metrics import psnr as _psnr  # torch: imported when a task needs it
 
     try:
@@ -51,7 +57,7 @@ def to_numpy(x):
     return np.asarray(x, np.float64)
 
 
-def valid_mask(capture):
+def valid_mask(capture: Capture):
     """(N, 3, H, W) bool: finite, inside the mask and not saturated."""
     import torch
 
@@ -69,7 +75,7 @@ def valid_mask(capture):
     return v
 
 
-def capture_nbytes_f32(capture) -> int:
+def capture_nbytes_f32(capture: Capture) -> int:
     return int(capture.images.numel()) * 4
 
 
@@ -88,10 +94,11 @@ def _normals(capture):
     return n.float()
 
 
-def render_params(texture, s, alpha, capture):
+def render_params(texture, s, alpha, capture: Capture):
     """torch Phong render of all shots of ``capture`` for plain (texture, s, α) parameters."""
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.phong import phong_render
 
     t = torch.as_tensor(np.asarray(texture), dtype=torch.float32) if not hasattr(texture, "detach") else texture.detach().float()

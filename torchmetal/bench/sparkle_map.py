@@ -28,7 +28,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchmetal.flakes.density_choice import shot_valid, sparkle_counts
+from torchmetal.io.capture import load_capture
 from torchmetal.io.shared_data import shared_data_dir
+from torchmetal.pipeline import fit_material
+from torchmetal.renderer import MaterialRenderer
+from torchmetal.synth.zoo import SCENES, make_case
 
 NOISE = 0.005
 CARD_HOLD = 3
@@ -46,8 +51,6 @@ def _png(path: Path, images: list[np.ndarray]) -> None:
 
 
 def _render(material, light, intensity, camera) -> torch.Tensor:
-    from torchmetal.renderer import MaterialRenderer
-
     with torch.no_grad():
         return MaterialRenderer(material)(light.float().view(1, 4), intensity.float().view(1, 3), camera.float().view(1, 4))[0]
 
@@ -64,11 +67,6 @@ def _candidates(material) -> dict:
 
 def half_scene(out: Path, *, size: int = 256) -> dict:
     """Fit zoo flakes_half and score its held-out shots inside/outside the glitter (left/right half)."""
-    from torchmetal.flakes.density_choice import sparkle_counts
-    from torchmetal.io.capture import load_capture
-    from torchmetal.pipeline import fit_material
-    from torchmetal.synth.zoo import SCENES, make_case
-
     with tempfile.TemporaryDirectory() as tmp:
         case = make_case(SCENES["flakes_half"].with_(size=size), Path(tmp) / "half")
         res = fit_material(load_capture(case.capture_dir), seed=0)
@@ -104,10 +102,6 @@ def half_scene(out: Path, *, size: int = 256) -> dict:
 
 def card(out: Path, path: Path = CARD) -> dict:
     """Fit cards_blue without shot CARD_HOLD and score that shot inside/outside the map's glitter."""
-    from torchmetal.flakes.density_choice import shot_valid, sparkle_counts
-    from torchmetal.io.capture import load_capture
-    from torchmetal.pipeline import fit_material
-
     cap = load_capture(path)
     fit_cap = cap.subset([k for k in range(cap.num_shots) if k != CARD_HOLD])
     one = cap.subset([CARD_HOLD])

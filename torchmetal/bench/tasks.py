@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from torchmetal.bench import baselines
 from torchmetal.bench.available import NotAvailable, need
 from torchmetal.bench.memory import PeakMemory
 from torchmetal.bench.real_tasks import task_real, task_realflakes
@@ -92,8 +93,6 @@ def task_method(cfg: dict) -> dict:
     adam_steps, adam_budget.
     """
     import torch
-
-    from torchmetal.bench import baselines
 
     cap, truth, fit_idx, hold_idx = _load_prepared(cfg["path"])
     fit_cap = cap.subset(fit_idx)
@@ -258,6 +257,7 @@ def task_onnx(cfg: dict) -> dict:
     import torch
 
     export_onnx = need("torchmetal.onnx_export", "export_onnx")
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.flakes.model import FlakeModel
     from torchmetal.material import Material
 

@@ -14,6 +14,9 @@ import math
 import sys
 import traceback
 
+from torchmetal.bench.available import NotAvailable
+from torchmetal.bench.tasks import TASKS
+
 
 def _clean(x):
     """JSON-safe copy: non-finite floats become strings, tuples lists, numpy scalars floats."""
@@ -42,9 +45,6 @@ def _set_threads() -> None:
 
 def run_task(task: str, cfg: dict) -> dict:
     """Run one task; failures become ``not_available`` / ``error`` entries instead of exceptions."""
-    from torchmetal.bench.available import NotAvailable
-    from torchmetal.bench.tasks import TASKS
-
     _set_threads()
     try:
         return TASKS[task](cfg)

@@ -16,10 +16,14 @@ from __future__ import annotations
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from torchmetal.bench.scoring import rel_err
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
+    from torchmetal.pipeline import PipelineResult
 
 METHODS = {
     "default": {},
@@ -28,6 +32,7 @@ METHODS = {
 
 
 def _psnr(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> float:
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.metrics import psnr
 
     return psnr(pred, ref, mask=None if mask is None else mask[None, None])
@@ -38,6 +43,7 @@ def render_material(material, lights: np.ndarray, intensities: np.ndarray, camer
     """(H, 3, n, n) float32 renders of a material for held-out shots (the torch renderer)."""
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.renderer import MaterialRenderer
 
     r = MaterialRenderer(material, flakes=flakes)
@@ -46,7 +52,7 @@ def render_material(material, lights: np.ndarray, intensities: np.ndarray, camer
         return r(f32(lights), f32(intensities), f32(cameras)).numpy()
 
 
-def score_fit(case, result, seconds: float) -> dict:
+def score_fit(case, result: PipelineResult, seconds: float) -> dict:
     """One method's numbers on one case."""
     m = result.material
     pred = render_material(m, case.held_lights, case.held_intensities, case.held_cameras)
@@ -72,6 +78,7 @@ def score_fit(case, result, seconds: float) -> dict:
 
 def run_scene(scene, methods: dict | None = None, *, workdir: str | Path | None = None) -> dict:
     """Write, fit and score one scene; returns {"scene", "oracle", method name: row}."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.capture import load_capture
     from torchmetal.pipeline import fit_material
     from torchmetal.synth.zoo import make_case, oracle_render

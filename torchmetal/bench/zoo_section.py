@@ -7,11 +7,14 @@ from __future__ import annotations
 
 import math
 
+from torchmetal.bench.zoo import METHODS
+
 VERDICT_DB = 0.2  # "default ≥ paper − 0.2 dB" (coat PSNR)
 
 
 def zoo_scene_names(names: tuple[str, ...] | None) -> list[str]:
     """The scenes a plan runs: ``names`` (in that order) or every scene of the zoo."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.synth.zoo import SCENES
 
     return list(SCENES) if names is None else [n for n in names if n in SCENES]
@@ -19,8 +22,6 @@ def zoo_scene_names(names: tuple[str, ...] | None) -> list[str]:
 
 def zoo_jobs(ci: bool, names: list[str]) -> list[tuple[str, dict]]:
     """One job per scene, each fitting :data:`torchmetal.bench.zoo.METHODS`."""
-    from torchmetal.bench.zoo import METHODS
-
     return [("zoo", {"scene": n, "ci": bool(ci), "methods": METHODS}) for n in names]
 
 
@@ -119,6 +120,7 @@ def zoo_markdown(names: list[str], results: list[dict], sizes: dict[str, str]) -
 
 
 def scene_sizes(ci: bool, names: list[str]) -> dict[str, str]:
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.synth.zoo import SCENES, ci_scenes
 
     scenes = {s.name: s for s in (ci_scenes() if ci else SCENES.values())}

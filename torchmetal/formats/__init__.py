@@ -12,6 +12,8 @@ import importlib
 import os
 from pathlib import Path
 
+from torchmetal.errors import ExportError
+
 FORMATS: dict[str, str] = {
     "onnx": "torchmetal.formats.onnx:write",
     "gltf": "torchmetal.formats.gltf:write_gltf",
@@ -31,8 +33,6 @@ def default_output(material_dir: str | os.PathLike, fmt: str) -> Path:
 
 def writer(fmt: str):
     """The write function of ``fmt``; raises :class:`ExportError` naming the known formats."""
-    from torchmetal.errors import ExportError
-
     if fmt not in FORMATS:
         raise ExportError(f"format: expected one of {', '.join(FORMATS)}, found {fmt!r}")
     module, func = FORMATS[fmt].split(":")

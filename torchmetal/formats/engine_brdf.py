@@ -20,6 +20,7 @@ from torch import Tensor
 
 from torchmetal.formats.lobe_fit import ggx_terms
 from torchmetal.geometry import is_flat, shading_geometry
+from torchmetal.renderer import MaterialRenderer
 
 COAT_F0 = 0.04  # glTF/OpenPBR clear coat at IOR 1.5
 
@@ -108,8 +109,6 @@ def engine_render(em: EngineMaterial, light: Tensor, intensity: Tensor, camera: 
 
 def reference_render(material, light: Tensor, intensity: Tensor, camera: Tensor) -> Tensor:
     """torchmetal's render (B, 3, H, W) of ``material`` (the reference of :func:`render_error`)."""
-    from torchmetal.renderer import MaterialRenderer
-
     with torch.inference_mode():
         return MaterialRenderer(material.to("cpu")).eval()(light, intensity, camera)
 

@@ -39,6 +39,7 @@ from functools import lru_cache
 import numpy as np
 
 from torchmetal.errors import ExportError
+from torchmetal.formats.brent import minimize_bounded
 
 _U32 = np.uint32
 _DIAM = 1.5 / math.sqrt(3.0)  # flake_diameter of mx_flake.glsl (cube half-side, cell units)
@@ -205,8 +206,6 @@ def slope_density_ggx(s: np.ndarray, a: float) -> np.ndarray:
 def fit_flake_roughness(tilt_sigma: float) -> tuple[float, float]:
     """GGX a for torchmetal's Gaussian slopes (see the module docstring); returns (roughness, relative
     RMS error of the slope density over the slopes that hold 99 % of the flakes)."""
-    from torchmetal.formats.brent import minimize_bounded
-
     sigma = max(float(tilt_sigma), 1e-4)
     s = np.linspace(0.0, sigma * math.sqrt(-2 * math.log(0.01)), 200)
     w = s  # polar measure: slope density × s ds
@@ -240,6 +239,7 @@ def drawn_coverage(model, side: int = 192) -> tuple[float, float]:
     uniform density: the map, if any, scales coverage per block elsewhere)."""
     from dataclasses import replace
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.flakes.field import flake_field
 
     f = flake_field(replace(model, density_map=None, color_map=None, area_map=None), side, side)
@@ -276,6 +276,7 @@ def glint_statistics(model, inputs: Flake2dInputs, width_px: int, tilts_deg=(0.0
     """Both models on a ``height_px``² texel patch: covered fraction, flakes per texel, mean area
     (texel²), and per half-vector tilt the fraction of flakes whose normal lies within ``cone_deg``
     (default 2·glint σ) of it. torchmetal's side is its own flake field."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.flakes.field import flake_field
 
     f = flake_field(model, height_px, height_px)

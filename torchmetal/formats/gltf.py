@@ -31,8 +31,11 @@ import torch
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.engine import Coat, EngineMaterial, engine_material
+from torchmetal.formats.lobe_fit import resolve_views
 from torchmetal.formats.textures import decode_png, hwc, is_constant, png_bytes, specular_encoding, to_linear, to_srgb
 from torchmetal.geometry import is_flat
+from torchmetal.io.capture import Capture
+from torchmetal.io.images import atomic_write_bytes
 
 GENERATOR = "torchmetal"
 
@@ -164,7 +167,8 @@ def _json_safe(x):
     return x
 
 
-def write(material, path: str | os.PathLike, *, binary: bool | None = None, views=None, capture=None,
+def write(material, path: str | os.PathLike, *, binary: bool | None = None, views=None,
+          capture: Capture | str | os.PathLike | None = None,
           flakes: str = "auto", texels_per_pixel: int = 1) -> Path:
     """Write ``material`` as glTF 2.0 (``.gltf``, data-URI buffer) or GLB (``.glb``), atomically.
 
@@ -173,16 +177,12 @@ def write(material, path: str | os.PathLike, *, binary: bool | None = None, view
         views, flakes, texels_per_pixel: see :func:`~torchmetal.formats.engine.engine_material`.
         capture: a capture (or its directory) whose views the lobe is fitted over (when no ``views``).
     """
-    from torchmetal.formats.lobe_fit import resolve_views
-
     em = engine_material(material, views=resolve_views(views, capture), flakes=flakes, texels_per_pixel=texels_per_pixel)
     return write_engine(em, path, binary=binary)
 
 
 def write_engine(em: EngineMaterial, path: str | os.PathLike, *, binary: bool | None = None) -> Path:
     """Write engine maps (:func:`~torchmetal.formats.engine.engine_material`) as glTF/GLB, atomically."""
-    from torchmetal.io.images import atomic_write_bytes
-
     path = Path(path)
     binary = path.suffix.lower() == ".glb" if binary is None else binary
     doc, blob = gltf_document(em, _json_safe(em.extras))

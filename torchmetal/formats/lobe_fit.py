@@ -35,7 +35,11 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import ExportError
+from torchmetal.flakes.field import FlakeField, sparkle_shading
+from torchmetal.formats.brent import minimize_bounded
 from torchmetal.geometry import ShadingGeometry
+from torchmetal.io.capture import Capture, load_capture
+from torchmetal.lobes import LOBES, lobe_value
 
 Target = Callable[[Tensor, Tensor], Tensor]
 
@@ -147,8 +151,6 @@ def sample_geometry(l: Tensor, v: Tensor) -> ShadingGeometry:
 def lobe_target(kind: str, s: Tensor, alpha: Tensor) -> Target:
     """s_c·lobe_c(l, v) for n·l > 0, the material's specular term of docs/design.md §2.2 (``kind`` "phong")
     or of its lobe extensions ("blinn", "ggx"), evaluated by :func:`torchmetal.lobes.lobe_value`."""
-    from torchmetal.lobes import LOBES, lobe_value
-
     if kind not in LOBES:
         raise ExportError(f"lobe: expected one of {', '.join(LOBES)}, found {kind!r}")
     s = torch.as_tensor(s, dtype=torch.float64).reshape(-1)
@@ -170,8 +172,6 @@ def phong_target(s: Tensor, alpha: Tensor) -> Target:
 def glint_target(color, sigma: float) -> Target:
     """One glint of :func:`torchmetal.flakes.field.sparkle_shading` in its flake's frame (flake normal
     +z, full footprint, glint colour ``color``): c_c·exp(−|m − h|²/(2σ²)) for n·l > 0."""
-    from torchmetal.flakes.field import FlakeField, sparkle_shading
-
     color = torch.as_tensor(color, dtype=torch.float64).reshape(3, 1, 1)
 
     def f(l: Tensor, v: Tensor) -> Tensor:
@@ -212,14 +212,12 @@ def capture_views(cameras: Tensor, min_z: float = 0.05) -> Tensor:
     return torch.unique(torch.round(d * 1e6) / 1e6, dim=0)
 
 
-def resolve_views(views=None, capture=None) -> Tensor | None:
+def resolve_views(views: Tensor | None = None, capture: Capture | str | os.PathLike | None = None) -> Tensor | None:
     """``views`` as given, else the views of ``capture`` (a Capture or a capture directory), else None
     (the default views)."""
     if views is not None or capture is None:
         return views
     if isinstance(capture, (str, os.PathLike)):
-        from torchmetal.io.capture import load_capture
-
         capture = load_capture(capture)
     return capture_views(capture.cameras)
 
@@ -306,8 +304,6 @@ def fit_ggx(target: Target, *, cone: float, views: Tensor | None = None, per_vie
     Returns:
         :class:`LobeFit`.
     """
-    from torchmetal.formats.brent import minimize_bounded
-
     l_t, v_t = lobe_directions(cone, views, per_view)
     y_t = target(l_t, v_t).to(torch.float64)
     if y_t.dim() != 2 or y_t.shape[0] != l_t.shape[0]:

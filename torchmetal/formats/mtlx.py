@@ -37,9 +37,24 @@ import numpy as np
 import torch
 
 from torchmetal.errors import ExportError
+from torchmetal.flakes.density_map import block_pixels
 from torchmetal.formats.engine import EngineMaterial, engine_material
-from torchmetal.formats.textures import f0_to_ior, gray, hwc, is_constant, specular_encoding, to_srgb, write_texture_dir
+from torchmetal.formats.flake2d import density_to_probability, flake2d_inputs
+from torchmetal.formats.lobe_fit import fit_glint, resolve_views
+from torchmetal.formats.textures import (
+    decode_png,
+    f0_to_ior,
+    gray,
+    hwc,
+    is_constant,
+    specular_encoding,
+    to_linear,
+    to_srgb,
+    write_texture_dir,
+)
 from torchmetal.geometry import is_flat
+from torchmetal.io.capture import Capture
+from torchmetal.io.images import atomic_write_bytes
 
 TARGETS = ("glsl", "osl", "mdl")
 
@@ -90,9 +105,6 @@ def mtlx_plan(material, views=None) -> tuple[EngineMaterial, dict, dict[str, np.
             ins["specular_color"] = ("texture", "specular_color", enc["color_factor"])
         ins["coat_weight"] = 0.0
     else:
-        from torchmetal.formats.flake2d import flake2d_inputs
-        from torchmetal.formats.lobe_fit import fit_glint
-
         model = material.flakes
         coat_f0 = em.f0.mean(0, keepdim=True)
         top = float(coat_f0.max())
@@ -140,9 +152,6 @@ def coverage_map(model, fi, height: int, width: int) -> tuple[np.ndarray, float,
     planes in [0, 1] (8-bit values), their scale (the largest coverage), and the report: the model's
     relative density per block, the one flake2d gets from the 8-bit coverage, and their pixel-weighted
     means over the sample (``mean_relative_density`` [model, flake2d])."""
-    from torchmetal.flakes.density_map import block_pixels
-    from torchmetal.formats.flake2d import density_to_probability
-
     lam = model.density_map.double().numpy()
     p_max = float(density_to_probability(1.0))
     xs = np.linspace(0.0, 1.0, 20001)
@@ -295,13 +304,10 @@ def generate(doc, target: str, lib=None) -> str:
     return shader.getSourceCode(stage)
 
 
-def write(material, path: str | os.PathLike, *, views=None, capture=None) -> Path:
+def write(material, path: str | os.PathLike, *, views=None, capture: Capture | str | os.PathLike | None = None) -> Path:
     """Write ``material`` as ``path`` (.mtlx) plus ``<stem>.textures/``; validated before it is
     written (an invalid document raises :class:`ExportError` and writes nothing). ``views`` /
     ``capture``: the views of the lobe fit (see :func:`torchmetal.formats.lobe_fit.resolve_views`)."""
-    from torchmetal.formats.lobe_fit import resolve_views
-    from torchmetal.io.images import atomic_write_bytes
-
     mx = _mx()
     path = Path(path)
     em, plan, textures = mtlx_plan(material, resolve_views(views, capture))
@@ -373,8 +379,6 @@ def to_engine(back: dict, size: tuple[float, float]) -> EngineMaterial:
     """The coat of a read-back document (:func:`read`) as glTF-equivalent engine maps: F0 =
     F0(ior)·colour·weight, F90 = weight, the base colour and normals from the textures; flakes
     (procedural ``flake2d``) and OpenPBR's exact dielectric Fresnel are not represented."""
-    from torchmetal.formats.textures import decode_png, to_linear
-
     ins = back["inputs"]
     coat = back["flake2d"] is not None
     pre = "coat_" if coat else "specular_"

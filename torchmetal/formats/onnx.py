@@ -8,6 +8,7 @@ from pathlib import Path
 
 def write(material, path: str | os.PathLike, *, opset: int = 20) -> Path:
     """Export ``material``'s renderer to one self-contained ONNX file (docs/design.md §2.4)."""
+    # on use: loads torch (this module imports nothing heavy)
     from torchmetal.onnx_export import export_onnx
 
     return export_onnx(material, path, opset=opset)

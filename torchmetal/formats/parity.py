@@ -34,11 +34,11 @@ shader:
 
 What three.js does differently from the glTF BRDF as torchmetal evaluates it (measured by
 ``psnr_client``): its Schlick Fresnel is the spherical-Gaussian approximation
-2^((−5.55473·v·h − 6.98316)·v·h) of (1 − v·h)^5 (+9 % at v·h = 0.5: +4 % specular on the 60°
-grazing shot of a fit with F90 ≫ F0); it adds multiple-scattering energy compensation
-(1 + F0·(1/E_ss − 1), small for dielectric F0); it mixes the diffuse with (1 − F) per channel
-(torchmetal: 1 − max_c F); its clear coat's Fresnel uses n·v, not v·h; roughness is clamped to
-≥ 0.045; textures are 8-bit PNGs (sRGB base colour, linear roughness/normal/specular maps).
+2^((−5.55473·v·h − 6.98316)·v·h) of (1 − v·h)^5 (+9 % at v·h = 0.5; its effect on a grazing shot:
+docs/design.md §6); it adds multiple-scattering energy compensation (1 + F0·(1/E_ss − 1), small for
+dielectric F0); it mixes the diffuse with (1 − F) per channel (torchmetal: 1 − max_c F); its clear
+coat's Fresnel uses n·v, not v·h; roughness is clamped to ≥ 0.045; textures are 8-bit PNGs (sRGB
+base colour, linear roughness/normal/specular maps).
 
 :func:`parity` reports PSNR (torchmetal.metrics.psnr: linear, clipped to [0, 1], peak 1) of
 three.js against torchmetal's renderer, split into what the glTF model loses (torchmetal's own
@@ -58,6 +58,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+from torchmetal.normals import estimate_normals
+from torchmetal.flakes.model import FlakeModel
+from torchmetal.formats.engine import engine_material, engine_render, reference_render
+from torchmetal.formats.gltf import write_engine
+from torchmetal.io.images import atomic_write_bytes, encode_image, linear_to_srgb
+from torchmetal.material import Material
+from torchmetal.metrics import psnr
+from torchmetal.synth import synth_capture
+from torchmetal.viewer.browser import CHROMIUM, launch_chromium, serve_folder
+from torchmetal.viewer.three import IMPORT_MAP, copy_three
 
 PAGE_HTML = """<!doctype html>
 <html><head><meta charset="utf-8"><title>torchmetal parity</title><link rel="icon" href="data:,">
@@ -188,9 +199,6 @@ class ThreeClient:
     def __enter__(self) -> "ThreeClient":
         from playwright.sync_api import sync_playwright
 
-        from torchmetal.viewer.browser import CHROMIUM, launch_chromium, serve_folder
-        from torchmetal.viewer.three import IMPORT_MAP, copy_three
-
         if not Path(CHROMIUM).exists():
             raise RuntimeError(f"three.js parity: expected Chromium at {CHROMIUM}, found none (apt-get install chromium)")
         self._root = Path(tempfile.mkdtemp(prefix="torchmetal-parity-"))
@@ -293,11 +301,9 @@ class ParityResult:
 
     @property
     def psnr_all(self) -> float:
-        from torchmetal.metrics import psnr
         return psnr(self.three, self.reference)
 
     def row(self) -> dict:
-        from torchmetal.metrics import psnr
         return {"psnr": round(self.psnr_all, 2), "psnr_model": round(psnr(self.model, self.reference), 2),
                 "psnr_client": round(psnr(self.three, self.model), 2),
                 "psnr_placement": None if self.psnr_placement is None else round(self.psnr_placement, 2),
@@ -311,10 +317,6 @@ def parity(material, client: ThreeClient, *, shots=None, views=None, flakes: str
         shots: (light (B, 4), intensity (B, 3), camera (B, 4), names); default :func:`default_shots`.
         views, flakes: passed to :func:`~torchmetal.formats.engine.engine_material`.
     """
-    from torchmetal.formats.engine import engine_material, engine_render, reference_render
-    from torchmetal.formats.gltf import write_engine
-    from torchmetal.metrics import psnr
-
     light, inten, cam, names = shots if shots is not None else default_shots(material.size)
     em = engine_material(material, views=views, flakes=flakes)
     with tempfile.TemporaryDirectory(prefix="torchmetal-parity-") as tmp:
@@ -351,8 +353,6 @@ def parity(material, client: ThreeClient, *, shots=None, views=None, flakes: str
 
 def side_by_side(reference: np.ndarray, three: np.ndarray, path: str | Path, *, scale: int = 4, gain: float = 4.0) -> Path:
     """One PNG per call: rows = shots, columns = torchmetal | three.js | |difference|×gain (sRGB, nearest ×scale)."""
-    from torchmetal.io.images import atomic_write_bytes, encode_image, linear_to_srgb
-
     ref = np.asarray(reference, np.float32).reshape(-1, *reference.shape[-3:])
     got = np.asarray(three, np.float32).reshape(-1, *three.shape[-3:])
     b, _, h, w = ref.shape
@@ -390,10 +390,6 @@ def parity_kinds(height: int = 64, width: int = 80, kinds=None) -> dict:
     The normal map of ``normals*`` is estimated from a synthetic bumpy capture of the same texture
     (:func:`torchmetal.normals.estimate_normals`, 12 shots), as ``fit --normals estimate`` does.
     """
-    from torchmetal.flakes.model import FlakeModel
-    from torchmetal.material import Material
-    from torchmetal.synth import synth_capture
-
     kinds = list(KIND_NOTES) if kinds is None else list(kinds)
     size = (0.12, 0.1)
     truth = synth_capture(size=(height, width), shots=12, seed=2, texture="procedural", bumpy=True)
@@ -420,8 +416,6 @@ def parity_kinds(height: int = 64, width: int = 80, kinds=None) -> dict:
             gs = (0.1 + 0.2 * yy).expand(3, height, width).clone()
             out[kind] = Material(tex, gs.mean((1, 2)), ga.mean((1, 2)), size, gloss_s=gs, gloss_alpha=ga)
         elif kind in ("normals", "normals-ggx"):
-            from torchmetal.normals import estimate_normals
-
             if "_normals" not in out:
                 out["_normals"] = estimate_normals(truth.capture).normals.float()
             n = out["_normals"]

@@ -16,6 +16,8 @@ import numpy as np
 import torch
 
 from torchmetal.formats.engine import EngineMaterial
+from torchmetal.io.capture_save import replace_dir
+from torchmetal.io.images import atomic_write_bytes, linear_to_srgb, srgb_to_linear
 
 MIN_F0_IOR = 0.01  # ior ≈ 1.22
 MAX_F0_IOR = 0.9  # ior ≈ 36.9
@@ -42,14 +44,10 @@ def hwc(x: torch.Tensor) -> np.ndarray:
 
 
 def to_srgb(x: np.ndarray) -> np.ndarray:
-    from torchmetal.io.images import linear_to_srgb
-
     return linear_to_srgb(torch.from_numpy(np.clip(x, 0.0, 1.0))).numpy()
 
 
 def to_linear(x: np.ndarray) -> np.ndarray:
-    from torchmetal.io.images import srgb_to_linear
-
     return srgb_to_linear(torch.from_numpy(x)).numpy()
 
 
@@ -82,8 +80,6 @@ def f0_to_ior(f0: float) -> float:
 
 def write_png(path: str | os.PathLike, planes: np.ndarray) -> Path:
     """Write an (H, W, 3|4) float array in [0, 1] as an 8-bit PNG, atomically."""
-    from torchmetal.io.images import atomic_write_bytes
-
     atomic_write_bytes(path, png_bytes(planes))
     return Path(path)
 
@@ -97,8 +93,6 @@ def write_texture_dir(tex_dir: Path, textures: dict[str, np.ndarray]) -> None:
     """Write ``{name: planes}`` as ``tex_dir/name.png``, the folder replaced as a whole (atomic)."""
     import shutil
     import tempfile
-
-    from torchmetal.io.capture_save import replace_dir
 
     tex_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{tex_dir.name}.", dir=tex_dir.parent))

@@ -23,9 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from torchmetal.errors import ExportError
+from torchmetal.formats import mtlx
 from torchmetal.formats.engine import EngineMaterial, engine_material
+from torchmetal.formats.lobe_fit import resolve_views
 from torchmetal.formats.textures import gray, hwc, is_constant, to_srgb, write_texture_dir
 from torchmetal.geometry import is_flat
+from torchmetal.io.capture import Capture
+from torchmetal.io.images import atomic_write_bytes
 
 ROOT = "/torchmetal"
 MATERIAL = f"{ROOT}/Looks/M_torchmetal"
@@ -203,8 +207,6 @@ def _mtlx_network(stage, material, doc, lib):
 
 def build_stage(material, tex_dir_name: str, *, views=None, flakes: str = "auto", texels_per_pixel: int = 1):
     """The stage (in memory) and the textures it reads (file name → planes)."""
-    from torchmetal.formats import mtlx
-
     Gf, Sdf, Usd, UsdGeom, UsdShade, Vt = _pxr()
     # the preview surface has one normal for both layers: no flake_clearcoat layout
     em = engine_material(material, views=views, flakes=flakes, texels_per_pixel=texels_per_pixel, coat_normals=False)
@@ -233,13 +235,11 @@ def build_stage(material, tex_dir_name: str, *, views=None, flakes: str = "auto"
     return stage, textures
 
 
-def write(material, path: str | os.PathLike, *, views=None, capture=None, flakes: str = "auto",
+def write(material, path: str | os.PathLike, *, views=None, capture: Capture | str | os.PathLike | None = None,
+          flakes: str = "auto",
           texels_per_pixel: int = 1) -> Path:
     """Write ``material`` as ``path`` (.usda) plus ``<stem>.textures/`` (see the module docstring);
     ``views`` / ``capture``: the views of the lobe fit (:func:`torchmetal.formats.lobe_fit.resolve_views`)."""
-    from torchmetal.formats.lobe_fit import resolve_views
-    from torchmetal.io.images import atomic_write_bytes
-
     path = Path(path)
     tex_dir = path.with_name(f"{path.stem}.textures")
     stage, textures = build_stage(material, tex_dir.name, views=resolve_views(views, capture), flakes=flakes,

@@ -27,6 +27,10 @@ import os
 import shutil
 from pathlib import Path
 
+from torchmetal.errors import ExportError
+from torchmetal.viewer import site
+from torchmetal.viewer.three import copy_three
+
 ORT_ENV = "TORCHMETAL_ORT_WEB"
 ORT_VERSION = "1.30."
 WASM_FILES = ("ort.wasm.min.mjs", "ort-wasm-simd-threaded.mjs", "ort-wasm-simd-threaded.wasm")
@@ -60,8 +64,6 @@ def find_ort_web(ort_dir: str | os.PathLike | None = None, *, webgpu: bool = Fal
     ``ort_dir`` (or ``$TORCHMETAL_ORT_WEB``) may name the package folder or its ``dist``.
     Raises :class:`ExportError` (one line, saying to run ``npm ci``) when none is found.
     """
-    from torchmetal.errors import ExportError
-
     need = WASM_FILES + (WEBGPU_FILES if webgpu else ())
     tried = []
     for c in _candidates(ort_dir):
@@ -85,8 +87,6 @@ def find_ort_web(ort_dir: str | os.PathLike | None = None, *, webgpu: bool = Fal
 
 
 def _check_target(path: Path) -> None:
-    from torchmetal.errors import ExportError
-
     if path.exists():
         if not path.is_dir():
             raise ExportError(f"{path}: expected a folder (or nothing) to write the web viewer to, found a file")
@@ -119,11 +119,10 @@ def write(material, path: str | os.PathLike, *, capture: str | os.PathLike | Non
     """
     import tempfile
 
-    from torchmetal.errors import ExportError
+    # on use: loads torch (this module imports nothing heavy)
     from torchmetal.io.capture import Capture, load_capture
     from torchmetal.io.capture_save import replace_dir
     from torchmetal.io.images import atomic_write_bytes
-    from torchmetal.viewer import site
 
     if not isinstance(threads, int) or threads < 1:
         raise ExportError(f"threads: expected an integer >= 1, found {threads!r}")
@@ -138,8 +137,6 @@ def write(material, path: str | os.PathLike, *, capture: str | os.PathLike | Non
         graphs = site.export_graphs(material, tmp, opset=opset)
         preview, preview_note = site.write_preview(material, tmp)
         if preview is not None:
-            from torchmetal.viewer.three import copy_three
-
             copy_three(tmp)
         for name in site.PAGE_FILES:
             shutil.copyfile(site.static_dir() / name, tmp / name)

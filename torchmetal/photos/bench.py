@@ -23,6 +23,7 @@ from pathlib import Path
 def generate(out: Path, size: tuple[int, int], shots: int, seed: int = 0):
     import torch
 
+    # on use: loads torch (this module imports nothing heavy)
     from torchmetal.photos import simulate as S
     from torchmetal.photos.board import make_board
 
@@ -41,6 +42,7 @@ def _rectified_psnr(cap, photos) -> float:
     import numpy as np
     import torch
 
+    # on use: loads torch (this module imports nothing heavy)
     from torchmetal.metrics import psnr
     from torchmetal.photos.simulate import direct_render
 
@@ -59,6 +61,7 @@ def run_cli(out: Path, photos, resolution: int, workers: int | None) -> tuple[di
     import subprocess
     import sys
 
+    # on use: loads torch (this module imports nothing heavy)
     from torchmetal.io.capture import load_capture
     from torchmetal.photos.board import write_board
 
@@ -86,6 +89,7 @@ def _in_process(out: Path, photos, resolution: int, workers: int | None) -> tupl
     """capture_from_photos + save_photo_capture in this process; (timings, the PhotoCapture)."""
     import resource
 
+    # on use: loads numpy (this module imports nothing heavy)
     from torchmetal.photos.capture import capture_from_photos, save_photo_capture
 
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
@@ -120,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
 
     load = [round(v, 2) for v in os.getloadavg()]
     if args.cli:
+        # on use: loads numpy (this module imports nothing heavy)
         from torchmetal.photos.calibrate import Intrinsics
 
         timing, cap = run_cli(out, photos, args.resolution, args.workers)

@@ -348,6 +348,7 @@ def sheet_image(board: Board) -> np.ndarray:
     """board.png's pixels: (H, W) uint8, sRGB-encoded reflectance, labels in the margin."""
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.images import linear_to_srgb
 
     refl = render_sheet(board)
@@ -360,6 +361,7 @@ def write_board(board: Board, out_dir: str | os.PathLike) -> tuple[Path, Path]:
     """Write ``board.png`` (with its dpi) and ``board.json`` into ``out_dir``, atomically each."""
     from PIL import Image
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.images import atomic_write_bytes
 
     out = Path(out_dir)
@@ -391,12 +393,14 @@ def sheet_texture(board: Board, board_dir: str | os.PathLike | None = None) -> n
     if board_dir is not None and (Path(board_dir) / board.image).is_file():
         import cv2
 
+        # on use: loads torch (this module imports numpy only)
         from torchmetal.io.images import code_table
 
         raw = cv2.imdecode(np.fromfile(Path(board_dir) / board.image, np.uint8), cv2.IMREAD_GRAYSCALE)
         if raw is None:
             raise InputError(f"{Path(board_dir) / board.image}: expected a readable PNG, found undecodable data")
         return code_table(8, True)[raw].astype(np.float64)
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.images import code_table
 
     return code_table(8, True)[sheet_image(board)].astype(np.float64)

@@ -69,6 +69,7 @@ class Intrinsics:
         return cls(size, k, dist, meta.get("rms_px"), f"read from {label}", meta.get("camera"))
 
     def save(self, path: str | os.PathLike) -> Path:
+        # on use: loads torch (this module imports numpy only)
         from torchmetal.io.images import atomic_write_bytes
 
         atomic_write_bytes(path, (json.dumps(self.to_json(), indent=1) + "\n").encode())
@@ -112,7 +113,7 @@ def calibrate(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple[int,
 
 def project(points: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, intr: Intrinsics) -> np.ndarray:
     """Board points (n, 3) mm → (n, 2) float64 pixels (with distortion): OpenCV's model
-    (``cv2.projectPoints``, which is ~50x slower on large grids), written out column by column."""
+    (``cv2.projectPoints``, slower on large grids: docs/design.md §6), written out column by column."""
     r = _rotation(rvec)
     t = np.asarray(tvec, np.float64).ravel()
     p = np.asarray(points, np.float64).reshape(-1, 3)

@@ -30,6 +30,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,7 +39,11 @@ from torchmetal.photos.board import Board
 from torchmetal.photos.calibrate import Intrinsics, calibrate, camera_position, flash_position, project, solve_pose
 from torchmetal.photos.detect import Observation, inspect_photo
 from torchmetal.photos.rectify import Rectified, photo_scale, rectify, window_points
+from torchmetal.photos.report import contact_sheet as sheet
 from torchmetal.photos.white import WhiteReference, white_reference
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
+    from torchmetal.io.capture import Capture
 
 __all__ = ["PhotoCapture", "capture_from_photos", "save_photo_capture", "MIN_PHOTOS", "MIN_ELEVATION_DEG"]
 
@@ -55,7 +60,7 @@ REPORT_FORMAT = "torchmetal-photo-report"
 class PhotoCapture:
     """The capture built from photos, with everything the report and contact sheet show."""
 
-    capture: object  # torchmetal.io.capture.Capture
+    capture: Capture
     board: Board
     report: dict
     intrinsics: Intrinsics
@@ -214,6 +219,147 @@ def _exposures(obs: list[Observation], used: list[int], whites: dict[int, WhiteR
     return rel, gains, unit, sources
 
 
+def _check_request(paths: list[Path], resolution: int, flash_offset_mm) -> np.ndarray:
+    """The flash offset (3,) in mm, after checking there are photos and the resolution is an integer in [8, 8192]."""
+    if not paths:
+        raise CaptureError("expected at least one photo, found none")
+    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 8 <= resolution <= 8192:
+        raise CaptureError(f"resolution: expected an integer in [8, 8192], found {resolution!r}")
+    offset = np.asarray(flash_offset_mm, np.float64)
+    if offset.shape != (3,) or not np.isfinite(offset).all():
+        raise CaptureError(f"flash offset: expected 3 finite numbers (mm), found {list(np.ravel(offset))}")
+    return offset
+
+
+def _locate(o: Observation, e: dict, board: Board, intr: Intrinsics, offset: np.ndarray, given=None):
+    """The photo's pose (rvec, tvec) board → camera (``given`` instead of the solved one when not None),
+    the flash position and the camera's elevation (degrees); its geometry is noted in the report entry
+    ``e``. None when no pose is found (``o.reason`` says why)."""
+    obj = board.corner_points()[o.ids]
+    try:
+        rvec, tvec, rms = solve_pose(obj, o.corners, intr)
+    except CaptureError as err:
+        o.reason = str(err)
+        return None
+    if given is not None:
+        rvec, tvec = (np.asarray(v, np.float64).ravel() for v in given)
+        rms = float(np.sqrt(((project(obj, rvec, tvec, intr) - o.corners) ** 2).sum(1).mean()))
+    e["reprojection_px"] = round(rms, 4)
+    cam = camera_position(board, rvec, tvec)
+    light = flash_position(board, rvec, tvec, offset)
+    elev = math.degrees(math.asin(np.clip(cam[2] / np.linalg.norm(cam), -1, 1)))
+    e.update(camera_mm=[round(float(v) * 1000, 3) for v in cam], flash_mm=[round(float(v) * 1000, 3) for v in light],
+             elevation_deg=round(elev, 2), distance_mm=round(float(np.linalg.norm(cam)) * 1000, 2))
+    hl = mirror_point(light, cam)
+    if hl is not None:
+        ww, wh = board.window_size_mm
+        inside = abs(hl[0]) * 1000 < ww / 2 and abs(hl[1]) * 1000 < wh / 2
+        e["highlight_mm"] = [round(float(v) * 1000, 2) for v in hl]
+        e["highlight"] = "in the window" if inside else "outside the window"
+    return (rvec, tvec), light, elev
+
+
+def _rectify_photo(o: Observation, e: dict, board: Board, intr: Intrinsics, pose, light: np.ndarray, elev: float,
+                   grid: tuple[int, int], resolution: int) -> tuple[Rectified | None, WhiteReference | None]:
+    """The photo rectified onto the capture ``grid`` (h, w) and its white reference, measurements noted in ``e``.
+    The rectified photo is None when the photo is rejected (``o.reason`` says why: too grazing, board cut off,
+    blurred, no exposure reference), and so is the white reference unless the photo got that far."""
+    if elev < MIN_ELEVATION_DEG:
+        o.reason = f"taken from {elev:.0f} deg elevation, below {MIN_ELEVATION_DEG:.0f} deg (too grazing)"
+        return None, None
+    vis = _visible(board, pose, intr, o.size)
+    if vis < MIN_VISIBLE:
+        o.reason = f"board cut off: the photo sees {vis:.0%} of the window (need {MIN_VISIBLE:.0%})"
+        return None, None
+    h, w = grid
+    scale = photo_scale(board, pose, intr, h, w)
+    e["photo_px_per_cell"] = round(scale, 3)
+    if o.blur_px is not None:
+        cells = o.blur_px / max(scale, 1e-9)
+        e["blur_cells"] = round(cells, 3)
+        if o.blur_px > MAX_BLUR_PX and cells > MAX_BLUR_CELLS:
+            o.reason = (f"blurred: edges {o.blur_px:.1f} px wide (sharp: ~1-2 px), {cells:.1f} capture pixels at "
+                        f"resolution {resolution}")
+            return None, None
+    r = rectify(o, board, intr, pose, h, w)
+    ww, wh = board.window_size_mm
+    white = white_reference(board.board_to_capture(r.paper_points), r.paper_values, r.paper_clipped,
+                            r.paper_seen, light, (ww / 2000.0, wh / 2000.0))
+    e["white_band_unclipped"] = round(white.unclipped, 4)
+    if white.level is None and o.exif.exposure is None:
+        o.reason = (f"no exposure reference: expected EXIF {', '.join(o.exif.missing)} or the white paper band "
+                    f"around the window, found neither ({white.reason})")
+        return None, white
+    return r, white
+
+
+def _rectify_all(obs: list[Observation], ok: list[int], entries: dict[int, dict], board: Board, intr: Intrinsics,
+                 offset: np.ndarray, poses: dict | None, resolution: int, progress: bool):
+    """Pose, checks, rectification and white reference of the photos ``ok`` (:func:`_locate`,
+    :func:`_rectify_photo`). Returns {i: pose} of the located photos, {i: Rectified} and {i: WhiteReference}
+    of those not rejected before rectification (the rectified ones only for photos still usable)."""
+    grid = board.capture_grid(resolution)
+    found_poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    rect: dict[int, Rectified] = {}
+    whites: dict[int, WhiteReference] = {}
+    for i in _bar(ok, len(ok), "rectify", progress):
+        located = _locate(obs[i], entries[i], board, intr, offset, poses[i] if poses is not None and i in poses else None)
+        if located is None:
+            continue
+        found_poses[i], light, elev = located
+        r, white = _rectify_photo(obs[i], entries[i], board, intr, found_poses[i], light, elev, grid, resolution)
+        if white is not None:
+            whites[i] = white
+        if r is not None:
+            rect[i] = r
+    return found_poses, rect, whites
+
+
+def _to_capture(used: list[int], rect: dict[int, Rectified], poses: dict, gains: dict, rel: dict, unit: float,
+                board: Board, offset: np.ndarray, stems: list[str]) -> Capture:
+    """The Capture of the used photos: their rectified images white-balanced (in place), the mask where every
+    one saw the sample, flash and camera positions, intensities ``unit`` × relative exposure."""
+    import torch
+
+    # on use: loads torch (this module imports numpy only)
+    from torchmetal.io.capture import Capture
+
+    lights, cams = {}, {}
+    for i in used:
+        r, (rvec, tvec) = rect[i], poses[i]
+        r.image *= gains[i][:, None, None].astype(np.float32)
+        lights[i], cams[i] = flash_position(board, rvec, tvec, offset), camera_position(board, rvec, tvec)
+    ww, wh = board.window_size_mm
+    return Capture(
+        images=torch.from_numpy(np.stack([rect[i].image for i in used])),
+        mask=torch.from_numpy(np.stack([rect[i].seen for i in used]).all(0))[None],
+        saturated=torch.from_numpy(np.stack([rect[i].saturated for i in used])),
+        lights=torch.tensor([[*lights[i], 1.0] for i in used], dtype=torch.float64).float(),
+        intensities=torch.tensor([[unit * rel[i]] * 3 for i in used], dtype=torch.float64).float(),
+        cameras=torch.tensor([[*cams[i], 1.0] for i in used], dtype=torch.float64).float(),
+        size=(ww / 1000.0, wh / 1000.0), names=[f"images/{s}.npy" for s in stems], color_space="srgb",
+    )
+
+
+def _photo_rows(obs: list[Observation], entries: dict[int, dict], used: list[int], rect: dict[int, Rectified],
+                rel: dict) -> list[dict]:
+    """``report.json``'s ``photos``: per photo, its shot or why it was not used, and what was measured."""
+    shot_of = {i: k for k, i in enumerate(used)}
+    rows = []
+    for i, o in enumerate(obs):
+        e = entries[i]
+        row = {"file": o.name, "used": i in shot_of, "shot": shot_of.get(i), "reason": o.reason,
+               "reprojection_px": e.pop("reprojection_px", None), "corners": 0 if o.ids is None else int(len(o.ids)),
+               "markers": o.markers, "blur_px": None if o.blur_px is None else round(o.blur_px, 3)}
+        if i in shot_of:
+            sat = rect[i].saturated.any(0)
+            row["saturated_pct"] = round(100.0 * float(sat.mean()), 3)
+            row["exposure"] = round(rel[i], 6)
+        row.update(e)
+        rows.append(row)
+    return rows
+
+
 def capture_from_photos(
     photos, board: Board, *, flash_offset_mm=(0.0, 0.0, 0.0), intrinsics: Intrinsics | None = None,
     resolution: int = 512, poses: dict | None = None, workers: int | None = None, progress: bool = False,
@@ -234,19 +380,9 @@ def capture_from_photos(
     Raises:
         CaptureError: fewer than MIN_PHOTOS usable photos, or a failed calibration.
     """
-    import torch
-
-    from torchmetal.io.capture import Capture
-
     t0 = time.perf_counter()
     paths = [Path(p) for p in photos]
-    if not paths:
-        raise CaptureError("expected at least one photo, found none")
-    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 8 <= resolution <= 8192:
-        raise CaptureError(f"resolution: expected an integer in [8, 8192], found {resolution!r}")
-    offset = np.asarray(flash_offset_mm, np.float64)
-    if offset.shape != (3,) or not np.isfinite(offset).all():
-        raise CaptureError(f"flash offset: expected 3 finite numbers (mm), found {list(np.ravel(offset))}")
+    offset = _check_request(paths, resolution, flash_offset_mm)
     workers = workers or max(1, min(4, os.cpu_count() or 1))
     with ThreadPoolExecutor(workers) as pool:
         obs = list(_bar(pool.map(lambda p: inspect_photo(p, board), paths), len(paths), "detect", progress))
@@ -259,59 +395,8 @@ def capture_from_photos(
     stages["calibrate"] = time.perf_counter() - t0 - sum(stages.values())
 
     h, w = board.capture_grid(resolution)
-    ww, wh = board.window_size_mm
     entries: dict[int, dict] = {i: {} for i in range(len(obs))}
-    found_poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    rect: dict[int, Rectified] = {}
-    whites: dict[int, WhiteReference] = {}
-    for i in _bar(ok, len(ok), "rectify", progress):
-        o, e = obs[i], entries[i]
-        obj = board.corner_points()[o.ids]
-        try:
-            rvec, tvec, rms = solve_pose(obj, o.corners, intr)
-        except CaptureError as err:
-            o.reason = str(err)
-            continue
-        if poses is not None and i in poses:
-            rvec, tvec = (np.asarray(v, np.float64).ravel() for v in poses[i])
-            rms = float(np.sqrt(((project(obj, rvec, tvec, intr) - o.corners) ** 2).sum(1).mean()))
-        e["reprojection_px"] = round(rms, 4)
-        cam = camera_position(board, rvec, tvec)
-        light = flash_position(board, rvec, tvec, offset)
-        elev = math.degrees(math.asin(np.clip(cam[2] / np.linalg.norm(cam), -1, 1)))
-        e.update(camera_mm=[round(float(v) * 1000, 3) for v in cam], flash_mm=[round(float(v) * 1000, 3) for v in light],
-                 elevation_deg=round(elev, 2), distance_mm=round(float(np.linalg.norm(cam)) * 1000, 2))
-        hl = mirror_point(light, cam)
-        if hl is not None:
-            inside = abs(hl[0]) * 1000 < ww / 2 and abs(hl[1]) * 1000 < wh / 2
-            e["highlight_mm"] = [round(float(v) * 1000, 2) for v in hl]
-            e["highlight"] = "in the window" if inside else "outside the window"
-        found_poses[i] = (rvec, tvec)
-        if elev < MIN_ELEVATION_DEG:
-            o.reason = f"taken from {elev:.0f} deg elevation, below {MIN_ELEVATION_DEG:.0f} deg (too grazing)"
-            continue
-        vis = _visible(board, (rvec, tvec), intr, o.size)
-        if vis < MIN_VISIBLE:
-            o.reason = f"board cut off: the photo sees {vis:.0%} of the window (need {MIN_VISIBLE:.0%})"
-            continue
-        scale = photo_scale(board, (rvec, tvec), intr, h, w)
-        e["photo_px_per_cell"] = round(scale, 3)
-        if o.blur_px is not None:
-            cells = o.blur_px / max(scale, 1e-9)
-            e["blur_cells"] = round(cells, 3)
-            if o.blur_px > MAX_BLUR_PX and cells > MAX_BLUR_CELLS:
-                o.reason = (f"blurred: edges {o.blur_px:.1f} px wide (sharp: ~1-2 px), {cells:.1f} capture pixels at "
-                            f"resolution {resolution}")
-                continue
-        r = rectify(o, board, intr, (rvec, tvec), h, w)
-        white = whites[i] = white_reference(board.board_to_capture(r.paper_points), r.paper_values, r.paper_clipped,
-                                            r.paper_seen, light, (ww / 2000.0, wh / 2000.0))
-        e["white_band_unclipped"] = round(white.unclipped, 4)
-        if white.level is None and o.exif.exposure is None:
-            o.reason = (f"no exposure reference: expected EXIF {', '.join(o.exif.missing)} or the white paper band "
-                        f"around the window, found neither ({white.reason})")
-            continue
-        rect[i] = r
+    found_poses, rect, whites = _rectify_all(obs, ok, entries, board, intr, offset, poses, resolution, progress)
     used = [i for i in ok if obs[i].reason is None]
     if len(used) >= MIN_PHOTOS:
         rel, gains, unit, sources = _exposures(obs, used, whites)
@@ -320,40 +405,15 @@ def capture_from_photos(
         raise _too_few(obs, len(used), "for a capture")
     stages["poses_rectify"] = time.perf_counter() - t0 - sum(stages.values())
 
-    lights, cams = {}, {}
     for i in used:
-        r, (rvec, tvec) = rect[i], found_poses[i]
-        r.image *= gains[i][:, None, None].astype(np.float32)
         entries[i]["white_balance"] = [round(float(g), 4) for g in gains[i]]
         entries[i]["exposure_source"], entries[i]["white_balance_source"] = sources[i]
-        lights[i], cams[i] = flash_position(board, rvec, tvec, offset), camera_position(board, rvec, tvec)
-    stems = _stems([paths[i] for i in used])
+    capture = _to_capture(used, rect, found_poses, gains, rel, unit, board, offset, _stems([paths[i] for i in used]))
+    ww, wh = board.window_size_mm
     n = len(used)
-    capture = Capture(
-        images=torch.from_numpy(np.stack([rect[i].image for i in used])),
-        mask=torch.from_numpy(np.stack([rect[i].seen for i in used]).all(0))[None],
-        saturated=torch.from_numpy(np.stack([rect[i].saturated for i in used])),
-        lights=torch.tensor([[*lights[i], 1.0] for i in used], dtype=torch.float64).float(),
-        intensities=torch.tensor([[unit * rel[i]] * 3 for i in used], dtype=torch.float64).float(),
-        cameras=torch.tensor([[*cams[i], 1.0] for i in used], dtype=torch.float64).float(),
-        size=(ww / 1000.0, wh / 1000.0), names=[f"images/{s}.npy" for s in stems], color_space="srgb",
-    )
-    shot_of = {i: k for k, i in enumerate(used)}
-    rows = []
-    for i, o in enumerate(obs):
-        e = entries[i]
-        row = {"file": o.name, "used": i in shot_of, "shot": shot_of.get(i), "reason": o.reason,
-               "reprojection_px": e.pop("reprojection_px", None), "corners": 0 if o.ids is None else int(len(o.ids)),
-               "markers": o.markers, "blur_px": None if o.blur_px is None else round(o.blur_px, 3)}
-        if i in shot_of:
-            sat = rect[i].saturated.any(0)
-            row["saturated_pct"] = round(100.0 * float(sat.mean()), 3)
-            row["exposure"] = round(rel[i], 6)
-        row.update(e)
-        rows.append(row)
     report = {
-        "format": REPORT_FORMAT, "version": 1, "photos": rows, "intrinsics": intr.to_json(),
-        "board": board.to_json(), "resolution": [h, w], "surface_m": [ww / 1000.0, wh / 1000.0],
+        "format": REPORT_FORMAT, "version": 1, "photos": _photo_rows(obs, entries, used, rect, rel),
+        "intrinsics": intr.to_json(), "board": board.to_json(), "resolution": [h, w], "surface_m": [ww / 1000.0, wh / 1000.0],
         "flash_offset_mm": [float(v) for v in offset], "intensity_unit": unit,
         "used": n, "rejected": len(obs) - n, "seconds": round(time.perf_counter() - t0, 3),
         "stage_seconds": {k: round(v, 3) for k, v in stages.items()},
@@ -367,6 +427,7 @@ def save_photo_capture(result: PhotoCapture, out: str | os.PathLike, *, contact_
     import json
     import shutil
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.capture_save import prepare_target, replace_dir, write_capture_files
 
     path, tmp = prepare_target(out)
@@ -374,8 +435,6 @@ def save_photo_capture(result: PhotoCapture, out: str | os.PathLike, *, contact_
         write_capture_files(result.capture, tmp, bits="npy")
         result.intrinsics.save(tmp / "intrinsics.json")
         if contact_sheet:
-            from torchmetal.photos.report import contact_sheet as sheet
-
             sheet(result, tmp / "contact.png")
         (tmp / "report.json").write_text(json.dumps(result.report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         replace_dir(tmp, path)

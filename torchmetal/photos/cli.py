@@ -26,6 +26,7 @@ def _number(text: str) -> float:
 
 
 def cmd_board(args: argparse.Namespace) -> int:
+    # on use: a verb module imports only argparse at the top (CLI start-up)
     from torchmetal.photos.board import make_board, write_board
 
     board = make_board(args.paper, tuple(args.window), args.dpi)
@@ -37,6 +38,7 @@ def cmd_board(args: argparse.Namespace) -> int:
 
 
 def cmd_capture(args: argparse.Namespace) -> int:
+    # on use: a verb module imports only argparse at the top (CLI start-up)
     from torchmetal.photos.board import load_board
     from torchmetal.photos.calibrate import Intrinsics
     from torchmetal.photos.capture import capture_from_photos, save_photo_capture

@@ -139,6 +139,7 @@ def edge_width(gray: np.ndarray, quads: list[np.ndarray], max_patches: int = 12)
     A sharp, anti-aliased edge measures about 1–2 px; defocus or shake of σ px widens it to about
     2.5·σ in the direction it acts. Measured on patches around the detected markers, in linear light.
     """
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.images import code_table
 
     if not quads:

@@ -115,7 +115,7 @@ def _ring_points(board: Board, step: float = 0.5) -> np.ndarray:
 
 def _block_mean(a: np.ndarray, ss: int) -> np.ndarray:
     """(h·ss, w·ss[, C]) float32 → (h, w[, C]): the mean of each ss × ss block (OpenCV's integer-factor
-    area reduction, ~5x faster than numpy's strided mean; equal to it to float32 rounding)."""
+    area reduction, faster than numpy's strided mean: docs/design.md §6; equal to it to float32 rounding)."""
     import cv2
 
     if ss == 1:
@@ -139,6 +139,7 @@ def _sample(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
 
 def rectify(obs: Observation, board: Board, intr: Intrinsics, pose, h: int, w: int, *, ss: int | None = None) -> Rectified:
     """Resample the window of ``obs`` onto the (h, w) capture grid with camera ``intr`` and ``pose``."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.images import code_table
 
     scale = photo_scale(board, pose, intr, h, w)

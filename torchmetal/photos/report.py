@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from torchmetal.photos.calibrate import project
+
 __all__ = ["contact_sheet", "contact_image"]
 
 COLUMNS = 4
@@ -51,8 +53,8 @@ def _tile(result, i: int, width: int) -> np.ndarray:
     import cv2
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.images import linear_to_srgb
-    from torchmetal.photos.calibrate import project
 
     obs = result.observations[i]
     row = result.report["photos"][i]
@@ -118,6 +120,7 @@ def contact_sheet(result, path: str | os.PathLike) -> Path:
     """Write the contact sheet PNG (atomically)."""
     import cv2
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.io.images import atomic_write_bytes
 
     ok, buf = cv2.imencode(".png", contact_image(result))

@@ -26,8 +26,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchmetal.geometry import shading_geometry
+from torchmetal.io.capture import Capture
+from torchmetal.io.images import atomic_write_bytes, linear_to_srgb
+from torchmetal.phong import phong_render, phong_shading
 from torchmetal.photos.board import Board, render_sheet
-from torchmetal.photos.calibrate import Intrinsics
+from torchmetal.photos.calibrate import Intrinsics, camera_position, flash_position
 from torchmetal.photos.exif import PhotoExif, exif_bytes
 
 __all__ = ["Sample", "PhotoSet", "Hotspot", "smooth_texture", "phone_camera", "hand_held_poses", "render_photo", "phone_photos",
@@ -229,9 +233,6 @@ def render_photo(board: Board, sheet: np.ndarray, sample: Sample, intr: Intrinsi
     """
     import cv2
 
-    from torchmetal.geometry import shading_geometry
-    from torchmetal.phong import phong_shading
-
     rvec, tvec = pose
     w, h = intr.image_size
     ss = supersample
@@ -275,8 +276,6 @@ def _encode_jpeg(linear: np.ndarray, quality: int, exif: PhotoExif | None) -> by
 
     from PIL import Image
 
-    from torchmetal.io.images import linear_to_srgb
-
     code = np.rint(linear_to_srgb(torch.from_numpy(np.clip(linear, 0, 1))).numpy() * 255).astype(np.uint8)
     buf = io.BytesIO()
     extra = {} if exif is None else {"exif": exif_bytes(exif)}
@@ -300,9 +299,6 @@ def phone_photos(out_dir: str | os.PathLike, board: Board, sample: Sample, *, n:
         hotspots: {photo index: :class:`Hotspot`}, a flash hotspot on the sheet of those photos.
         strip_exif: indices of photos written without any EXIF block (the truth keeps their exposure).
     """
-    from torchmetal.io.images import atomic_write_bytes
-    from torchmetal.photos.calibrate import camera_position, flash_position
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     camera = camera or phone_camera()
@@ -345,8 +341,6 @@ def phone_photos(out_dir: str | os.PathLike, board: Board, sample: Sample, *, n:
 def direct_render(photos: PhotoSet, indices=None) -> torch.Tensor:
     """Clean renders (N, 3, H, W) of the sample at the true geometry on the texture's own grid
     (the capture grid when the capture's resolution matches the texture), in photo pixel units."""
-    from torchmetal.phong import phong_render
-
     idx = range(len(photos.paths)) if indices is None else indices
     tex = photos.sample.texture.float()
     _, h, w = tex.shape
@@ -362,8 +356,6 @@ def direct_render(photos: PhotoSet, indices=None) -> torch.Tensor:
 
 def truth_capture(photos: PhotoSet, indices=None):
     """A directly rendered capture: the clean renders at the true geometry (the reference fit)."""
-    from torchmetal.io.capture import Capture
-
     idx = list(range(len(photos.paths)) if indices is None else indices)
     ww, wh = photos.board.window_size_mm
     return Capture(

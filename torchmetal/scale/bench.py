@@ -37,6 +37,7 @@ def write_plane_capture(path: str | os.PathLike, size: int, shots: int = SHOTS, 
     Phong model (s = 0.6, α = 40/60/80) band by band into ``images/*.npy`` (H, W, 3) float32."""
     import torch
 
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.geometry import grid_shading_terms, pixel_axes
 
     path = Path(path)
@@ -123,10 +124,12 @@ def _fit_child(argv: list[str]) -> int:
     peak, stop = _peak_sampler()
     t0, c0 = time.perf_counter(), _cpu_s()
     if mode == "tiled":
+        # on use: loads torch (this module imports numpy only)
         from torchmetal.scale.tiled import fit_tiled
 
         res = fit_tiled(capture, tile=int(argv[3]), scratch=out / "scratch")
     else:
+        # on use: loads torch (this module imports numpy only)
         from torchmetal.fit import fit_phong
         from torchmetal.io.capture import load_capture
 
@@ -169,6 +172,7 @@ def bench_fit_many(root: Path, n: int, size: int, engines: tuple[str, ...] = ("l
     """Captures per minute of ``fit-many`` (``--flakes off``, 1 torch thread per fit) with 1 and 2 workers
     per engine (Ray: a local cluster started per run, its start-up included); CPU seconds of this process
     and its reaped children (the local pool's workers; Ray's workers are not counted fully)."""
+    # on use: loads torch (this module imports numpy only)
     from torchmetal.scale.fit_many import fit_many
 
     caps = [write_plane_capture(root / f"many{k}", size, seed=k) for k in range(n)]

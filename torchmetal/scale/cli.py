@@ -61,6 +61,7 @@ def fit_argv(args: argparse.Namespace, actions: list[argparse.Action]) -> list[s
 def cmd_fit_many(args: argparse.Namespace) -> int:
     import os
 
+    # on use: a verb module imports only argparse at the top (CLI start-up)
     from torchmetal.errors import InputError
     from torchmetal.scale.fit_many import fit_many
 

@@ -27,6 +27,7 @@ from torchmetal.fit.clusters import relabel
 from torchmetal.fit.problem import build_observations
 from torchmetal.fit.refine import spec_sums, texture_map
 from torchmetal.geometry import is_flat
+from torchmetal.scale.engines import WorkerLost
 from torchmetal.scale.tiled_texture import SeenStats, unobserved_tile
 from torchmetal.scale.tiles import TiledCapture
 
@@ -114,7 +115,6 @@ class TilePasses:
                 if self.bar is not None:
                     self.bar.update(1)
             return
-        from torchmetal.scale.engines import WorkerLost
 
         eng, n = self.engine, len(payloads)
         inflight: dict = {}

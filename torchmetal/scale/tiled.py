@@ -25,7 +25,9 @@ from __future__ import annotations
 import math
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -39,9 +41,11 @@ from torchmetal.fit.problem import Reference, compute_dtype
 from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms, pinned_terms
 from torchmetal.fit.result import FitResult
 from torchmetal.fit.run import FitRun
+from torchmetal.pipeline import PipelineResult
+from torchmetal.scale.engines import make_engine
 from torchmetal.scale.tile_tasks import _OPEN, TilePasses
 from torchmetal.scale.tiled_texture import SeenStats, fill_tiles
-from torchmetal.scale.tiles import TiledCapture
+from torchmetal.scale.tiles import TiledCapture, convert_capture, is_tiled
 
 SPECULARS = ("auto", "global", "clustered", "none")
 
@@ -85,6 +89,26 @@ def _solve_specular(passes: TilePasses, dt: torch.dtype, beta0: Tensor, first: T
                               merge=lambda new, old, acc: torch.where(acc, new, old), first=ev0,
                               on_iter=lambda it, x, ev, done: on_iter(it, ev))
     return res.eval.aux.view(k, 3), torch.exp(res.x.view(k, 3)), res.eval.cost.view(k, 3), res
+
+
+@dataclass(frozen=True)
+class TiledOptions:
+    """What :func:`fit_tiled` was asked, checked: the fit's options (as :func:`~torchmetal.fit.fit_phong`;
+    ``chunk`` is its ``max_pixels_per_chunk``), where the result's files go and where the tile tasks run."""
+
+    tile: int
+    specular: str
+    tol: float
+    max_iters: int
+    clusters: tuple[int, ...]
+    chunk: int
+    sub_pixels: int
+    select_pixels: int
+    seed: int
+    scratch: Path
+    engine: object | None  # a torchmetal.scale.engines engine; None: the tasks run in this process
+    workers: int
+    threads: int | None
 
 
 def fit_tiled(
@@ -147,14 +171,13 @@ def fit_tiled(
     if engine is not None:
         import os
 
-        from torchmetal.scale.engines import make_engine
-
         eng = make_engine(engine, workers, address)
         threads = threads or max(1, (os.cpu_count() or 1) // workers)
     try:
-        return _fit(cap, run, bar, tile=tile, specular=specular, tol=tol, max_iters=max_iters, clusters=tuple(clusters),
-                    chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
-                    scratch=scratch, engine=eng, workers=workers, threads=threads)
+        opt = TiledOptions(tile=tile, specular=specular, tol=tol, max_iters=max_iters, clusters=tuple(clusters),
+                           chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
+                           scratch=scratch, engine=eng, workers=workers, threads=threads)
+        return _fit(cap, run, bar, opt)
     finally:
         if bar is not None:
             bar.close()
@@ -178,9 +201,19 @@ def _subsample_decisions(cap, run: FitRun, *, specular, tol, max_iters, clusters
     return d.spec, d.labeler, d.s_fixed, info
 
 
-def _sums(passes: TilePasses, k: int, with_spec: bool, with_labels: bool) -> tuple:
-    """The "sums" pass reduced in tile order: element sums A (K, 3), the first LM evaluation's stats
-    (6, K, 3), the observation count, Σw·a² statistics, whether the normals are flat, cluster areas (K,)."""
+class _Sums(NamedTuple):
+    """The "sums" pass reduced in tile order."""
+
+    A: Tensor  # element sums (K, 3)
+    first: Tensor  # the first LM evaluation's stats (6, K, 3)
+    n_total: float  # observation count
+    seen: SeenStats  # Σw·a² statistics
+    flat: bool  # whether the normals are flat
+    area: Tensor  # cluster areas (K,)
+
+
+def _sums(passes: TilePasses, k: int, with_spec: bool, with_labels: bool) -> _Sums:
+    """The "sums" pass reduced in tile order (:class:`_Sums`)."""
     A = torch.zeros(k, 3, dtype=torch.float64)
     first = torch.zeros(6, k, 3, dtype=torch.float64)
     n_total, seen_stats, flat = 0.0, SeenStats(), True
@@ -194,77 +227,123 @@ def _sums(passes: TilePasses, k: int, with_spec: bool, with_labels: bool) -> tup
         flat = flat and part["flat"]
         if with_labels:
             area += part["area"]
-    return A, first, n_total, seen_stats, flat, area
+    return _Sums(A, first, n_total, seen_stats, flat, area)
 
 
 def _memmap(path: Path, shape: tuple[int, ...], dtype) -> np.memmap:
     return np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape)
 
 
-def _fit(cap: TiledCapture, run: FitRun, bar, *, tile, specular, tol, max_iters, clusters, chunk, sub_pixels, select_pixels,
-         seed, scratch: Path, engine, workers: int, threads: int | None) -> FitResult:
+def _fit(cap: TiledCapture, run: FitRun, bar, opt: TiledOptions) -> FitResult:
+    """:func:`fit_tiled` after its checks: the subsample decisions, the sums pass, the LM on β over tile
+    passes (:func:`_specular`), the texture pass, the result."""
     dt = compute_dtype(cap.images)
     h, w = cap.height, cap.width
     spec, labeler, s_fixed, sel_info = _subsample_decisions(
-        cap, run, specular=specular, tol=tol, max_iters=max_iters, clusters=clusters, chunk=chunk, sub_pixels=sub_pixels,
-        select_pixels=select_pixels, seed=seed)
+        cap, run, specular=opt.specular, tol=opt.tol, max_iters=opt.max_iters, clusters=opt.clusters, chunk=opt.chunk,
+        sub_pixels=opt.sub_pixels, select_pixels=opt.select_pixels, seed=opt.seed)
     k = 1 if spec is None else spec.k
     ref = None if spec is None else Reference(spec.s, spec.alpha)
-    tiles = tile_grid(h, w, tile)
+    tiles = tile_grid(h, w, opt.tile)
     _OPEN[str(cap.root)] = cap  # in-process tasks reuse this capture
-    base = {"capture": str(cap.root), "dtype": str(dt).removeprefix("torch."), "chunk": chunk, "ref": ref,
-            "labeler": labeler, "threads": threads}
-    passes = TilePasses(tiles, base, engine, workers, bar)
+    base = {"capture": str(cap.root), "dtype": str(dt).removeprefix("torch."), "chunk": opt.chunk, "ref": ref,
+            "labeler": labeler, "threads": opt.threads}
+    passes = TilePasses(tiles, base, opt.engine, opt.workers, bar)
 
     # pass 1: per-pixel constants → element sums, the first LM evaluation, what the texture step needs
     with run.stage("geometry"):
-        A, first, n_total, seen_stats, flat, area = _sums(passes, k, spec is not None, labeler is not None)
-    if seen_stats.needs_median():  # the exact median of Σw·a² (one more pass); else any value below it works
-        med = seen_stats.median(lambda bucket: passes.map("low_bits", bucket=bucket))
+        sums = _sums(passes, k, spec is not None, labeler is not None)
+    if sums.seen.needs_median():  # the exact median of Σw·a² (one more pass); else any value below it works
+        med = sums.seen.median(lambda bucket: passes.map("low_bits", bucket=bucket))
     else:
-        med = seen_stats.hi.clone()
-    n_obs = max(1.0, n_total)
+        med = sums.seen.hi.clone()
+    n_obs = max(1.0, sums.n_total)
 
-    # the LM on β over tile passes
-    status, cost, s, alpha = "converged", None, None, None
+    status, cost, s, alpha, area = "converged", None, None, None, sums.area
     if spec is not None:
-        s_fix = b_fix = None
-        if labeler is not None:  # clusters without evidence keep the global terms
-            s_fix, b_fix = pinned_terms(spec.pinned, spec.s, spec.alpha)
-        elif s_fixed is not None:
-            s_fix = s_fixed
+        relabel = labeler is not None and sel_info["relabel"]
+        s, alpha, cost, area, status = _specular(passes, run, spec, labeler, s_fixed, relabel, sums, dt, opt, (h, w))
 
-        def log(it: int, ev: LMEval) -> None:
-            run.log("refine", it, math.sqrt(float(ev.cost.sum()) / n_obs), 1.0, h * w)
+    tex_file, lab_file = _texture(passes, run, tiles, (h, w), s, alpha, med, labeler is not None, opt.scratch)
+    if spec is None:
+        rmse = math.sqrt(float(sums.A.sum()) / n_obs)
+        run.log("texture", 0, rmse, 1.0, h * w)
+    else:
+        rmse = math.sqrt(float(cost.sum()) / n_obs)
+    common = dict(texture=torch.from_numpy(tex_file).permute(2, 0, 1), normals=_normals(cap, tiles, sums.flat, dt, opt.scratch),
+                  size=tuple(float(v) for v in cap.size), history=run.history, stage_times=run.times,
+                  iterations=run.iterations, skipped=run.skipped, flat=sums.flat, status=status, rmse=rmse,
+                  scheme="refine", selection=sel_info)
+    if spec is None:
+        z = torch.zeros(3, dtype=dt)
+        result = FitResult(s=z, alpha=torch.full_like(z, ALPHA_MIN), specular="none", **common)
+    elif k == 1:
+        result = FitResult(s=s[0].to(dt), alpha=alpha[0].to(dt), specular="global", **common)
+    else:
+        frac = area / area.sum().clamp_min(1.0)
+        result = FitResult(s=(frac @ s).to(dt), alpha=(frac @ alpha).to(dt), spec_labels=torch.from_numpy(lab_file),
+                           cluster_s=s.to(dt), cluster_alpha=alpha.to(dt), specular="clustered", **common)
+    result.maps_selection = getattr(run, "maps_info", None)
+    result.tiled = {"tile": opt.tile, "tiles": len(tiles), "passes": passes.passes, "scratch": str(opt.scratch),
+                    "engine": "here" if opt.engine is None else opt.engine.name, "workers": opt.workers}
+    if not bool(torch.isfinite(result.s).all() and torch.isfinite(result.alpha).all()) or not math.isfinite(rmse):
+        raise FitError("fit --tile: expected finite fit values, found NaN/Inf (non-finite residuals)")
+    return result
 
-        with run.stage("refine"):
-            s, alpha, cost, res = _solve_specular(passes, dt, torch.log(spec.alpha), first, A, tol=tol,
-                                                  max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix, on_iter=log)
-        if labeler is not None and sel_info["relabel"]:  # fit.clusters.relabel_pixels, a pass over the tiles per round
-            with run.stage("relabel"):
-                moved = 0
-                lab_path = scratch / "relabelled.npy"
-                _memmap(lab_path, (h, w), np.int64).flush()
-                for _ in range(RELABEL_ROUNDS):
-                    n = sum(passes.map("relabel", s=s, alpha=alpha, per_obs=float(cost.sum()) / max(1.0, n_total),
-                                       labels_file=str(lab_path)))
-                    if n == 0:
-                        break
-                    moved += n
-                    passes.base["labeler"] = LabelMap(str(lab_path), k)
-                    passes.base["ref"] = Reference(s, alpha)  # the first LM evaluation at the current α
-                    A, first, _, _, _, area = _sums(passes, k, True, True)
-                    passes.base["ref"] = ref  # the texture pass's fallback stays the subsample's, as in memory
-                    s, alpha, cost, res = _solve_specular(passes, dt, torch.log(alpha), first, A, tol=tol,
-                                                          max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix,
-                                                          on_iter=lambda it, ev: None)
-                run.log("relabel", 1, math.sqrt(float(cost.sum()) / max(1.0, n_total)), 1.0, moved)
-        status = res.status
 
-    # last pass: the texture of each tile in closed form, into a memory-mapped file
+def _specular(passes: TilePasses, run: FitRun, spec, labeler, s_fixed: Tensor | None, relabel: bool, sums: _Sums,
+              dt: torch.dtype, opt: TiledOptions, grid: tuple[int, int]) -> tuple:
+    """The LM on β over tile passes from the subsample's ``spec``; with clusters and ``relabel``, then the
+    rounds of :func:`~torchmetal.fit.clusters.relabel_pixels`, each a pass over the tiles, a new sums pass
+    and the LM again. Returns (s, α, cost, cluster areas, LM status)."""
+    h, w = grid
+    k = spec.k
+    ref = passes.base["ref"]  # the subsample's reference: the texture pass's fallback
+    n_obs = max(1.0, sums.n_total)
+    s_fix = b_fix = None
+    if labeler is not None:  # clusters without evidence keep the global terms
+        s_fix, b_fix = pinned_terms(spec.pinned, spec.s, spec.alpha)
+    elif s_fixed is not None:
+        s_fix = s_fixed
+
+    def log(it: int, ev: LMEval) -> None:
+        run.log("refine", it, math.sqrt(float(ev.cost.sum()) / n_obs), 1.0, h * w)
+
+    with run.stage("refine"):
+        s, alpha, cost, res = _solve_specular(passes, dt, torch.log(spec.alpha), sums.first, sums.A, tol=opt.tol,
+                                              max_iters=opt.max_iters, s_fixed=s_fix, beta_fixed=b_fix, on_iter=log)
+    area = sums.area
+    if relabel:  # fit.clusters.relabel_pixels, a pass over the tiles per round
+        with run.stage("relabel"):
+            moved = 0
+            lab_path = opt.scratch / "relabelled.npy"
+            _memmap(lab_path, (h, w), np.int64).flush()
+            for _ in range(RELABEL_ROUNDS):
+                n = sum(passes.map("relabel", s=s, alpha=alpha, per_obs=float(cost.sum()) / max(1.0, sums.n_total),
+                                   labels_file=str(lab_path)))
+                if n == 0:
+                    break
+                moved += n
+                passes.base["labeler"] = LabelMap(str(lab_path), k)
+                passes.base["ref"] = Reference(s, alpha)  # the first LM evaluation at the current α
+                A, first, _, _, _, area = _sums(passes, k, True, True)
+                passes.base["ref"] = ref  # the texture pass's fallback stays the subsample's, as in memory
+                s, alpha, cost, res = _solve_specular(passes, dt, torch.log(alpha), first, A, tol=opt.tol,
+                                                      max_iters=opt.max_iters, s_fixed=s_fix, beta_fixed=b_fix,
+                                                      on_iter=lambda it, ev: None)
+            run.log("relabel", 1, math.sqrt(float(cost.sum()) / max(1.0, sums.n_total)), 1.0, moved)
+    return s, alpha, cost, area, res.status
+
+
+def _texture(passes: TilePasses, run: FitRun, tiles: list, grid: tuple[int, int], s, alpha, med, with_labels: bool,
+             scratch: Path) -> tuple[np.memmap, np.memmap | None]:
+    """The last pass: the texture of each tile in closed form, texels never observed usefully inpainted
+    from their neighbours, into ``scratch/texture.npy``. Returns that file and, with labels, the pixels'
+    cluster labels (``scratch/specular_labels.npy``)."""
+    h, w = grid
     raw_file = _memmap(scratch / "texture_raw.npy", (h, w, 3), np.float32)
     bad_file = _memmap(scratch / "unobserved.npy", (h, w, 3), np.bool_)
-    lab_file = _memmap(scratch / "specular_labels.npy", (h, w), np.int64) if labeler is not None else None
+    lab_file = _memmap(scratch / "specular_labels.npy", (h, w), np.int64) if with_labels else None
     for m in (raw_file, bad_file, lab_file):
         if m is not None:
             m.flush()
@@ -281,37 +360,20 @@ def _fit(cap: TiledCapture, run: FitRun, bar, *, tile, specular, tol, max_iters,
     del raw_file, bad_file
     for f in ("texture_raw.npy", "unobserved.npy"):
         (scratch / f).unlink(missing_ok=True)
-    if spec is None:
-        rmse = math.sqrt(float(A.sum()) / n_obs)
-        run.log("texture", 0, rmse, 1.0, h * w)
-    else:
-        rmse = math.sqrt(float(cost.sum()) / n_obs)
-    texture = torch.from_numpy(tex_file).permute(2, 0, 1)
-    normals = torch.tensor([0.0, 0.0, 1.0], dtype=dt).view(3, 1, 1).expand(3, h, w)
-    if not flat:
-        nrm_file = _memmap(scratch / "normals.npy", (h, w, 3), np.float32)
-        for rows, cols in tiles:
-            nrm_file[rows, cols] = cap.normals[:, rows, cols].permute(1, 2, 0).numpy()
-        nrm_file.flush()
-        normals = torch.from_numpy(nrm_file).permute(2, 0, 1)
-    common = dict(texture=texture, normals=normals, size=tuple(float(v) for v in cap.size), history=run.history,
-                  stage_times=run.times, iterations=run.iterations, skipped=run.skipped, flat=flat, status=status,
-                  rmse=rmse, scheme="refine", selection=sel_info)
-    if spec is None:
-        z = torch.zeros(3, dtype=dt)
-        result = FitResult(s=z, alpha=torch.full_like(z, ALPHA_MIN), specular="none", **common)
-    elif k == 1:
-        result = FitResult(s=s[0].to(dt), alpha=alpha[0].to(dt), specular="global", **common)
-    else:
-        frac = area / area.sum().clamp_min(1.0)
-        result = FitResult(s=(frac @ s).to(dt), alpha=(frac @ alpha).to(dt), spec_labels=torch.from_numpy(lab_file),
-                           cluster_s=s.to(dt), cluster_alpha=alpha.to(dt), specular="clustered", **common)
-    result.maps_selection = getattr(run, "maps_info", None)
-    result.tiled = {"tile": tile, "tiles": len(tiles), "passes": passes.passes, "scratch": str(scratch),
-                    "engine": "here" if engine is None else engine.name, "workers": workers}
-    if not bool(torch.isfinite(result.s).all() and torch.isfinite(result.alpha).all()) or not math.isfinite(rmse):
-        raise FitError("fit --tile: expected finite fit values, found NaN/Inf (non-finite residuals)")
-    return result
+    return tex_file, lab_file
+
+
+def _normals(cap: TiledCapture, tiles: list, flat: bool, dt: torch.dtype, scratch: Path) -> Tensor:
+    """The result's normals (3, H, W): +z when ``flat``, else the capture's, copied tile by tile into
+    ``scratch/normals.npy``."""
+    h, w = cap.height, cap.width
+    if flat:
+        return torch.tensor([0.0, 0.0, 1.0], dtype=dt).view(3, 1, 1).expand(3, h, w)
+    nrm_file = _memmap(scratch / "normals.npy", (h, w, 3), np.float32)
+    for rows, cols in tiles:
+        nrm_file[rows, cols] = cap.normals[:, rows, cols].permute(1, 2, 0).numpy()
+    nrm_file.flush()
+    return torch.from_numpy(nrm_file).permute(2, 0, 1)
 
 
 def fit_tiled_material(capture_path, *, tile: int, scheme: str = "refine", specular: str = "auto",
@@ -325,9 +387,6 @@ def fit_tiled_material(capture_path, *, tile: int, scheme: str = "refine", specu
     :func:`~torchmetal.pipeline.fit_material`; the tiled fit is the refine scheme by
     least squares (robust "auto" is that when no flakes are fitted), so other values are refused.
     """
-    from torchmetal.pipeline import PipelineResult
-    from torchmetal.scale.tiles import convert_capture, is_tiled
-
     if scheme != "refine":
         raise InputError(f"scheme: expected 'refine' with --tile (the tiled fit is the refine scheme), found {scheme!r}")
     if robust not in ("auto", None, "none"):

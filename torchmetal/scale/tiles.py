@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import CaptureError
-from torchmetal.io.capture import UNIT_TOL, check_pixels, load_mask, parse_meta, read_meta
+from torchmetal.io.capture import UNIT_TOL, Capture, check_pixels, load_mask, parse_meta, read_meta
 from torchmetal.io.capture_save import replace_dir
 from torchmetal.io.images import decode_planes, read_raw, srgb_to_linear
 
@@ -188,8 +188,6 @@ class TiledCapture:
 
     def region(self, rows: slice, cols: slice):
         """The pixels ``rows`` × ``cols`` as an in-memory Capture (its own, smaller, surface)."""
-        from torchmetal.io.capture import Capture
-
         images, saturated = self._pixels(rows, cols)
         return Capture(images=images, normals=self._read_normals(rows, cols), mask=self._read_mask(rows, cols),
                        lights=self.lights, intensities=self.intensities, cameras=self.cameras, size=self.size,

@@ -46,6 +46,7 @@ from torchmetal.geometry import surface_points
 from torchmetal.io.capture import Capture
 from torchmetal.io.capture_save import prepare_target, replace_dir, write_capture_files
 from torchmetal.io.images import PNG_MAX, atomic_write_bytes, srgb_to_linear
+from torchmetal.material import Material
 from torchmetal.phong import phong_render
 
 __all__ = ["SynthResult", "synth_capture", "write_synth", "read_synth_truth", "LAYOUTS", "SURFACE", "CAMERA_HEIGHT"]
@@ -92,8 +93,6 @@ class SynthResult:
 
     def material(self):
         """The truth as a :class:`torchmetal.material.Material` (for comparing fits)."""
-        from torchmetal.material import Material
-
         t = self.truth
         flat = self.capture.flat
         return Material(

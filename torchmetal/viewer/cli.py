@@ -14,6 +14,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     import os
     import sys
 
+    # on use: a verb module imports only argparse at the top (CLI start-up)
     from torchmetal.viewer.server import make_server
 
     def log(text: str) -> None:

@@ -17,16 +17,18 @@ import threading
 import time
 from pathlib import Path
 
+from torchmetal.formats.web import write
+from torchmetal.viewer.browser import launch_chromium, open_viewer, serve_folder
+from torchmetal.viewer.server import make_server
+
 
 def measure(size: int, out: Path, frames: int, modes: tuple[str, ...]) -> list[dict]:
     from playwright.sync_api import sync_playwright
 
+    # on use: loads torch (this module imports nothing heavy)
     from torchmetal.flakes.model import FlakeModel
-    from torchmetal.formats.web import write
     from torchmetal.material import save_material
     from torchmetal.synth import synth_capture
-    from torchmetal.viewer.browser import launch_chromium, open_viewer, serve_folder
-    from torchmetal.viewer.server import make_server
 
     root = out / f"{size}"
     t0 = time.perf_counter()

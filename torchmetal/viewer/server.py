@@ -27,6 +27,7 @@ from pathlib import Path
 
 from torchmetal.errors import InputError, TorchmetalError
 from torchmetal.viewer import site
+from torchmetal.viewer.three import three_files
 
 MAX_BODY = 1 << 16
 CONTENT_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
@@ -50,6 +51,7 @@ class Viewer:
                  reuse: tuple[str | os.PathLike, ...] = (), threads: int | None = None, log=None) -> None:
         import onnxruntime as ort
 
+        # on use: loads torch (this module imports nothing heavy)
         from torchmetal.material import load_material
         from torchmetal.onnx_export import session_options
 
@@ -58,6 +60,7 @@ class Viewer:
         self.capture = None
         shots = []
         if capture is not None:
+            # on use: loads torch (this module imports nothing heavy)
             from torchmetal.io.capture import load_capture
 
             self.capture = load_capture(capture)
@@ -76,7 +79,6 @@ class Viewer:
             raise
         self.config = site.make_config(self.material, graphs, shots, mode="served", title=f"torchmetal · {root.resolve().name}",
                                        preview=preview, preview_note=note)
-        from torchmetal.viewer.three import three_files
 
         self.assets = {}  # the 3D preview's files: served name -> path
         if preview is not None:
@@ -118,6 +120,7 @@ class Viewer:
 def _check_inputs(feeds: dict) -> None:
     import torch
 
+    # on use: loads torch (this module imports nothing heavy)
     from torchmetal.io.capture import check_light_camera
 
     check_light_camera(*(torch.from_numpy(feeds[k]) for k in ("light", "light_intensity", "camera")),

@@ -27,6 +27,14 @@ import os
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+from torchmetal.errors import ExportError, InputError, TorchmetalError
+from torchmetal.viewer import three
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports nothing heavy)
+    from torchmetal.io.capture import Capture
+    from torchmetal.material import Material
 
 CONFIG_FORMAT = "torchmetal-viewer"
 CONFIG_VERSION = 1
@@ -81,7 +89,7 @@ def export_graphs(material, out_dir: str | os.PathLike, *, reuse: Sequence[str |
     """
     import shutil
 
-    from torchmetal.errors import ExportError
+    # on use: loads torch (this module imports nothing heavy)
     from torchmetal.onnx_export import export_onnx, verify_onnx
     from torchmetal.renderer import MaterialRenderer
 
@@ -112,10 +120,8 @@ def export_graphs(material, out_dir: str | os.PathLike, *, reuse: Sequence[str |
     return graphs
 
 
-def shots_of(capture, material) -> list[dict]:
+def shots_of(capture: Capture, material: Material) -> list[dict]:
     """Config ``shots`` of a :class:`Capture` (light, intensity, camera, photo name)."""
-    from torchmetal.errors import InputError
-
     if tuple(capture.size) != tuple(material.size):
         raise InputError(f"capture: expected the material's surface {tuple(material.size)}, found {tuple(capture.size)}")
     out = []
@@ -130,8 +136,9 @@ def shots_of(capture, material) -> list[dict]:
     return out
 
 
-def photo_png(capture, k: int) -> bytes:
+def photo_png(capture: Capture, k: int) -> bytes:
     """Shot ``k`` of ``capture`` as 8-bit sRGB PNG bytes (linear clipped to [0, 1], then encoded)."""
+    # on use: loads torch (this module imports nothing heavy)
     from torchmetal.io.images import encode_image, linear_to_srgb
 
     img = capture.images[k].detach().cpu().float().clamp(0, 1)
@@ -141,11 +148,10 @@ def photo_png(capture, k: int) -> bytes:
 def write_preview(material, out_dir: str | os.PathLike) -> tuple[dict | None, str]:
     """The 3D preview's ``material.glb`` in ``out_dir`` (when three.js is installed); returns the
     config's (``preview``, ``preview_note``)."""
-    from torchmetal.errors import TorchmetalError
+    # on use: loads torch (this module imports nothing heavy)
     from torchmetal.formats.gltf import write_glb
-    from torchmetal.viewer.three import find_three
 
-    found = find_three()
+    found = three.find_three()  # looked up at call time: tests replace it
     if found is None:
         return None, "no 3D preview: three.js not found (run `npm ci` in the torchmetal repository)"
     try:
