@@ -59,13 +59,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchmetal.normals import estimate_normals
 from torchmetal.flakes.model import FlakeModel
 from torchmetal.formats.engine import engine_material, engine_render, reference_render
 from torchmetal.formats.gltf import write_engine
 from torchmetal.io.images import atomic_write_bytes, encode_image, linear_to_srgb
 from torchmetal.material import Material
 from torchmetal.metrics import psnr
+from torchmetal.normals import estimate_normals
 from torchmetal.synth import synth_capture
 from torchmetal.viewer.browser import CHROMIUM, launch_chromium, serve_folder
 from torchmetal.viewer.three import IMPORT_MAP, copy_three
