@@ -30,9 +30,20 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchmetal.errors import InputError
+from torchmetal.fit import FitResult, fit_phong
+from torchmetal.flakes.choice import choose_observed, keep_flakes
+from torchmetal.flakes.density_choice import choose_density_map
+from torchmetal.flakes.lobe_core import drop_core
+from torchmetal.flakes.null_test import drop_extended, glint_excess
+from torchmetal.flakes.observed import observed_flakes as measure_observed
 from torchmetal.flakes.prescreen import screen_fit
 from torchmetal.flakes.results import FlakeStageResult, Particles
+from torchmetal.flakes.rim import drop_rim
+from torchmetal.flakes.stage import detect_capture, flake_stage
+from torchmetal.flakes.texture import grown_detections, texture_without_glints
+from torchmetal.io.capture import Capture
 from torchmetal.material import Material
+from torchmetal.normals import with_normals
 
 FLAKE_MODES = ("auto", "on", "off")
 OBSERVED_MODES = ("auto", "on", "off")
@@ -46,8 +57,8 @@ class PipelineResult:
     """Outcome of :func:`fit_material`: the material plus the stage results behind it."""
 
     material: Material
-    fit: object  # torchmetal.fit.FitResult
-    flakes: object | None  # torchmetal.flakes.results.FlakeStageResult, None when the stage was off
+    fit: FitResult
+    flakes: FlakeStageResult | None  # None when the stage was off
     report: dict = field(default_factory=dict)
 
 
@@ -67,8 +78,6 @@ def _without_glints(capture, labels: torch.Tensor):
     Masking the pixel in every shot instead took the real card's foil out of its own specular fit (15 %
     of the pixels are detected in some shot): 1.4 dB lost on a left-out shot, for nothing gained on the
     zoo's flake scenes (coat PSNR away from the flakes equal to 0.001 dB)."""
-    from torchmetal.flakes.texture import grown_detections
-
     hit = grown_detections(labels)
     sat = capture.saturated if capture.saturated is not None else torch.zeros_like(capture.images, dtype=torch.bool)
     return replace(capture, saturated=sat | hit)
@@ -109,12 +118,6 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
                               f"{screen['pixels']} sampled pixels, above SNR {screen['snr']})"),
                   "screen": screen, "times": {"total": time.perf_counter() - t0}}
         return FlakeStageResult(None, Particles.empty(capture.images.device), report), fit, fit.texture
-    from torchmetal.flakes.lobe_core import drop_core
-    from torchmetal.flakes.null_test import drop_extended, glint_excess
-    from torchmetal.flakes.rim import drop_rim
-    from torchmetal.flakes.stage import detect_capture, flake_stage
-    from torchmetal.flakes.texture import texture_without_glints
-
     phong_images = render_shots(fit, capture)
     det = detect_capture(capture, phong_images)
     if len(det.particles) < CLEAN_MIN_PARTICLES:  # fewer particles than the statistics' minimum flake count
@@ -208,10 +211,13 @@ def fit_material(
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,
-        errors and the list of skipped stages.
-    """
-    from torchmetal.fit import fit_phong
+        errors, the list of skipped stages and every choice's ``Decision`` record ("decisions").
 
+    The stages run in order (:data:`STAGES`), each ``(capture, state) → (capture, state)``: normals,
+    the Phong fit, the flake stage, the material, then the flake choices (observed flakes, flakes or
+    none, the density map), each on shots left out; every choice's record ends in the report's "decisions"
+    (:func:`decision_records`).
+    """
     if flakes not in FLAKE_MODES:
         raise InputError(f"flakes: expected one of {FLAKE_MODES}, found {flakes!r}")
     mode = {True: "on", False: "off"}.get(observed_flakes, observed_flakes) if isinstance(observed_flakes, (bool, str)) else None
@@ -219,90 +225,155 @@ def fit_material(
         raise InputError(f"observed_flakes: expected one of {OBSERVED_MODES} or a bool, found {observed_flakes!r}")
     if weights not in WEIGHTS:
         raise InputError(f"weights: expected one of {WEIGHTS}, found {weights!r}")
-    auto = robust == "auto"
     t0 = time.perf_counter()
-    from torchmetal.normals import with_normals
-
-    capture, normals_report = with_normals(capture, normals, fit_kwargs=dict(tol=tol, max_iters=max_iters))
-    kw = dict(scheme=scheme, specular=specular, tol=tol, max_iters=max_iters, progress=progress,
-              noise_weights=weights == "noise")
-    fit = fit_phong(capture, robust=None if auto else robust, lobe=lobe, **kw)
-    first = fit  # the flake-free material's fit, should the flakes be dropped
-    kw["lobe"] = fit.lobe  # refits keep the lobe the first fit chose
-    lobe_selection = fit.lobe_selection
-    stage_times = {f"phong.{k}": v for k, v in fit.stage_times.items()}
-    skipped = list(fit.skipped)
-    flake_result = None
-    flake_model = None
-    if flakes == "off":
-        skipped.append("flakes: disabled by the caller")
-        stage_times["flakes"] = 0.0
-    else:
-        t = time.perf_counter()
-        two_fits = auto and scheme == "refine"
-        # the statistics' Huber refit keeps the first fit's specular structure (the trials of clusters and gloss
-        # maps again cost more than the rest of the refit); the coating's refit below chooses it again, glints out
-        same = {**kw, "specular": fit.specular if specular == "auto" else specular}
-        refit = (lambda: fit_phong(capture, robust=ROBUST_GLINTS, **same)) if two_fits else None
-        coat_fit = (lambda cap: fit_phong(cap, robust=None, **kw)) if two_fits else None
-        flake_result, coat, texture = _flake_stage(capture, fit, seed, refit, coat_fit)
-        stage_times["flakes"] = time.perf_counter() - t
-        flake_model = flake_result.model
-        if flake_model is not None:
-            if coat is not fit:
-                skipped.append(f"phong: refitted away from the detected glints (least squares); the flake statistics "
-                               f"use a {ROBUST_GLINTS}-weighted refit")
-            fit = replace(coat, texture=texture)  # the sparkles now carry the glints
-        else:
-            reason = flake_result.report.get("skipped", "detections consistent with noise")
-            skipped.append(f"flakes: {reason}")
-
-    def report_of(fit, skipped) -> dict:
-        return {
-            "stage_times": stage_times,
-            "skipped": skipped,
-            "status": fit.status,
-            "iterations": fit.iterations,
-            "rmse": fit.rmse,
-            "normals": normals_report,
-            "flakes": None if flake_result is None else flake_result.report,
-            "lobe": fit.lobe,
-            "lobe_selection": lobe_selection,
-        }
-
-    material = fit.to_material(report_extra=report_of(fit, skipped))
-    material.flakes = flake_model
-    if flake_model is not None:
-        from torchmetal.flakes.choice import choose_observed, keep_flakes
-        from torchmetal.flakes.observed import observed_flakes as measure
-
-        t = time.perf_counter()
-        observed_report = None
-        if mode == "on":  # the sample's own flakes, where the fit shots saw them
-            material.observed_flakes = measure(capture, flake_result.particles, flake_result.flake_id, flake_model)
-        elif mode == "auto":
-            material.observed_flakes, observed_report = choose_observed(capture, material, flake_result)
-            flake_result.report["observed_choice"] = observed_report
-        if mode != "off":
-            stage_times["flakes.observed"] = time.perf_counter() - t
-        if flakes == "auto":  # flakes or none: the left-out shots' sparkle statistics (MD) decide
-            t = time.perf_counter()
-            plain = first.to_material(report_extra=report_of(first, list(first.skipped)))
-            keep, flake_result.report["flakes_choice"] = keep_flakes(capture, material, plain, flake_result,
-                                                                      observed_report)
-            stage_times["flakes.choice"] = time.perf_counter() - t
-            if not keep:
-                flake_result.report["skipped"] = ("detections found, but not kept: "
-                                                  f"{flake_result.report['flakes_choice']['reason']}")
-                flake_result = replace(flake_result, model=None)
-                plain.report["skipped"].append(f"flakes: {flake_result.report['skipped']}")
-                fit, material = first, plain
-    if material.flakes is not None and flake_result is not None:  # glitter where it is: a density map, chosen left out
-        from torchmetal.flakes.density_choice import choose_density_map
-
-        t = time.perf_counter()
-        material.flakes, flake_result.report["density_map_choice"] = choose_density_map(capture, material, flake_result)
-        stage_times["flakes.density_map"] = time.perf_counter() - t
-    material.report["decisions"] = decision_records(first, fit, normals_report, flake_result)
+    opts = Options(scheme=scheme, specular=specular, flakes=flakes, tol=tol, max_iters=max_iters, robust=robust,
+                   seed=seed, observed=mode, progress=progress, lobe=lobe, normals=normals, weights=weights)
+    state = State(opts)
+    for stage in STAGES:
+        capture, state = stage(capture, state)
+    material = state.material
+    material.report["decisions"] = decision_records(state.first, state.fit, state.normals_report, state.flake_result)
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
-    return PipelineResult(material=material, fit=fit, flakes=flake_result, report=material.report)
+    return PipelineResult(material=material, fit=state.fit, flakes=state.flake_result, report=material.report)
+
+
+@dataclass
+class Options:
+    """:func:`fit_material`'s arguments, checked."""
+
+    scheme: str
+    specular: str
+    flakes: str
+    tol: float
+    max_iters: int
+    robust: str | None
+    seed: int
+    observed: str
+    progress: bool
+    lobe: str
+    normals: str
+    weights: str
+
+    def fit_kwargs(self) -> dict:
+        """:func:`~torchmetal.fit.fit_phong` arguments every fit of the run shares (``robust`` aside)."""
+        return dict(scheme=self.scheme, specular=self.specular, tol=self.tol, max_iters=self.max_iters,
+                    progress=self.progress, noise_weights=self.weights == "noise")
+
+
+@dataclass
+class State:
+    """What the stages have made so far."""
+
+    opts: Options
+    normals_report: dict | None = None
+    first: FitResult | None = None  # the first Phong fit: the flake-free material's
+    fit: FitResult | None = None  # the fit the material is made from
+    flake_result: FlakeStageResult | None = None
+    material: Material | None = None
+    stage_times: dict = field(default_factory=dict)
+    skipped: list = field(default_factory=list)
+
+    def report(self, fit: FitResult, skipped: list) -> dict:
+        """The material report's pipeline entries for ``fit`` (the stage times dict is shared and grows)."""
+        return {"stage_times": self.stage_times, "skipped": skipped, "status": fit.status,
+                "iterations": fit.iterations, "rmse": fit.rmse, "normals": self.normals_report,
+                "flakes": None if self.flake_result is None else self.flake_result.report, "lobe": fit.lobe,
+                "lobe_selection": self.first.lobe_selection}
+
+
+def stage_normals(capture: Capture, st: State) -> tuple[Capture, State]:
+    """The capture's normals: given, flat, estimated, or chosen on left-out shots ("auto")."""
+    capture, st.normals_report = with_normals(capture, st.opts.normals,
+                                              fit_kwargs=dict(tol=st.opts.tol, max_iters=st.opts.max_iters))
+    return capture, st
+
+
+def stage_phong(capture: Capture, st: State) -> tuple[Capture, State]:
+    """The first Phong fit (lobe, specular structure: chosen on left-out shots)."""
+    o = st.opts
+    st.first = st.fit = fit_phong(capture, robust=None if o.robust == "auto" else o.robust, lobe=o.lobe, **o.fit_kwargs())
+    st.stage_times.update({f"phong.{k}": v for k, v in st.first.stage_times.items()})
+    st.skipped = list(st.first.skipped)
+    return capture, st
+
+
+def stage_flakes(capture: Capture, st: State) -> tuple[Capture, State]:
+    """Detection, noise tests, the refits away from the glints and the flake statistics (:func:`_flake_stage`)."""
+    o = st.opts
+    if o.flakes == "off":
+        st.skipped.append("flakes: disabled by the caller")
+        st.stage_times["flakes"] = 0.0
+        return capture, st
+    t = time.perf_counter()
+    kw = {**o.fit_kwargs(), "lobe": st.first.lobe}  # refits keep the lobe the first fit chose
+    two_fits = o.robust == "auto" and o.scheme == "refine"
+    # the statistics' Huber refit keeps the first fit's specular structure (the trials of clusters and gloss
+    # maps again cost more than the rest of the refit); the coating's refit below chooses it again, glints out
+    same = {**kw, "specular": st.first.specular if o.specular == "auto" else o.specular}
+    refit = (lambda: fit_phong(capture, robust=ROBUST_GLINTS, **same)) if two_fits else None
+    coat_fit = (lambda cap: fit_phong(cap, robust=None, **kw)) if two_fits else None
+    st.flake_result, coat, texture = _flake_stage(capture, st.first, o.seed, refit, coat_fit)
+    st.stage_times["flakes"] = time.perf_counter() - t
+    if st.flake_result.model is not None:
+        if coat is not st.first:
+            st.skipped.append(f"phong: refitted away from the detected glints (least squares); the flake statistics "
+                              f"use a {ROBUST_GLINTS}-weighted refit")
+        st.fit = replace(coat, texture=texture)  # the sparkles now carry the glints
+    else:
+        st.skipped.append(f"flakes: {st.flake_result.report.get('skipped', 'detections consistent with noise')}")
+    return capture, st
+
+
+def stage_material(capture: Capture, st: State) -> tuple[Capture, State]:
+    """The material of the fit, with the flake model when the stage gave one."""
+    st.material = st.fit.to_material(report_extra=st.report(st.fit, st.skipped))
+    st.material.flakes = None if st.flake_result is None else st.flake_result.model
+    return capture, st
+
+
+def stage_observed(capture: Capture, st: State) -> tuple[Capture, State]:
+    """The sample's own flakes where the fit shots saw them: always ("on"), never, or where left-out shots
+    render better with them ("auto", :func:`~torchmetal.flakes.choice.choose_observed`)."""
+    mode, fr, m = st.opts.observed, st.flake_result, st.material
+    if m.flakes is None or mode == "off":
+        return capture, st
+    t = time.perf_counter()
+    if mode == "on":
+        m.observed_flakes = measure_observed(capture, fr.particles, fr.flake_id, m.flakes)
+    else:
+        m.observed_flakes, fr.report["observed_choice"] = choose_observed(capture, m, fr)
+    st.stage_times["flakes.observed"] = time.perf_counter() - t
+    return capture, st
+
+
+def stage_keep(capture: Capture, st: State) -> tuple[Capture, State]:
+    """flakes="auto": flakes or none, by the left-out shots' sparkle statistics (MD,
+    :func:`~torchmetal.flakes.choice.keep_flakes`); none gives the first fit's material, as flakes="off"."""
+    fr = st.flake_result
+    if st.material.flakes is None or st.opts.flakes != "auto":
+        return capture, st
+    t = time.perf_counter()
+    plain = st.first.to_material(report_extra=st.report(st.first, list(st.first.skipped)))
+    keep, fr.report["flakes_choice"] = keep_flakes(capture, st.material, plain, fr, fr.report.get("observed_choice"))
+    st.stage_times["flakes.choice"] = time.perf_counter() - t
+    if not keep:
+        fr.report["skipped"] = f"detections found, but not kept: {fr.report['flakes_choice']['reason']}"
+        st.flake_result = replace(fr, model=None)
+        plain.report["skipped"].append(f"flakes: {st.flake_result.report['skipped']}")
+        st.fit, st.material = st.first, plain
+    return capture, st
+
+
+def stage_density(capture: Capture, st: State) -> tuple[Capture, State]:
+    """Glitter where it is: a flake-density map, when left-out shots prefer it
+    (:func:`~torchmetal.flakes.density_choice.choose_density_map`)."""
+    m, fr = st.material, st.flake_result
+    if m.flakes is None or fr is None:
+        return capture, st
+    t = time.perf_counter()
+    m.flakes, fr.report["density_map_choice"] = choose_density_map(capture, m, fr)
+    st.stage_times["flakes.density_map"] = time.perf_counter() - t
+    return capture, st
+
+
+STAGES = (stage_normals, stage_phong, stage_flakes, stage_material, stage_observed, stage_keep, stage_density)
