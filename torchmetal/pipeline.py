@@ -6,20 +6,17 @@ stage returns no model and the material stores ``flakes: null``. Detections that
 tests but do not bring left-out shots' sparkle statistics closer give the flake-free material
 (:func:`~torchmetal.flakes.choice.keep_flakes`).
 
-The Phong fit is plain least squares by default (``robust="auto"``, ``weights="uniform"``): on the scene zoo
-(:mod:`torchmetal.synth.zoo`), Huber weights cost 0.1–0.3 dB against the clean truth on every
-flake-free scene. The flake stage first asks whether the detections are glints at all: misfit
-gives residuals of both signs, glints positive ones, so detections must exceed those of the
-mirrored residual (:func:`~torchmetal.flakes.null_test.glint_excess`), counting spots only (a sheen band,
-the streak of a highlight, the mask's rim are misfit). Only then is the Phong fit
-redone with Huber weights for the flake statistics (glints are outliers of the Phong model:
-without them the flake density came out up to 60 % high and the colour 30 % high), while the
-material's coating is refitted by least squares without the detected observations (glints seen
-again in a held-out shot had made a "glinty" specular cluster win the selection: 0.3 dB lost away
-from the flakes on the zoo's flakes_b), and before the flake statistics the
-texture under a first round of detections is re-solved without the shots where it glints
-(:mod:`torchmetal.flakes.texture`); otherwise the per-pixel texture absorbs part of every glint
-and the statistics see weakened glints.
+The Phong fit is plain least squares by default (``robust="auto"``, ``weights="uniform"``). The flake stage
+first asks whether the detections are glints at all: misfit gives residuals of both signs, glints positive
+ones, so detections must exceed those of the mirrored residual
+(:func:`~torchmetal.flakes.null_test.glint_excess`), counting spots only (a sheen band, the streak of a
+highlight, the mask's rim are misfit). Only then is the Phong fit redone with Huber weights for the flake
+statistics (glints are outliers of the Phong model), while the material's coating is refitted by least
+squares without the detected observations (glints seen again in a held-out shot would make a "glinty"
+specular cluster win the selection), and before the flake statistics the texture under the detections is
+re-solved without the shots where it glints (:mod:`torchmetal.flakes.texture`); otherwise the per-pixel
+texture absorbs part of every glint and the statistics see weakened glints. docs/design.md §6 has the
+measurements behind each step.
 """
 
 from __future__ import annotations
@@ -73,11 +70,8 @@ def render_shots(fit, capture, *, chunk: int = 4) -> torch.Tensor:
 
 def _without_glints(capture, labels: torch.Tensor):
     """The capture with every detected observation (a detection grown by 1 px, in the shot where it was
-    detected) left out of the fit, as a saturated one is; the pixel's other shots still count.
-
-    Masking the pixel in every shot instead took the real card's foil out of its own specular fit (15 %
-    of the pixels are detected in some shot): 1.4 dB lost on a left-out shot, for nothing gained on the
-    zoo's flake scenes (coat PSNR away from the flakes equal to 0.001 dB)."""
+    detected) left out of the fit, as a saturated one is; the pixel's other shots still count (masking the
+    pixel in every shot takes a foil out of its own specular fit: docs/design.md §6)."""
     hit = grown_detections(labels)
     sat = capture.saturated if capture.saturated is not None else torch.zeros_like(capture.images, dtype=torch.bool)
     return replace(capture, saturated=sat | hit)
@@ -195,8 +189,7 @@ def fit_material(
         seed: seed of the material's flake field.
         observed_flakes: keep the flakes the fit shots saw where they are
             (:mod:`torchmetal.flakes.observed`), the field filling the rest: "auto" when left-out
-            shots render better with them on PSNR and MD (:func:`~torchmetal.flakes.choice.choose_observed`;
-            zoo flakes_b: kept, +5.7 dB and MD 12.1 → 8.3 against the clean truth), "on"/True
+            shots render better with them on PSNR and MD (:func:`~torchmetal.flakes.choice.choose_observed`), "on"/True
             always, "off"/False never.
         progress: show progress bars.
         lobe: the specular lobe, "auto" (the default: chosen on held-out shots by the first fit,
