@@ -60,83 +60,16 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
     dt = compute_dtype(imgs)
     n_shots, _, h, w = imgs.shape
     stride = grid_stride(h, w, sub_pixels)
+    sel_stride = grid_stride(h, w, select_pixels)
     sub_tol = max(tol, 1e-4)
-    weigh = outliers is not None or robust is not None or noise
-
-    # 1. init on a small subsample: the paper's scheme (loose tolerance) + a coarse α grid
-    with run.stage("init"):
-        sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk)
-        sel_stride = grid_stride(h, w, select_pixels)
-        coarse = sub if sel_stride == stride else build_observations(capture, lobe=lobe, stride=sel_stride, dtype=dt, chunk=chunk)
-    if specular == "none":
-        glob = None
-        run.skipped.append("specular: disabled by the caller (specular='none')")
-    else:
-        if lobe == "phong":
-            with run.stage("paper"):
-                pf = paper_scheme(coarse, tol=max(tol, INIT_TOL), max_iters=min(max_iters, INIT_ITERS),
-                                  on_iter=lambda st, it, r, a: run.log(st, it, r, a, coarse.num_pixels))
-        with run.stage("init"):  # other lobes: no paper scheme (its control points are Phong's), a finer α grid
-            beta0 = grid_beta(coarse, 1, extra=pf.alpha.view(1, 3)) if lobe == "phong" else grid_beta(coarse, 1, grid=LOBE_GRID)
-            del coarse
-        # 2. variable projection on the subsample, then weights and a refit
-        with run.stage("refine"):
-            glob = fit_specular(sub, beta0, tol=sub_tol, max_iters=max_iters, on_iter=run.logger("refine.sub", sub.num_pixels))
+    grids = _Grids(stride, sel_stride, dt, chunk, lobe)
+    sub, glob = _initial_fit(capture, run, grids, specular=specular, tol=tol, sub_tol=sub_tol, max_iters=max_iters)
     weighting = None
-    if weigh:
-        with run.stage("refine"):
-            if glob is None:
-                glob0 = evaluate_specular(sub, torch.zeros(1, 3, dtype=torch.float64, device=imgs.device),
-                                          torch.ones(1, 3, dtype=torch.float64, device=imgs.device))
-            else:
-                glob0 = glob
-            floor = _sigma_floor(capture)
-            sigma = residual_scale(sub, glob0.s, glob0.alpha, glob0.eb).clamp_min(floor)
-            variance = noise_model(sub, glob0.s, glob0.alpha, glob0.eb, floor=floor**2) if noise else None
-            weighting = Weighting(sigma=sigma, robust=robust, outlier_k=outliers, variance=variance)
-            n_base = float(sub.n.sum())
-            for _ in range(2 if robust is not None else 1):
-                sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob0.s, glob0.alpha),
-                                         weighting=weighting)
-                if glob is None:
-                    break
-                glob = fit_specular(sub, torch.log(glob.alpha), tol=sub_tol, max_iters=max_iters,
-                                    on_iter=run.logger("refine.sub", sub.num_pixels))
-                glob0 = glob
-
-        if robust is None and outliers is not None:
-            frac = 1.0 - float(sub.n.sum()) / max(n_base, 1.0)
-            if frac < OUTLIER_SKIP:
-                run.skipped.append(f"outliers: {frac:.1e} of the subsample's observations beyond {outliers:g}·σ; "
-                                   "full-resolution outlier masking skipped")
-                weighting = None if weighting.variance is None else replace(weighting, outlier_k=None)
-
-    # 3. highlight evidence: in sample, then on a held-out shot (a sharp lobe can fit noise)
-    s_fixed = None
-    if glob is not None:
-        ev = evidence(glob)[0]
-        reason = None
-        if not bool(ev.any()):
-            one = " (one shot cannot separate diffuse and specular)" if n_shots == 1 else ""
-            frac = float(((glob.A - glob.cost) / glob.Y.clamp_min(1e-300)).max().clamp_min(0.0))
-            reason = (f"no highlight evidence{one}: the best specular term explains {frac:.1e} of the image energy "
-                      f"({float(glob.explained().max()):.1%} of the diffuse-only residual)")
-        elif n_shots >= 3:
-            with run.stage("select"):
-                ev_decision = heldout_evidence(capture, glob, stride=sel_stride, hold=_hold_shot(sub, glob),
-                                               tol=sub_tol, max_iters=max_iters, dtype=dt, chunk=chunk,
-                                               weighting=weighting)
-            run.decisions.append(ev_decision.to_dict())
-            if ev_decision.chosen != "specular":
-                reason = f"no highlight evidence on a held-out shot ({ev_decision.reason})"
-        if reason is not None:
-            run.skipped.append(f"specular: {reason}; s = 0")
-            glob = None
-        elif not bool(ev.all()):
-            chans = [c for c, e in zip("RGB", ev.tolist()) if not e]
-            run.skipped.append(f"specular: no highlight evidence in channel(s) {', '.join(chans)}; s = 0 there")
-            s_fixed = torch.where(ev, torch.full_like(glob.s[0], math.nan), torch.zeros_like(glob.s[0])).view(1, 3)
-
+    if outliers is not None or robust is not None or noise:
+        sub, glob, weighting = _weighted_refit(capture, run, grids, sub, glob, robust=robust, outliers=outliers,
+                                               noise=noise, sub_tol=sub_tol, max_iters=max_iters)
+    glob, s_fixed = _highlight_evidence(capture, run, grids, sub, glob, sub_tol=sub_tol, max_iters=max_iters,
+                                        weighting=weighting)
     # 4. global vs clustered
     sel: Selection | None = None
     if glob is not None and specular in ("auto", "clustered"):
@@ -170,6 +103,105 @@ def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robus
     else:
         spec = glob
     return SubsampleDecisions(spec, labeler, s_fixed, sel, use_maps, maps_info, weighting)
+
+
+@dataclass(frozen=True)
+class _Grids:
+    """The subsample's pixel strides and the observations' dtype, chunk size and lobe."""
+
+    stride: int  # the init / refine subsample
+    sel_stride: int  # the selection subsample
+    dtype: torch.dtype
+    chunk: int
+    lobe: str
+
+    def build(self, capture, stride: int, **kw) -> Observations:
+        return build_observations(capture, lobe=self.lobe, stride=stride, dtype=self.dtype, chunk=self.chunk, **kw)
+
+
+def _initial_fit(capture, run: FitRun, g: _Grids, *, specular, tol, sub_tol, max_iters) -> tuple[Observations, SpecFit | None]:
+    """1–2: the paper's scheme (loose tolerance) and a coarse α grid on the selection subsample, then the
+    variable projection on the subsample. Returns (subsample observations, global fit or None)."""
+    with run.stage("init"):
+        sub = g.build(capture, g.stride)
+        coarse = sub if g.sel_stride == g.stride else g.build(capture, g.sel_stride)
+    if specular == "none":
+        run.skipped.append("specular: disabled by the caller (specular='none')")
+        return sub, None
+    if g.lobe == "phong":
+        n_coarse = coarse.num_pixels
+        with run.stage("paper"):
+            pf = paper_scheme(coarse, tol=max(tol, INIT_TOL), max_iters=min(max_iters, INIT_ITERS),
+                              on_iter=lambda st, it, r, a: run.log(st, it, r, a, n_coarse))
+    with run.stage("init"):  # other lobes: no paper scheme (its control points are Phong's), a finer α grid
+        beta0 = grid_beta(coarse, 1, extra=pf.alpha.view(1, 3)) if g.lobe == "phong" else grid_beta(coarse, 1, grid=LOBE_GRID)
+        del coarse
+    with run.stage("refine"):
+        glob = fit_specular(sub, beta0, tol=sub_tol, max_iters=max_iters, on_iter=run.logger("refine.sub", sub.num_pixels))
+    return sub, glob
+
+
+def _weighted_refit(capture, run: FitRun, g: _Grids, sub: Observations, glob: SpecFit | None, *, robust, outliers,
+                    noise, sub_tol, max_iters) -> tuple[Observations, SpecFit | None, Weighting | None]:
+    """2b: residual scale (and noise model) at the subsample fit, the weighted observations and a refit.
+    Returns (observations, fit, weighting; None when outlier masking finds too few outliers to matter)."""
+    dev = capture.images.device
+    with run.stage("refine"):
+        if glob is None:
+            glob0 = evaluate_specular(sub, torch.zeros(1, 3, dtype=torch.float64, device=dev),
+                                      torch.ones(1, 3, dtype=torch.float64, device=dev))
+        else:
+            glob0 = glob
+        floor = _sigma_floor(capture)
+        sigma = residual_scale(sub, glob0.s, glob0.alpha, glob0.eb).clamp_min(floor)
+        variance = noise_model(sub, glob0.s, glob0.alpha, glob0.eb, floor=floor**2) if noise else None
+        weighting = Weighting(sigma=sigma, robust=robust, outlier_k=outliers, variance=variance)
+        n_base = float(sub.n.sum())
+        for _ in range(2 if robust is not None else 1):
+            sub = g.build(capture, g.stride, ref=Reference(glob0.s, glob0.alpha), weighting=weighting)
+            if glob is None:
+                break
+            glob = fit_specular(sub, torch.log(glob.alpha), tol=sub_tol, max_iters=max_iters,
+                                on_iter=run.logger("refine.sub", sub.num_pixels))
+            glob0 = glob
+    if robust is None and outliers is not None:
+        frac = 1.0 - float(sub.n.sum()) / max(n_base, 1.0)
+        if frac < OUTLIER_SKIP:
+            run.skipped.append(f"outliers: {frac:.1e} of the subsample's observations beyond {outliers:g}·σ; "
+                               "full-resolution outlier masking skipped")
+            weighting = None if weighting.variance is None else replace(weighting, outlier_k=None)
+    return sub, glob, weighting
+
+
+def _highlight_evidence(capture, run: FitRun, g: _Grids, sub: Observations, glob: SpecFit | None, *, sub_tol, max_iters,
+                        weighting) -> tuple[SpecFit | None, Tensor | None]:
+    """3: highlight evidence, in sample, then on a held-out shot (a sharp lobe can fit noise).
+    Returns (the global fit, None without evidence; ``s_fixed`` (1, 3): 0 in channels without evidence)."""
+    if glob is None:
+        return None, None
+    n_shots = int(capture.images.shape[0])
+    ev = evidence(glob)[0]
+    reason = None
+    if not bool(ev.any()):
+        one = " (one shot cannot separate diffuse and specular)" if n_shots == 1 else ""
+        frac = float(((glob.A - glob.cost) / glob.Y.clamp_min(1e-300)).max().clamp_min(0.0))
+        reason = (f"no highlight evidence{one}: the best specular term explains {frac:.1e} of the image energy "
+                  f"({float(glob.explained().max()):.1%} of the diffuse-only residual)")
+    elif n_shots >= 3:
+        with run.stage("select"):
+            ev_decision = heldout_evidence(capture, glob, stride=g.sel_stride, hold=_hold_shot(sub, glob), tol=sub_tol,
+                                           max_iters=max_iters, dtype=g.dtype, chunk=g.chunk, weighting=weighting)
+        run.decisions.append(ev_decision.to_dict())
+        if ev_decision.chosen != "specular":
+            reason = f"no highlight evidence on a held-out shot ({ev_decision.reason})"
+    if reason is not None:
+        run.skipped.append(f"specular: {reason}; s = 0")
+        return None, None
+    if bool(ev.all()):
+        return glob, None
+    chans = [c for c, e in zip("RGB", ev.tolist()) if not e]
+    run.skipped.append(f"specular: no highlight evidence in channel(s) {', '.join(chans)}; s = 0 there")
+    return glob, torch.where(ev, torch.full_like(glob.s[0], math.nan), torch.zeros_like(glob.s[0])).view(1, 3)
 
 
 def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, sub, sel_stride, tol, max_iters, dt, chunk,
