@@ -42,3 +42,18 @@ def test_floor_keeps_the_reference_against_rounding_gains():
     assert paired_choice("clusters", {"global": ref, "K=2": better}, "global").chosen == "K=2"
     d = paired_choice("clusters", {"global": ref, "K=2": better}, "global", floor=1e-9)
     assert d.chosen == "global" and d.z["K=2"] > 4
+
+
+def test_a_decisive_gain_on_few_observations_wins():
+    """A sharp highlight: 4 of 4000 held-out observations carry the whole difference, so z ≈ 2 whatever
+    the gain; halving the MSE (here ÷ 1000) is decisive. A small sparse gain is not."""
+    g = torch.Generator().manual_seed(3)
+    ref = 1e-6 * torch.rand(4000, dtype=torch.float64, generator=g)
+    ref[:4] = 1.0
+    cand = ref.clone()
+    cand[:4] = 1e-6
+    d = paired_choice("specular evidence", {"diffuse": ref, "specular": cand}, "diffuse")
+    assert d.z["specular"] < 4 and d.chosen == "specular"
+    small = ref.clone()
+    small[:4] = 0.9
+    assert paired_choice("specular evidence", {"diffuse": ref, "specular": small}, "diffuse").chosen == "diffuse"

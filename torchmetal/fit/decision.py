@@ -7,6 +7,11 @@ pixels, same shots, same noise) and pair up element by element: the paired diffe
 standard error, z, measures a gain against that noise. A candidate replaces the reference (the simpler
 model) when z > ``z_min`` and its MSE is lower by at least ``min_gain`` (and by ``floor`` in absolute terms:
 rounding noise, :data:`MIN_GAIN_ABS` of the held-out signal's mean square); among several, the lowest MSE.
+
+A gain carried by a few observations has a small z whatever its size (k equal gains among M observations
+give z ≈ √k): a sharp highlight covers a handful of a held-out shot's pixels. So a candidate that at least
+halves the reference's MSE (:data:`DECISIVE`) wins with any z > 0 — fitted noise does not predict a shot it
+never saw, let alone halve its error.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from torch import Tensor
 
 Z_MIN = 4.0  # the gain over the reference must exceed 4 standard errors of the paired difference …
 MIN_GAIN = 5e-4  # … and lower the held-out MSE by 0.05 %
+DECISIVE = 0.5  # … or at most this fraction of the reference's MSE (any z > 0; see the module docstring)
 MIN_GAIN_ABS = 1e-8  # … and by 1e-8 of the held-out mean square (−80 dB: not float rounding), where a caller gives it
 
 
@@ -69,12 +75,13 @@ def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: floa
     for k, e in errors.items():
         if k != ref:
             d.z[k] = paired_z(e, errors[ref])
-    wins = [k for k in d.z if d.z[k] > z_min and d.mse[k] < (1.0 - min_gain) * d.mse[ref] - floor]
+    beyond = {k: d.z[k] > z_min or (d.z[k] > 0 and d.mse[k] <= DECISIVE * d.mse[ref]) for k in d.z}
+    wins = [k for k in d.z if beyond[k] and d.mse[k] < (1.0 - min_gain) * d.mse[ref] - floor]
     d.chosen = min(wins, key=d.mse.get) if wins else ref
     others = ", ".join(f"{k} {d.mse[k]:.4g} (z {d.z[k]:.1f})" for k in d.z)
     if d.chosen != ref:
         d.reason = f"{d.chosen} lowers the held-out MSE beyond noise: {ref} {d.mse[ref]:.4g}, {others}"
     else:
         d.reason = (f"held-out MSE: {ref} {d.mse[ref]:.4g}, {others}: nothing lower beyond noise "
-                    f"(z > {z_min:g} and {min_gain:.2%}); {ref} kept")
+                    f"(z > {z_min:g} or half the MSE, and {min_gain:.2%}); {ref} kept")
     return d
