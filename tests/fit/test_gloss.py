@@ -73,7 +73,9 @@ def test_auto_keeps_global_on_a_uniform_sample():
     cap = synth(size=32, shots=10, seed=1, noise=0.01).capture
     res = fit_phong(cap)
     assert res.specular == "global" and res.gloss_s is None
-    assert any(s.startswith("gloss maps: not kept") for s in res.skipped), res.skipped
+    records = {d["name"]: d for d in res.decisions}
+    assert res.maps_selection["kept"] is False and records["gloss maps"]["chosen"] == "base", res.skipped
+    assert "gloss maps" in res.skips
 
 
 def _choose(cap, force=False):

@@ -58,7 +58,7 @@ def test_no_associated_detections_keep_the_field():
     res = SimpleNamespace(particles=_particles([0], [5.0], [5.0]), flake_id=torch.tensor([-1]),
                           model=FlakeModel(density=0.01, glint_sigma=0.05))
     obs, rep = choose_observed(cap, None, res)
-    assert obs is None and not rep["kept"] and rep["reason"] == "no associated detections"
+    assert obs is None and not rep["kept"] and not rep["held"] and "decision" not in rep  # no left-out test
 
 
 def test_bad_mode_is_one_line_error():
@@ -94,7 +94,8 @@ def test_keep_flakes_when_left_out_md_is_no_higher(monkeypatch, flake_md, kept):
     keep, rep = keep_flakes(_capture(), material, plain, None, oc)
     assert keep is kept and rep["kept"] is kept and rep["held"] == [3, 1]
     assert [r["md"] for r in rep["none"]] == [25.0, 15.0]
-    assert "MD" in rep["reason"]
+    d = rep["decision"]  # MD decides: the only score in the record
+    assert d["chosen"] == ("flakes" if kept else "none") and set(d["scores"]["flakes"]) == set(d["scores"]["none"]) == {"md"}
 
 
 def test_keep_flakes_scores_its_own_left_out_shots(monkeypatch):
@@ -121,7 +122,7 @@ def test_keep_flakes_scores_its_own_left_out_shots(monkeypatch):
 def test_keep_flakes_without_associated_detections_keeps():
     res = SimpleNamespace(particles=_particles([0], [5.0], [5.0]), flake_id=torch.tensor([-1]), model=None)
     keep, rep = keep_flakes(_capture(), SimpleNamespace(observed_flakes=None), None, res, None)
-    assert keep and "no associated detections" in rep["reason"]
+    assert keep and not rep["held"] and "decision" not in rep  # no shot to leave out: kept untested
 
 
 def test_images_too_small_for_md_keep_the_flakes_and_the_field():
@@ -130,6 +131,6 @@ def test_images_too_small_for_md_keep_the_flakes_and_the_field():
     res = SimpleNamespace(particles=_particles([0, 1], [5.0, 5.0], [5.0, 5.0]), flake_id=torch.tensor([0, 0]),
                           model=FlakeModel(density=0.01, glint_sigma=0.05))
     keep, rep = keep_flakes(cap, _Tagged("flaky"), _Tagged("plain"), res, None)
-    assert keep and "too small" in rep["reason"]
+    assert keep and not rep["held"] and "decision" not in rep
     obs, rep = choose_observed(cap, _Tagged("flaky"), res)
-    assert obs is None and "too small" in rep["reason"]
+    assert obs is None and not rep["held"] and "decision" not in rep

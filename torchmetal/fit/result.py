@@ -27,6 +27,17 @@ class IterationCounts(dict):
         return int(sum(int(v) for v in self.values()))
 
 
+def skip_stages(skipped: list[str]) -> dict[str, str]:
+    """Stage → why, from a report's ``skipped`` list (each entry reads "stage: why"): the stable key of each
+    entry, for code that asks *what* was skipped rather than reading the sentence. A stage named twice keeps
+    both reasons, joined by "; "."""
+    out: dict[str, str] = {}
+    for entry in skipped:
+        stage, _, why = entry.partition(": ")
+        out[stage] = f"{out[stage]}; {why}" if stage in out else why
+    return out
+
+
 class ClusteredPhongModel(nn.Module):
     """Trainable Phong material with per-cluster specular: texture, cluster s and log α (K, 3).
 
@@ -70,7 +81,8 @@ class FitResult:
         normals: (3, H, W) the capture's normals; size: (width, height).
         history: one dict per iteration: stage, iter, rmse, active (+ pixels on subsamples).
         stage_times: seconds per stage; iterations: per stage (``int()`` gives the total).
-        status: "converged" | "max_iters" | "skipped"; skipped: what was not needed and why.
+        status: "converged" | "max_iters" | "skipped"; skipped: what was not needed and why, one
+            "stage: why" sentence each (``skips``: the same as a dict stage → why).
         rmse: final root-mean-square residual over the valid observations.
         scheme, specular: what ran ("paper"/"refine"; "global"/"clustered"/"none").
         selection: the held-out comparison behind specular="auto"/"clustered", if any.
@@ -112,6 +124,11 @@ class FitResult:
     @property
     def clustered(self) -> bool:
         return self.spec_labels is not None
+
+    @property
+    def skips(self) -> dict[str, str]:
+        """``skipped`` keyed by stage (:func:`skip_stages`): ``"specular" in fit.skips``."""
+        return skip_stages(self.skipped)
 
     def specular_maps(self) -> tuple[Tensor, Tensor]:
         """s and α as (3,) globals or, when clustered or with gloss maps, (3, H, W) maps."""

@@ -301,6 +301,7 @@ def flake_statistics(
     report = {"particles": len(p), "clipped_particles": int((~keep).sum()), "flakes_detected": count,
               "expected_false_alarms": false_alarms}
     threshold = max(min_flakes, 5.0 * false_alarms)
+    report["flakes_needed"] = threshold  # fewer associated detections: consistent with noise, skipped
     if count < threshold:
         report["skipped"] = f"{count} associated detections, fewer than {threshold:.3g} expected from real flakes (consistent with noise)"
         report["times"] = times
