@@ -12,6 +12,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     """Serve until Ctrl-C, then end the process (exit status 0); a bad argument raises before serving (the CLI's
     one-line error, exit 2)."""
     import os
+    import signal
     import sys
 
     # on use: a verb module imports only argparse at the top (CLI start-up)
@@ -29,15 +30,17 @@ def cmd_view(args: argparse.Namespace) -> int:
         import webbrowser
 
         webbrowser.open(server.url)
+    # Ctrl-C stops it even when started with SIGINT ignored (a background job of a non-interactive shell: Python
+    # then keeps SIG_IGN and never raises KeyboardInterrupt, and the server ran on after Ctrl-C)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         server.serve_forever()
     except KeyboardInterrupt:
         print("stopped", file=sys.stderr)
     finally:
         server.close()
-    # Served until Ctrl-C: end the process here. Its request threads are daemons and onnxruntime's thread pools
-    # outlive the sessions; interpreter teardown with them has hung past 90 s in two full test-suite runs on a
-    # loaded machine (never alone), while everything this verb owns is closed above.
+    # Served until Ctrl-C: end the process here (its request threads are daemons and onnxruntime's thread pools
+    # outlive the sessions; everything this verb owns is closed above).
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(0)
