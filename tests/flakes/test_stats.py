@@ -104,7 +104,7 @@ def data(small):
     h, w = det.signal.shape[-2:]
     fid, count = association.associate(det.particles, h, w)
     obs = association.observe(det, fid, count, geo)
-    gh, gn, gs, ga, _ = visibility._grid(det, geo, 36, association.measurable(det))
+    gh, gn, gs, ga, _ = visibility.cell_grid(det, geo, 36, association.measurable(det))
     return glint_model.GlintData(
         half=obs.half.double(), normal=obs.normal.double(), anchor=obs.anchor, amp=obs.amp.double(),
         detected=obs.detected, sigma=obs.sigma.double(), grid_half=gh, grid_normal=gn, grid_sigma=gs,
@@ -132,10 +132,10 @@ class TestLikelihood:
         # outlier mix: which far shots are included changes with the parameters
         z = torch.tensor([-50.0, 0.0, 50.0])
         no = torch.zeros(3, dtype=torch.bool)
-        lp = glint_model._log_detect(z, 5.0, no, outlier=0.02)
+        lp = glint_model.log_detect(z, 5.0, no, outlier=0.02)
         assert float(lp[0]) == pytest.approx(0.0, abs=1e-9)
         assert float(lp[2]) == pytest.approx(math.log(0.01 / 0.99), rel=1e-3)  # a certain miss: bounded
-        assert float(glint_model._log_detect(z, 5.0, ~no, outlier=0.02)[0]) == pytest.approx(math.log(0.01), rel=1e-3)
+        assert float(glint_model.log_detect(z, 5.0, ~no, outlier=0.02)[0]) == pytest.approx(math.log(0.01), rel=1e-3)
 
     def test_extra_far_shot_leaves_numerator_unchanged(self, data):
         p = {k: v.double() for k, v in PARAMS.items()}
@@ -160,10 +160,10 @@ class TestLikelihood:
         )
         got = likelihood.log_numerator(one, p["tau"], p["sg"], p["la"], p["va"], n_a=4, n_phi=8)
         j = one.amp.shape[0]
-        qa, phi = glint_model._ring_nodes(4, 8, torch.float64, "cpu")
+        qa, phi = glint_model.ring_nodes(4, 8, torch.float64, "cpu")
         h = one.half[:, 0]
-        e1, e2 = glint_model._frame(h)
-        t1, t2 = glint_model._frame(one.normal)
+        e1, e2 = glint_model.orthonormal_pair(h)
+        t1, t2 = glint_model.orthonormal_pair(one.normal)
         la_hat = torch.log(one.amp)
         z0 = (la_hat - p["la"]) / p["va"]
         tail = torch.exp(torch.special.log_ndtr(-z0)).unsqueeze(1) * (1 - qa)
@@ -183,7 +183,7 @@ class TestLikelihood:
         gen = torch.Generator().manual_seed(0)
         mu = torch.randn(samples, 2, generator=gen, dtype=torch.float64) * tau
         n = d.grid_normal[cell]
-        t1, t2 = glint_model._frame(n)
+        t1, t2 = glint_model.orthonormal_pair(n)
         m = n + mu[:, :1] * t1 + mu[:, 1:] * t2
         mh = (m / m.norm(dim=-1, keepdim=True)) @ d.grid_half[cell].t()  # (S, N)
         floor = glint_model.log_amp_floor(d)

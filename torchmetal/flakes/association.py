@@ -139,7 +139,7 @@ def measurable(det: Detection, radius: int = CLIP_RADIUS) -> Tensor:
     return (near == 0).expand(n, -1, -1)
 
 
-def _particle_pixels(p: Particles, h: int, w: int) -> tuple[Tensor, Tensor]:
+def particle_pixels(p: Particles, h: int, w: int) -> tuple[Tensor, Tensor]:
     """Row and column (P,) of the pixel holding each particle's centroid, inside an H×W image."""
     return p.cy.floor().long().clamp(0, h - 1), p.cx.floor().long().clamp(0, w - 1)
 
@@ -158,7 +158,7 @@ def observe(det: Detection, flake_id: Tensor, count: int, geometry: Geometry, ok
     fid, shot = flake_id[rows], p.shot[rows]
     anchor_p = rows[regions.segment_argmax(fid, p.snr[rows].double(), count)]
     a = p.select(anchor_p)
-    row, col = _particle_pixels(a, h, w)
+    row, col = particle_pixels(a, h, w)
     detected = torch.zeros(count, n_shots, dtype=torch.bool, device=row.device)
     detected[fid, shot] = True
     # flux/peak area on the anchor, with a ring background around the particle (radius 5 patch)

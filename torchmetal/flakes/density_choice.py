@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.fit.decision import Decision
-from torchmetal.flakes.choice import HELD, MD_WINDOW, _held_shots, _mean, _observed_without
+from torchmetal.flakes.choice import HELD, MD_WINDOW, held_shots, mean_score, observed_without
 from torchmetal.flakes.density_map import DETECT_MODES, estimate_map, with_map
 from torchmetal.flakes.field import map_blocks
 from torchmetal.flakes.filters import box_mean
@@ -123,7 +123,7 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
         return model, rep
     parts = flake_result.particles
     rep["folds"] = []
-    for k in _held_shots(parts, fid, capture.num_shots, held):
+    for k in held_shots(parts, fid, capture.num_shots, held):
         others = [i for i in range(capture.num_shots) if i != k]
         maps = {f"map:{m}": estimate_map(capture, model, parts, fid, others, mode=m) for m in DETECT_MODES}
         if any(dm is None or dm.uniform for dm in maps.values()):
@@ -131,7 +131,7 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
             continue
         base = material
         if material.observed_flakes is not None:
-            base = replace(material, observed_flakes=_observed_without(capture, parts, fid, model, k))
+            base = replace(material, observed_flakes=observed_without(capture, parts, fid, model, k))
         grid = maps["map:glint"].grid
         rep["held"].append(k)
         rep["per_shot"]["uniform"].append(score_shot(base, capture, k, grid))
@@ -141,7 +141,7 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
     if not rep["held"]:
         rep["reason"] = "no left-out shot gave a non-uniform map (too few flakes, one block, or Poisson-like counts)"
         return model, rep
-    rep["scores"] = {c: {"md": _mean(rep["per_shot"][c], "md"), "block_error": _mean(rep["per_shot"][c], "block_error")}
+    rep["scores"] = {c: {"md": mean_score(rep["per_shot"][c], "md"), "block_error": mean_score(rep["per_shot"][c], "block_error")}
                      for c in cands}
     uni = rep["scores"]["uniform"]
     def beats(v: dict) -> bool:  # no worse on both scores, better on one (a tie keeps the simpler model)

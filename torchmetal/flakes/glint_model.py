@@ -5,7 +5,7 @@ h_k(p) at its position, with glint strength g_k = exp(−|m − h_k|²/(2σ_g²)
 exp(−(1 − m·h_k)/σ_g²). Its slope μ (m ∝ n + μ₁t₁ + μ₂t₂, the :func:`flake_field` draw) is
 N(0, τ²I); its peak glint amplitude A (channel mean, reflectance units) is log-normal.
 The detector fires when A·g_k exceeds T_k = k_hi·σ_k(p); with pixel noise σ_k that happens
-with probability Φ(A·g_k/σ_k − k_hi) (used in its logistic form σ(1.702·z), :func:`_log_detect`).
+with probability Φ(A·g_k/σ_k − k_hi) (used in its logistic form σ(1.702·z), :func:`log_detect`).
 
 Held here: the data the likelihood reads (:class:`GlintData`) and the fitted parameters
 (:class:`GlintFit`); the slope density p_τ(m), N(μ; 0, τ²I) times the gnomonic Jacobian
@@ -26,10 +26,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-_LOG2PI = math.log(2.0 * math.pi)
+LOG2PI = math.log(2.0 * math.pi)
 
 
-def _frame(v: Tensor) -> tuple[Tensor, Tensor]:
+def orthonormal_pair(v: Tensor) -> tuple[Tensor, Tensor]:
     """Two unit vectors orthogonal to unit v (..., 3) and to each other."""
     ex = torch.zeros_like(v)
     ex[..., 0] = 1.0
@@ -43,23 +43,23 @@ def _frame(v: Tensor) -> tuple[Tensor, Tensor]:
 
 def _log_slope_density(m: Tensor, n: Tensor, t1: Tensor, t2: Tensor, tau: Tensor) -> Tensor:
     """log of N(μ; 0, τ²I)/(m·n)³ for unit m (..., 3); −inf where m·n ≤ 0.05."""
-    return _log_slope_from((m * n).sum(-1), (m * t1).sum(-1), (m * t2).sum(-1), tau)
+    return log_slope_from((m * n).sum(-1), (m * t1).sum(-1), (m * t2).sum(-1), tau)
 
 
-def _log_slope_from(mn: Tensor, m1: Tensor, m2: Tensor, tau: Tensor) -> Tensor:
+def log_slope_from(mn: Tensor, m1: Tensor, m2: Tensor, tau: Tensor) -> Tensor:
     """:func:`_log_slope_density` from the projections m·n, m·t1, m·t2 (all (...,))."""
     ok = mn > 0.05
     mn_s = torch.where(ok, mn, torch.ones_like(mn))
     mu1 = m1 / mn_s
     mu2 = m2 / mn_s
-    val = -(mu1 * mu1 + mu2 * mu2) / (2 * tau * tau) - _LOG2PI - 2 * torch.log(tau) - 3 * torch.log(mn_s)
+    val = -(mu1 * mu1 + mu2 * mu2) / (2 * tau * tau) - LOG2PI - 2 * torch.log(tau) - 3 * torch.log(mn_s)
     return torch.where(ok, val, torch.full_like(val, -1e4))
 
 
-_PROBIT = 1.702  # logistic ≈ probit: |σ(1.702 z) − Φ(z)| < 0.01, and far cheaper than log_ndtr
+PROBIT = 1.702  # logistic ≈ probit: |σ(1.702 z) − Φ(z)| < 0.01, and far cheaper than log_ndtr
 
 
-def _log_detect(a_over_sigma: Tensor, k_hi: float, detected: Tensor, outlier: float = 0.0) -> Tensor:
+def log_detect(a_over_sigma: Tensor, k_hi: float, detected: Tensor, outlier: float = 0.0) -> Tensor:
     """log P(detected or not), P(detected) = Φ(A·g/σ − k_hi) in its logistic form.
 
     With ``outlier`` = ε the probability is mixed with a coin flip, (1 − ε)·P + ε/2, so one
@@ -69,7 +69,7 @@ def _log_detect(a_over_sigma: Tensor, k_hi: float, detected: Tensor, outlier: fl
     with the parameters) then cannot make the likelihood jump. (Detected shots are always
     included, so their constant does not depend on the parameters.)
     """
-    z = _PROBIT * (a_over_sigma - k_hi)
+    z = PROBIT * (a_over_sigma - k_hi)
     lp = F.logsigmoid(torch.where(detected, z, -z))
     if outlier > 0:
         lp = torch.logaddexp(lp + math.log1p(-outlier), torch.full_like(lp, math.log(0.5 * outlier)))
@@ -114,25 +114,25 @@ def nearest_shots(half: Tensor, first: Tensor, k: int, prefer: Tensor | None = N
     return dist.topk(min(k, half.shape[-2]), dim=-1, largest=False).indices
 
 
-def _overlap_count(centres: Tensor, half: Tensor, angle: float) -> int:
+def overlap_count(centres: Tensor, half: Tensor, angle: float) -> int:
     """Largest number of shots (of half (R, N, 3)) within ``angle`` of a centre (R, M, 3)."""
     cos = torch.einsum("rmc,rnc->rmn", centres, half)
     return max(1, int((cos > math.cos(min(angle, math.pi))).sum(-1).max()))
 
 
-def _cap_radius(sg: Tensor, log_a_max: float, sigma_min: float, level: float) -> float:
+def cap_radius(sg: Tensor, log_a_max: float, sigma_min: float, level: float) -> float:
     """Largest angular radius of a glint cap: 1 − cos β = σ_g² ln(A_max / (level·σ_min))."""
     u = float(sg.detach()) ** 2 * max(0.0, log_a_max - math.log(level * sigma_min))
     return math.acos(max(-1.0, 1.0 - min(u, 1.9)))
 
 
-def _ring_nodes(n_a: int, n_phi: int, dtype, device) -> tuple[Tensor, Tensor]:
+def ring_nodes(n_a: int, n_phi: int, dtype, device) -> tuple[Tensor, Tensor]:
     qa = (torch.arange(n_a, dtype=dtype, device=device) + 0.5) / n_a
     phi = 2 * math.pi * (torch.arange(n_phi, dtype=dtype, device=device) + 0.5) / n_phi
     return qa, phi
 
 
-def _memo(d: GlintData, key: tuple, make):
+def memo(d: GlintData, key: tuple, make):
     """Parameter-free tensors of ``d`` (frames, projections, shot orders), computed once per
     GlintData object (treated as immutable): the fit evaluates the likelihood ~20 times on
     the same data."""
@@ -158,7 +158,7 @@ def log_amp_floor(d: GlintData) -> float:
     return math.log(FLOOR_LEVEL * float(d.grid_sigma.double().min()))
 
 
-def _tail_nodes(la: Tensor, va: Tensor, log_lo: Tensor, qa: Tensor, log_floor: float) -> tuple[Tensor, Tensor]:
+def tail_nodes(la: Tensor, va: Tensor, log_lo: Tensor, qa: Tensor, log_floor: float) -> tuple[Tensor, Tensor]:
     """Quantile nodes of log A ~ N(la, va²) truncated to log A > max(log_lo, log_floor).
 
     Args:

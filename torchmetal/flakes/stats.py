@@ -27,14 +27,14 @@ from torch import Tensor
 
 from torchmetal import lbfgs
 from torchmetal.errors import InputError, MaterialError
-from torchmetal.flakes.association import FlakeObservations, _particle_pixels, associate, measurable, observe
+from torchmetal.flakes.association import FlakeObservations, associate, measurable, observe, particle_pixels
 from torchmetal.flakes.detect import Detection
-from torchmetal.flakes.glint_model import GlintData, GlintFit, _frame, log_amp_floor
-from torchmetal.flakes.likelihood import _objective
+from torchmetal.flakes.glint_model import GlintData, GlintFit, log_amp_floor, orthonormal_pair
+from torchmetal.flakes.likelihood import objective
 from torchmetal.flakes.model import MAX_DENSITY, MIN_CELL, FlakeModel
 from torchmetal.flakes.shape_colour import fit_colour, fit_shapes
 from torchmetal.flakes.shot_geometry import Geometry
-from torchmetal.flakes.visibility import _grid
+from torchmetal.flakes.visibility import cell_grid
 
 TILT_RANGE = (0.01, 1.5)  # radians: the flake-normal slope spread the model can hold (a best point at the
 # upper bound after DEGENERATE_AFTER evaluations is no flake layer: the likelihood stops, no model)
@@ -139,7 +139,7 @@ def fit_glints(
     init = dict(init or {})
     if "tau" not in init:  # detected flakes have m ≈ h*: the RMS slope of h* is a fair start
         h_star = d.half[torch.arange(j, device=dev), d.anchor]
-        t1, t2 = _frame(d.normal)
+        t1, t2 = orthonormal_pair(d.normal)
         hn = (h_star * d.normal).sum(-1).clamp_min(0.05)
         sl2 = (((h_star * t1).sum(-1) / hn) ** 2 + ((h_star * t2).sum(-1) / hn) ** 2).mean()
         init["tau"] = float(torch.sqrt(0.5 * sl2).clamp(0.02, 1.0))
@@ -161,7 +161,7 @@ def fit_glints(
 
     def value_grad(t: Tensor, data_sub: GlintData) -> tuple[Tensor, Tensor, Tensor]:
         t = t.detach().clone().requires_grad_(True)
-        loss, expected = _objective(grid, data_sub, t, prior, nodes)
+        loss, expected = objective(grid, data_sub, t, prior, nodes)
         evals[0] += 1
         return loss.detach(), expected.detach(), torch.autograd.grad(loss, t)[0]
 
@@ -199,7 +199,7 @@ def fit_glints(
             z = z.detach().requires_grad_(True)
             with torch.enable_grad():  # θ projected onto the box: no gradient pushes past a bound
                 theta = torch.minimum(torch.maximum(start + z, lo), hi)
-                loss, expected = _objective(grid, sub, theta, prior, nodes)
+                loss, expected = objective(grid, sub, theta, prior, nodes)
                 g = torch.autograd.grad(loss, z)[0].masked_fill(~free, 0.0)
             evals[0] += 1
             value = float(loss.detach())
@@ -291,7 +291,7 @@ def flake_statistics(
         raise InputError(f"geometry: expected {n} shots to match the detection, found {geometry.lights.shape[0]}")
     p = det.particles
     ok = measurable(det)
-    row, col = _particle_pixels(p, h, w)
+    row, col = particle_pixels(p, h, w)
     keep = ok[p.shot, row, col]
     flake_id = torch.full((len(p),), -1, dtype=torch.int64, device=p.shot.device)
     flake_id[keep], count = associate(p.select(keep), h, w, assoc_radius)
@@ -309,7 +309,7 @@ def flake_statistics(
     obs = observe(det, flake_id, count, geometry, ok)
     times["measure"] = time.perf_counter() - t1
     t2 = time.perf_counter()
-    g_half, g_normal, g_sigma, g_area, g_valid = _grid(det, geometry, max_cells, ok)
+    g_half, g_normal, g_sigma, g_area, g_valid = cell_grid(det, geometry, max_cells, ok)
     data = GlintData(
         half=obs.half.double(), normal=obs.normal.double(), anchor=obs.anchor, amp=obs.amp.double(),
         detected=obs.detected, sigma=obs.sigma.double(), grid_half=g_half, grid_normal=g_normal,

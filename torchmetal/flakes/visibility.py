@@ -4,7 +4,7 @@ Flakes that never glint are accounted for by the selection probability
 
     P_any(p) = ∫dA f_A(A) ∫dΩ p_τ(m) · [1 − Π_k (1 − P_k(m, A))],
 
-evaluated on a coarse grid of cells (:func:`_grid`: half vectors, normals, noise σ, pixel area
+evaluated on a coarse grid of cells (:func:`cell_grid`: half vectors, normals, noise σ, pixel area
 and the measurable fraction of each cell per shot) and integrated cap by cap with a partition of
 unity, Gauss–Legendre in log A over the band where detection switches on and in u = 1 − m·h_k
 over each cap's interior and edge band (:func:`log_p_any`). P_k is scaled by the cell's
@@ -21,18 +21,18 @@ from torch import Tensor
 
 from torchmetal.flakes.detect import Detection
 from torchmetal.flakes.glint_model import (
-    _LOG2PI,
-    _PROBIT,
+    LOG2PI,
+    PROBIT,
     GlintData,
-    _cap_radius,
-    _frame,
-    _log_slope_from,
-    _memo,
-    _overlap_count,
-    _ring_nodes,
-    _tail_nodes,
+    cap_radius,
     log_amp_floor,
+    log_slope_from,
+    memo,
     nearest_shots,
+    orthonormal_pair,
+    overlap_count,
+    ring_nodes,
+    tail_nodes,
 )
 from torchmetal.flakes.shot_geometry import Geometry
 
@@ -73,9 +73,9 @@ def log_p_any(
     g, n = d.grid_sigma.shape
 
     def constants():
-        qa, phi = _ring_nodes(n_a, n_phi, dt, dev)
-        e1, e2 = _frame(d.grid_half)  # (G, N, 3)
-        t1, t2 = _frame(d.grid_normal)
+        qa, phi = ring_nodes(n_a, n_phi, dt, dev)
+        e1, e2 = orthonormal_pair(d.grid_half)  # (G, N, 3)
+        t1, t2 = orthonormal_pair(d.grid_normal)
         basis = torch.stack([d.grid_half, e1, e2], 2)  # (G, N, 3: h_k, e1_k, e2_k, 3)
         proj = torch.einsum("gnac,gbc->gnab", basis, torch.stack([d.grid_normal, t1, t2], 1))  # onto n, t1, t2
         first = torch.arange(n, device=dev).expand(g, n)
@@ -87,7 +87,7 @@ def log_p_any(
         return (qa, phi, _gauss_legendre(n_in, dt, dev), _gauss_legendre(n_band, dt, dev),
                 torch.log(d.grid_sigma).view(g, 1, n), proj, to_near, s_near, v_near)
 
-    qa, phi, (x_in, w_in), (x_bd, w_bd), lsig, proj, to_near, s_near, v_near = _memo(
+    qa, phi, (x_in, w_in), (x_bd, w_bd), lsig, proj, to_near, s_near, v_near = memo(
         d, ("p_any", n_a, n_in, n_band, n_phi), constants)
     level_lo = max(0.5, d.k_hi - margin)
     log_floor = log_amp_floor(d)
@@ -98,11 +98,11 @@ def log_p_any(
         x_ab, w_ab = _gauss_legendre(n_a_band, torch.float64, dev)
         return lo.unsqueeze(1) + (hi - lo).unsqueeze(1) * x_ab, torch.log((hi - lo).unsqueeze(1) * w_ab), hi
 
-    lab, log_width, hi = _memo(d, ("band", n_a_band, margin), band)
+    lab, log_width, hi = memo(d, ("band", n_a_band, margin), band)
     la64, va64 = la.double(), va.double()
-    log_wb = (log_width - 0.5 * ((lab - la64) / va64) ** 2 - 0.5 * _LOG2PI
+    log_wb = (log_width - 0.5 * ((lab - la64) / va64) ** 2 - 0.5 * LOG2PI
               - torch.log(va64) - torch.special.log_ndtr((la64 - log_floor) / va64))
-    lat, log_tail = _tail_nodes(la, va, hi, qa, log_floor)  # (G, nA) above the band
+    lat, log_tail = tail_nodes(la, va, hi, qa, log_floor)  # (G, nA) above the band
     log_a = torch.cat([lab.to(dt), lat], 1)  # (G, nAb + nA)
     log_wa = torch.cat([log_wb, (log_tail - math.log(n_a)).unsqueeze(1).expand(-1, n_a)], 1)
 
@@ -124,16 +124,16 @@ def log_p_any(
         rv = cphi * proj[:, :, 1, b : b + 1] + sphi * proj[:, :, 2, b : b + 1]  # (G, N, nφ)
         return cosb * proj[:, :, 0, b].view(g, 1, n, 1, 1) + sinb * rv.view(g, 1, n, 1, -1)
 
-    logp = _log_slope_from(dot_m(0), dot_m(1), dot_m(2), tau)
+    logp = log_slope_from(dot_m(0), dot_m(1), dot_m(2), tau)
     # shots whose caps may overlap cap k (own shot first): caps farther apart never meet
-    beta = _cap_radius(sg, float(log_a.max().detach()), float(d.grid_sigma.min()), level_lo)
-    kk = min(_overlap_count(d.grid_half, d.grid_half, 2.2 * beta + 1e-3), MAX_OVERLAP)
+    beta = cap_radius(sg, float(log_a.max().detach()), float(d.grid_sigma.min()), level_lo)
+    kk = min(overlap_count(d.grid_half, d.grid_half, 2.2 * beta + 1e-3), MAX_OVERLAP)
     tn = to_near[..., :kk]  # (G, N, 3, K)
     sn = s_near[..., :kk]  # (G, N, K)
     rh = cphi.view(-1, 1) * tn[:, :, 1].unsqueeze(2) + sphi.view(-1, 1) * tn[:, :, 2].unsqueeze(2)  # (G, N, nφ, K)
     mh = cosb.unsqueeze(-1) * tn[:, :, 0].view(g, 1, n, 1, 1, -1) + sinb.unsqueeze(-1) * rh.view(g, 1, n, 1, -1, kk)  # (G, nA, N, nR, nφ, K)
     a_over_s = torch.exp(log_a.view(g, -1, 1, 1, 1, 1) - (1 - mh) / (sg * sg)) / sn.view(g, 1, n, 1, 1, -1)
-    zk = _PROBIT * (a_over_s - d.k_hi)
+    zk = PROBIT * (a_over_s - d.k_hi)
     pk = torch.sigmoid(zk)
     if v_near is not None:  # a flake can only be detected where its shot is measurable
         pk = pk * v_near[..., :kk].view(g, 1, n, 1, 1, kk)
@@ -145,7 +145,7 @@ def log_p_any(
     return torch.logsumexp(torch.log(val.double().clamp_min(1e-300)) + log_wa, 1)
 
 
-def _grid(det: Detection, geometry: Geometry, max_cells: int, ok: Tensor) -> tuple[Tensor, ...]:
+def cell_grid(det: Detection, geometry: Geometry, max_cells: int, ok: Tensor) -> tuple[Tensor, ...]:
     """Half vectors (G, N, 3), normals (G, 3), noise σ (G, N), pixel area (G,) and measurable
     fraction (G, N) (of ``ok`` (N, H, W)) of a grid of at most ``max_cells`` cells."""
     n, _, h, w = det.sigma.shape
