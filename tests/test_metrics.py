@@ -142,14 +142,14 @@ class TestPSNR:
 
     def test_import_is_cheap(self):
         code = ("import sys, torchmetal.metrics; "
-                "print(' '.join(m for m in ('kornia', 'onnx', 'onnxruntime', 'matplotlib', 'torchmetal.flakes.md') "
+                "print(' '.join(m for m in ('kornia', 'onnx', 'onnxruntime', 'matplotlib', 'torchmetal.flakes.model.md') "
                 "if m in sys.modules))")
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
         assert out.stdout.strip() == ""
 
 
 def test_md_wrapper():
-    from torchmetal.flakes.md import metallic_difference
+    from torchmetal.flakes.model.md import metallic_difference
 
     g = torch.Generator().manual_seed(4)
     a = torch.rand(3, 32, 32, generator=g) * 0.1

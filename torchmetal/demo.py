@@ -121,7 +121,7 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
     Raises:
         whatever a stage raises: the demo never hides a failure.
     """
-    from torchmetal.flakes.md import metallic_difference
+    from torchmetal.flakes.model.md import metallic_difference
     from torchmetal.material import save_material
     from torchmetal.metrics import psnr
     from torchmetal.onnx_export import export_onnx

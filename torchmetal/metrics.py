@@ -13,7 +13,7 @@ function                         what it measures
 :func:`psnr`                     10·log10(peak² / MSE) in dB, optionally masked, linear or sRGB
 :func:`mse`                      mean squared difference, optionally masked and clipped
 :func:`srgb_encode`              linear → sRGB (IEC 61966-2-1 OETF), torch or numpy
-:func:`md`                       the paper's Metallic Difference (:mod:`torchmetal.flakes.md`)
+:func:`md`                       the paper's Metallic Difference (:mod:`torchmetal.flakes.model.md`)
 :func:`sparkle_count`            connected bright blobs in a residual above k robust σ
 :func:`chroma_artifact_share`    share of 8×8 blocks whose CIELAB chroma differs by > 15
 ===============================  ==============================================================
@@ -211,7 +211,7 @@ def md(
 ) -> float | Tensor:
     """The paper's Metallic Difference, a sparkle-aware distance in [0, 100] (lower = closer).
 
-    A thin wrapper of :func:`torchmetal.flakes.md.metallic_difference` (see that module for the
+    A thin wrapper of :func:`torchmetal.flakes.model.md.metallic_difference` (see that module for the
     definition), imported on first call so that this module stays cheap to import and free of
     import cycles with :mod:`torchmetal.flakes`.
 
@@ -226,7 +226,7 @@ def md(
     Returns:
         MD in [0, 100].
     """
-    from torchmetal.flakes.md import metallic_difference
+    from torchmetal.flakes.model.md import metallic_difference
 
     return metallic_difference(img_a, img_b, window, k=k, regions=regions, reduction=reduction)
 

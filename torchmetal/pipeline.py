@@ -10,7 +10,7 @@ The Phong fit is plain least squares by default (``robust="auto"``, ``weights="u
 (:mod:`torchmetal.synth.zoo`), Huber weights cost 0.1–0.3 dB against the clean truth on every
 flake-free scene. The flake stage first asks whether the detections are glints at all: misfit
 gives residuals of both signs, glints positive ones, so detections must exceed those of the
-mirrored residual (:func:`~torchmetal.flakes.null_test.glint_excess`), counting spots only (a sheen band,
+mirrored residual (:func:`~torchmetal.flakes.estimate.null_test.glint_excess`), counting spots only (a sheen band,
 the streak of a highlight, the mask's rim are misfit). Only then is the Phong fit
 redone with Huber weights for the flake statistics (glints are outliers of the Phong model:
 without them the flake density came out up to 60 % high and the colour 30 % high), while the
@@ -18,7 +18,7 @@ material's coating is refitted by least squares without the detected observation
 again in a held-out shot had made a "glinty" specular cluster win the selection: 0.3 dB lost away
 from the flakes on the zoo's flakes_b), and before the flake statistics the
 texture under a first round of detections is re-solved without the shots where it glints
-(:mod:`torchmetal.flakes.texture`); otherwise the per-pixel texture absorbs part of every glint
+(:mod:`torchmetal.flakes.estimate.texture`); otherwise the per-pixel texture absorbs part of every glint
 and the statistics see weakened glints.
 """
 
@@ -30,8 +30,8 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchmetal.errors import InputError
-from torchmetal.flakes.prescreen import screen_fit
-from torchmetal.flakes.results import FlakeStageResult, Particles
+from torchmetal.flakes.estimate.prescreen import screen_fit
+from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
 from torchmetal.material import Material
 
 FLAKE_MODES = ("auto", "on", "off")
@@ -47,7 +47,7 @@ class PipelineResult:
 
     material: Material
     fit: object  # torchmetal.fit.FitResult
-    flakes: object | None  # torchmetal.flakes.results.FlakeStageResult, None when the stage was off
+    flakes: object | None  # torchmetal.flakes.estimate.results.FlakeStageResult, None when the stage was off
     report: dict = field(default_factory=dict)
 
 
@@ -67,7 +67,7 @@ def _without_glints(capture, labels: torch.Tensor):
     Masking the pixel in every shot instead took the real card's foil out of its own specular fit (15 %
     of the pixels are detected in some shot): 1.4 dB lost on a left-out shot, for nothing gained on the
     zoo's flake scenes (coat PSNR away from the flakes equal to 0.001 dB)."""
-    from torchmetal.flakes.texture import grown_detections
+    from torchmetal.flakes.estimate.texture import grown_detections
 
     hit = grown_detections(labels)
     sat = capture.saturated if capture.saturated is not None else torch.zeros_like(capture.images, dtype=torch.bool)
@@ -98,7 +98,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     ``coat_fit``, the coating is ``coat_fit(capture without the detected observations)`` — glints must
     not steer the specular (a held-out shot shows the same flakes glinting, so a "glinty" specular
     cluster wins there) — and its texture is re-solved under the detections.
-    A pixel screen (:func:`~torchmetal.flakes.prescreen.screen_fit`) goes first: when its
+    A pixel screen (:func:`~torchmetal.flakes.estimate.prescreen.screen_fit`) goes first: when its
     residual outliers are as often negative as positive, the stage stops before any detection.
     Returns (stage result, the coating's fit, its texture)."""
     t0 = time.perf_counter()
@@ -109,11 +109,11 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
                               f"{screen['pixels']} sampled pixels, above SNR {screen['snr']})"),
                   "screen": screen, "times": {"total": time.perf_counter() - t0}}
         return FlakeStageResult(None, Particles.empty(capture.images.device), report), fit, fit.texture
-    from torchmetal.flakes.lobe_core import drop_core
-    from torchmetal.flakes.null_test import drop_extended, glint_excess
-    from torchmetal.flakes.rim import drop_rim
+    from torchmetal.flakes.estimate.lobe_core import drop_core
+    from torchmetal.flakes.estimate.null_test import drop_extended, glint_excess
+    from torchmetal.flakes.estimate.rim import drop_rim
+    from torchmetal.flakes.estimate.texture import texture_without_glints
     from torchmetal.flakes.stage import detect_capture, flake_stage
-    from torchmetal.flakes.texture import texture_without_glints
 
     phong_images = render_shots(fit, capture)
     det = detect_capture(capture, phong_images)
@@ -125,7 +125,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     # the core of the coating's own highlight is left out of both sides: a lobe of the wrong shape leaves
     # compact positive peaks there (a sharp highlight on a sphere), glints are counted everywhere else
     mirror = detect_capture(capture, phong_images, mirrored=True)
-    # and so is the rim of the sample's mask (partial pixels, unreliable normals: flakes.rim)
+    # and so is the rim of the sample's mask (partial pixels, unreliable normals: flakes.estimate.rim)
     positive, core_pos = drop_core(fit, capture, det.particles)
     mirrored, core_mir = drop_core(fit, capture, mirror.particles)
     positive, rim_pos = drop_rim(capture, positive)
@@ -191,7 +191,7 @@ def fit_material(
             (see the module docstring).
         seed: seed of the material's flake field.
         observed_flakes: keep the flakes the fit shots saw where they are
-            (:mod:`torchmetal.flakes.observed`), the field filling the rest: "auto" when left-out
+            (:mod:`torchmetal.flakes.estimate.observed_flakes`), the field filling the rest: "auto" when left-out
             shots render better with them on PSNR and MD (:func:`~torchmetal.flakes.choice.choose_observed`;
             zoo flakes_b: kept, +5.7 dB and MD 12.1 → 8.3 against the clean truth), "on"/True
             always, "off"/False never.
@@ -274,7 +274,7 @@ def fit_material(
     material.flakes = flake_model
     if flake_model is not None:
         from torchmetal.flakes.choice import choose_observed, keep_flakes
-        from torchmetal.flakes.observed import observed_flakes as measure
+        from torchmetal.flakes.estimate.observed_flakes import observed_flakes as measure
 
         t = time.perf_counter()
         observed_report = None

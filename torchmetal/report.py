@@ -463,7 +463,7 @@ def report_figure(
     plot_image(ax_p, photo, f"photo ({what})", exposure=ex)
     valid = ~src.saturated[k].any(0) if getattr(src, "saturated", None) is not None else None
     if getattr(material, "flakes", None) is not None:
-        from torchmetal.flakes.md import metallic_difference
+        from torchmetal.flakes.model.md import metallic_difference
 
         phong_k = fit.render(src.lights[k : k + 1], src.intensities[k : k + 1], src.cameras[k : k + 1])[0]
         md = metallic_difference(render, photo)

@@ -14,8 +14,8 @@ import torch
 
 import torchmetal.flakes.choice as choice
 from torchmetal.flakes.choice import choose_observed, held_shots, keep_flakes, observed_without
+from torchmetal.flakes.estimate.results import Particles
 from torchmetal.flakes.model import FlakeModel
-from torchmetal.flakes.results import Particles
 
 
 def _particles(shots: list[int], cy: list[float], cx: list[float]) -> Particles:

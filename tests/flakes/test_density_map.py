@@ -1,4 +1,4 @@
-"""Glitter where it is: the flake-density map (torchmetal.flakes.density_map, density_choice), its field,
+"""Glitter where it is: the flake-density map (torchmetal.flakes.estimate.density_map, density_choice), its field,
 its material files, its ONNX renderer and its choice on left-out shots."""
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import torch
 
 import torchmetal.flakes.density_choice as dc
 from torchmetal.errors import MaterialError
-from torchmetal.flakes.density_map import estimate_map, map_grid, with_map
-from torchmetal.flakes.field import flake_field
+from torchmetal.flakes.estimate.density_map import estimate_map, map_grid, with_map
+from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
 from torchmetal.flakes.model import MAX_DENSITY, FlakeModel
-from torchmetal.flakes.results import FlakeStageResult, Particles
+from torchmetal.flakes.model.field import flake_field
 from torchmetal.material import Material, load_material, save_material
 
 
@@ -191,7 +191,7 @@ def test_sparkle_counts_per_block():
 def test_half_glitter_zoo_scene(tmp_path):
     """Zoo flakes_half: the fit keeps a map, its density right of the glitter ≪ left, and the render has
     no flake right of it."""
-    from torchmetal.flakes.observed import material_flake_field
+    from torchmetal.flakes.model.observed import material_flake_field
     from torchmetal.io.capture import load_capture
     from torchmetal.pipeline import fit_material
     from torchmetal.synth.zoo import SCENES, make_case
@@ -215,7 +215,7 @@ def test_half_glitter_zoo_scene(tmp_path):
 
 import math  # noqa: E402
 
-from torchmetal.flakes.field import field_cell  # noqa: E402
+from torchmetal.flakes.model.field import field_cell  # noqa: E402
 
 AREA_MAPPED = replace(MAPPED, area_map=torch.tensor([[math.log(2.0), 0.0], [-0.4, 0.2]]))
 

@@ -136,8 +136,8 @@ def task_realflakes(cfg: dict) -> dict:
     rendered with and without the flake term, and the detections drawn on a fitted shot (PNG)."""
     import torch
 
-    from torchmetal.flakes.md import metallic_difference
-    from torchmetal.flakes.report import save_detection_overlay
+    from torchmetal.flakes.estimate.overlay import save_detection_overlay
+    from torchmetal.flakes.model.md import metallic_difference
     from torchmetal.io.capture import load_capture
     from torchmetal.pipeline import fit_material
     from torchmetal.renderer import MaterialRenderer

@@ -1,8 +1,8 @@
 """Observed or statistical flakes (:func:`choose_observed`), and flakes or none (:func:`keep_flakes`)?
 Decided on shots the observed flakes were not measured from.
 
-The sample's own flakes (:mod:`torchmetal.flakes.observed`) put the glints where the fit shots saw
-them; the statistical field (:mod:`torchmetal.flakes.field`) only gets their statistics right. Which
+The sample's own flakes (:mod:`torchmetal.flakes.model.observed`) put the glints where the fit shots saw
+them; the statistical field (:mod:`torchmetal.flakes.model.field`) only gets their statistics right. Which
 renders a new view better depends on the sample and the views (flakes seen from a few directions
 say little about a far direction's glints; there the field's statistics are the better guess).
 So, like the specular and lobe choices, the default asks shots
@@ -42,7 +42,7 @@ def observed_without(capture, particles, flake_id: torch.Tensor, model, k: int):
     exclude ``k``). The photos themselves are not read again: only the shots' geometry."""
     from types import SimpleNamespace
 
-    from torchmetal.flakes.observed import observed_flakes
+    from torchmetal.flakes.estimate.observed_flakes import observed_flakes
 
     keep = torch.tensor([i for i in range(capture.num_shots) if i != k], dtype=torch.long)
     others = SimpleNamespace(images=capture.images, normals=capture.normals, size=capture.size, mask=capture.mask,
@@ -84,7 +84,7 @@ def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tup
         (ObservedFlakes measured from every shot, or None; report {"held": [...], "observed": [...],
         "statistical": [...], "kept": bool, "reason": str}).
     """
-    from torchmetal.flakes.observed import observed_flakes
+    from torchmetal.flakes.estimate.observed_flakes import observed_flakes
 
     parts, fid, model = flake_result.particles, flake_result.flake_id, flake_result.model
     report = {"held": [], "observed": [], "statistical": [], "kept": False}

@@ -1,4 +1,4 @@
-"""Uniform density or a density map (:mod:`torchmetal.flakes.density_map`)? Decided on left-out shots.
+"""Uniform density or a density map (:mod:`torchmetal.flakes.estimate.density_map`)? Decided on left-out shots.
 
 Like the other flake choices (:mod:`torchmetal.flakes.choice`): for each of the ``HELD`` shots with the
 most associated detections, the map is estimated from the *other* shots' detections only, and the
@@ -10,7 +10,7 @@ left-out photo is compared with the material rendered with the uniform model and
   render and of the photo, scored as the mean |log((pred + 1)/(obs + 1))| over the blocks.
 
 The candidates are the uniform model and a map per detectability model ("map:glint", "map:area":
-:func:`~torchmetal.flakes.density_map.detectability`). A map wins when its mean MD and its mean
+:func:`~torchmetal.flakes.estimate.density_map.detectability`). A map wins when its mean MD and its mean
 block error are both no higher than the uniform model's and one is lower (a default must never be
 worse than the simpler option, and a tie keeps the simpler one: zoo flakes_b, whose observed flakes
 leave the map nothing to change, scores identically), the lowest MD among those; it is then estimated from every shot. The coating, the flake statistics and the observed flakes (when kept, measured without the
@@ -28,9 +28,9 @@ from torch import Tensor
 
 from torchmetal.fit.decision import Decision
 from torchmetal.flakes.choice import HELD, MD_WINDOW, held_shots, mean_score, observed_without
-from torchmetal.flakes.density_map import DETECT_MODES, estimate_map, with_map
-from torchmetal.flakes.field import map_blocks
-from torchmetal.flakes.filters import box_mean
+from torchmetal.flakes.estimate.density_map import DETECT_MODES, estimate_map, with_map
+from torchmetal.flakes.model.field import map_blocks
+from torchmetal.flakes.model.filters import box_mean
 
 SPARKLE_K = 5.0  # sparkle threshold in robust σ of the high-pass (MD's)
 
@@ -92,7 +92,7 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
     """``material.flakes`` with a density map when left-out shots prefer it, else unchanged.
 
     The candidates are the uniform model and a map per detectability mode
-    (:data:`~torchmetal.flakes.density_map.DETECT_MODES`: "map:glint", "map:area").
+    (:data:`~torchmetal.flakes.estimate.density_map.DETECT_MODES`: "map:glint", "map:area").
 
     Args:
         capture: the fitted capture; material: the material with its kept flake model (and observed

@@ -170,7 +170,7 @@ def phong_target(s: Tensor, alpha: Tensor) -> Target:
 def glint_target(color, sigma: float) -> Target:
     """One glint of :func:`torchmetal.flakes.field.sparkle_shading` in its flake's frame (flake normal
     +z, full footprint, glint colour ``color``): c_c·exp(−|m − h|²/(2σ²)) for n·l > 0."""
-    from torchmetal.flakes.field import FlakeField, sparkle_shading
+    from torchmetal.flakes.model.field import FlakeField, sparkle_shading
 
     color = torch.as_tensor(color, dtype=torch.float64).reshape(3, 1, 1)
 

@@ -140,7 +140,7 @@ def coverage_map(model, fi, height: int, width: int) -> tuple[np.ndarray, float,
     planes in [0, 1] (8-bit values), their scale (the largest coverage), and the report: the model's
     relative density per block, the one flake2d gets from the 8-bit coverage, and their pixel-weighted
     means over the sample (``mean_relative_density`` [model, flake2d])."""
-    from torchmetal.flakes.density_map import block_pixels
+    from torchmetal.flakes.estimate.density_map import block_pixels
     from torchmetal.formats.flake2d import density_to_probability
 
     lam = model.density_map.double().numpy()
