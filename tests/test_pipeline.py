@@ -104,7 +104,7 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
     """When the left-out shots' MD says no (torchmetal.flakes.choice.keep_flakes), the material is the one
     flakes="off" gives — the first fit, no refit away from the detections, no sparkles — and the report
     says why; when it says yes, the flakes stay with its numbers in the report."""
-    import torchmetal.flakes.choice as choice
+    import torchmetal.pipeline as pipeline
 
     flakes = FlakeModel(**DEMO_FLAKES, seed=20)
     cap = synth_capture(size=128, shots=8, seed=0, noise=0.005, bits=16, exposure=0.8, flakes=flakes).capture
@@ -122,7 +122,7 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
                             "observed flakes", "flakes", "density map"}
     times = kept.report["stage_times"]  # the total counts the flake choices too
     assert kept.report["total_time"] >= times["flakes"] + times["flakes.observed"] + times["flakes.choice"]
-    monkeypatch.setattr(choice, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))
+    monkeypatch.setattr(pipeline, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))
     dropped, off = fit_material(cap, seed=0), fit_material(cap, seed=0, flakes="off")
     m = dropped.material
     assert m.flakes is None and m.observed_flakes is None and dropped.flakes.model is None

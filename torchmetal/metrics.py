@@ -20,7 +20,8 @@ function                         what it measures
 
 Inputs are torch tensors or numpy arrays in any layout (``(…, 3, H, W)`` or ``(…, H, W, 3)``);
 PSNR and MSE are element-wise, so only the two shapes and the mask's broadcast matter. Importing
-this module is cheap: torch and numpy only; OpenCV and the MD code are imported when first used.
+this module is cheap: torch, numpy and the flake render model's MD (:mod:`torchmetal.flakes.model.md`, torch
+only); OpenCV and kornia are imported when first used.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import InputError
+from torchmetal.flakes.model.md import metallic_difference
 
 __all__ = ["psnr", "mse", "srgb_encode", "md", "sparkle_count", "chroma_artifact_share"]
 
@@ -212,8 +214,7 @@ def md(
     """The paper's Metallic Difference, a sparkle-aware distance in [0, 100] (lower = closer).
 
     A thin wrapper of :func:`torchmetal.flakes.model.md.metallic_difference` (see that module for the
-    definition), imported on first call so that this module stays cheap to import and free of
-    import cycles with :mod:`torchmetal.flakes`.
+    definition): the flake render model's layer lies below this module, so it imports MD directly.
 
     Args:
         img_a, img_b: (H, W), (C, H, W) or (B, C, H, W) linear torch images of the same shape,
@@ -226,8 +227,6 @@ def md(
     Returns:
         MD in [0, 100].
     """
-    from torchmetal.flakes.model.md import metallic_difference
-
     return metallic_difference(img_a, img_b, window, k=k, regions=regions, reduction=reduction)
 
 

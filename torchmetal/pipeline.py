@@ -30,8 +30,16 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchmetal.errors import InputError
+from torchmetal.flakes.choice import choose_observed, keep_flakes
+from torchmetal.flakes.density_choice import choose_density_map
+from torchmetal.flakes.estimate.lobe_core import drop_core
+from torchmetal.flakes.estimate.null_test import drop_extended, glint_excess
+from torchmetal.flakes.estimate.observed_flakes import observed_flakes as measure_observed
 from torchmetal.flakes.estimate.prescreen import screen_fit
 from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
+from torchmetal.flakes.estimate.rim import drop_rim
+from torchmetal.flakes.estimate.texture import grown_detections, texture_without_glints
+from torchmetal.flakes.stage import detect_capture, flake_stage
 from torchmetal.material import Material
 
 FLAKE_MODES = ("auto", "on", "off")
@@ -67,8 +75,6 @@ def _without_glints(capture, labels: torch.Tensor):
     Masking the pixel in every shot instead took the real card's foil out of its own specular fit (15 %
     of the pixels are detected in some shot): 1.4 dB lost on a left-out shot, for nothing gained on the
     zoo's flake scenes (coat PSNR away from the flakes equal to 0.001 dB)."""
-    from torchmetal.flakes.estimate.texture import grown_detections
-
     hit = grown_detections(labels)
     sat = capture.saturated if capture.saturated is not None else torch.zeros_like(capture.images, dtype=torch.bool)
     return replace(capture, saturated=sat | hit)
@@ -109,12 +115,6 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
                               f"{screen['pixels']} sampled pixels, above SNR {screen['snr']})"),
                   "screen": screen, "times": {"total": time.perf_counter() - t0}}
         return FlakeStageResult(None, Particles.empty(capture.images.device), report), fit, fit.texture
-    from torchmetal.flakes.estimate.lobe_core import drop_core
-    from torchmetal.flakes.estimate.null_test import drop_extended, glint_excess
-    from torchmetal.flakes.estimate.rim import drop_rim
-    from torchmetal.flakes.estimate.texture import texture_without_glints
-    from torchmetal.flakes.stage import detect_capture, flake_stage
-
     phong_images = render_shots(fit, capture)
     det = detect_capture(capture, phong_images)
     if len(det.particles) < CLEAN_MIN_PARTICLES:  # fewer particles than the statistics' minimum flake count
@@ -273,13 +273,10 @@ def fit_material(
     material = fit.to_material(report_extra=report_of(fit, skipped))
     material.flakes = flake_model
     if flake_model is not None:
-        from torchmetal.flakes.choice import choose_observed, keep_flakes
-        from torchmetal.flakes.estimate.observed_flakes import observed_flakes as measure
-
         t = time.perf_counter()
         observed_report = None
         if mode == "on":  # the sample's own flakes, where the fit shots saw them
-            material.observed_flakes = measure(capture, flake_result.particles, flake_result.flake_id, flake_model)
+            material.observed_flakes = measure_observed(capture, flake_result.particles, flake_result.flake_id, flake_model)
         elif mode == "auto":
             material.observed_flakes, observed_report = choose_observed(capture, material, flake_result)
             flake_result.report["observed_choice"] = observed_report
@@ -298,8 +295,6 @@ def fit_material(
                 plain.report["skipped"].append(f"flakes: {flake_result.report['skipped']}")
                 fit, material = first, plain
     if material.flakes is not None and flake_result is not None:  # glitter where it is: a density map, chosen left out
-        from torchmetal.flakes.density_choice import choose_density_map
-
         t = time.perf_counter()
         material.flakes, flake_result.report["density_map_choice"] = choose_density_map(capture, material, flake_result)
         stage_times["flakes.density_map"] = time.perf_counter() - t

@@ -20,10 +20,14 @@ The dense hemisphere capture of tests/test_pipeline.py (case 4): left out 42.8 v
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import torch
 
 from torchmetal.fit.decision import Decision
+from torchmetal.flakes.estimate.observed_flakes import observed_flakes
+from torchmetal.metrics import md, psnr
+from torchmetal.renderer import MaterialRenderer
 
 HELD = 2  # left-out shots (the ones with the most associated detections)
 MD_WINDOW = 16  # MD's block (px) in the left-out scores: smaller images cannot be scored
@@ -40,10 +44,6 @@ def held_shots(particles, flake_id: torch.Tensor, num_shots: int, count: int) ->
 def observed_without(capture, particles, flake_id: torch.Tensor, model, k: int):
     """Observed flakes measured from every shot but ``k`` (shot indices renumbered; the probe shots
     exclude ``k``). The photos themselves are not read again: only the shots' geometry."""
-    from types import SimpleNamespace
-
-    from torchmetal.flakes.estimate.observed_flakes import observed_flakes
-
     keep = torch.tensor([i for i in range(capture.num_shots) if i != k], dtype=torch.long)
     others = SimpleNamespace(images=capture.images, normals=capture.normals, size=capture.size, mask=capture.mask,
                              **{f: getattr(capture, f)[keep.to(capture.lights.device)]
@@ -56,9 +56,6 @@ def observed_without(capture, particles, flake_id: torch.Tensor, model, k: int):
 
 def _scores(material, capture, k: int) -> dict:
     """PSNR (dB, linear, peak 1) and MD of the material's render of shot ``k`` against its photo."""
-    from torchmetal.metrics import md, psnr
-    from torchmetal.renderer import MaterialRenderer
-
     with torch.no_grad():
         pred = MaterialRenderer(material)(capture.lights[k : k + 1].float(), capture.intensities[k : k + 1].float(),
                                           capture.cameras[k : k + 1].float())
@@ -84,8 +81,6 @@ def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tup
         (ObservedFlakes measured from every shot, or None; report {"held": [...], "observed": [...],
         "statistical": [...], "kept": bool, "reason": str}).
     """
-    from torchmetal.flakes.estimate.observed_flakes import observed_flakes
-
     parts, fid, model = flake_result.particles, flake_result.flake_id, flake_result.model
     report = {"held": [], "observed": [], "statistical": [], "kept": False}
     if min(capture.images.shape[-2:]) < MD_WINDOW:

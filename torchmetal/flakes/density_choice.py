@@ -31,6 +31,8 @@ from torchmetal.flakes.choice import HELD, MD_WINDOW, held_shots, mean_score, ob
 from torchmetal.flakes.estimate.density_map import DETECT_MODES, estimate_map, with_map
 from torchmetal.flakes.model.field import map_blocks
 from torchmetal.flakes.model.filters import box_mean
+from torchmetal.metrics import md
+from torchmetal.renderer import MaterialRenderer
 
 SPARKLE_K = 5.0  # sparkle threshold in robust σ of the high-pass (MD's)
 
@@ -65,8 +67,6 @@ def block_error(pred: Tensor, obs: Tensor) -> float:
 
 def render_shot(material, capture, k: int) -> Tensor:
     """The material's render of shot ``k``, (3, H, W)."""
-    from torchmetal.renderer import MaterialRenderer
-
     with torch.no_grad():
         return MaterialRenderer(material)(capture.lights[k : k + 1].float(), capture.intensities[k : k + 1].float(),
                                           capture.cameras[k : k + 1].float())[0]
@@ -79,8 +79,6 @@ def shot_valid(capture, k: int) -> Tensor:
 
 def score_shot(material, capture, k: int, grid: tuple[int, int]) -> dict:
     """MD, block sparkle error and the per-block sparkle counts of shot ``k``'s render against its photo."""
-    from torchmetal.metrics import md
-
     pred = render_shot(material, capture, k)
     photo = capture.images[k].float()
     p, o = sparkle_counts(pred, photo, grid, shot_valid(capture, k))

@@ -18,6 +18,7 @@ from torchmetal.checks import check_shape
 from torchmetal.flakes.estimate.detect import Detection, detect_flakes
 from torchmetal.flakes.estimate.results import FlakeStageResult
 from torchmetal.flakes.estimate.shot_geometry import Geometry
+from torchmetal.flakes.estimate.stats import flake_statistics
 from torchmetal.geometry import grid_distance2, pixel_axes
 
 
@@ -80,8 +81,6 @@ def flake_stage(
     det = detect_capture(capture, phong_images, **(detect or {})) if detection is None else detection
     t2 = time.perf_counter()
     geo = Geometry(capture.normals, capture.lights, capture.intensities, capture.cameras, capture.size)
-    from torchmetal.flakes.estimate.stats import flake_statistics  # heavy: not imported when the screen skips the stage
-
     res = flake_statistics(det, geo, seed=seed, **(stats or {}))
     t3 = time.perf_counter()
     report = dict(res.report)

@@ -59,6 +59,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.errors import InputError
+from torchmetal.flakes.estimate.regions import segment_argmax
 from torchmetal.flakes.model import MAX_AREA_OFFSET, MAX_COLOR, MAX_DENSITY, FlakeModel
 from torchmetal.flakes.model.field import map_blocks
 from torchmetal.geometry import normalize, shading_geometry
@@ -125,8 +126,6 @@ def flake_areas(particles, flake_id: Tensor, shots: list[int] | None = None) -> 
     """Log flux/peak area (J,), its measurement noise variance ν (J,) (:func:`~torchmetal.flakes.
     shape_colour.fit_shapes`'s model) and SNR (J,) of each associated flake on its brightest
     detection among ``shots`` (None: all), float64, in :func:`flake_positions`'s order."""
-    from torchmetal.flakes.estimate.regions import segment_argmax
-
     keep = flake_id >= 0
     if shots is not None:
         keep &= torch.isin(particles.shot, torch.tensor(shots, dtype=particles.shot.dtype, device=particles.shot.device))
@@ -147,7 +146,7 @@ def flake_areas(particles, flake_id: Tensor, shots: list[int] | None = None) -> 
 def _area_map(block: Tensor, y: Tensor, nu: Tensor, snr: Tensor, grid: tuple[int, int]) -> tuple[Tensor | None, dict]:
     """Per-block log-area offsets (gh, gw) when the blocks' mean log areas differ beyond their
     standard errors (module docstring), else None; and the test's report."""
-    from scipy.stats import chi2
+    from scipy.stats import chi2  # deferred: scipy is heavy to import
 
     r = grid[0] * grid[1]
     sel = snr >= AREA_SNR
@@ -250,7 +249,7 @@ def _shrink(n: Tensor, e: Tensor) -> tuple[Tensor, float, Tensor]:
 
 def _colour_map(model: FlakeModel, block: Tensor, colours: Tensor, grid: tuple[int, int]) -> tuple[Tensor | None, dict]:
     """Per-block colour means (gh, gw, 3) when the blocks' colours differ beyond their standard errors."""
-    from scipy.stats import chi2
+    from scipy.stats import chi2  # deferred: scipy is heavy to import
 
     r = grid[0] * grid[1]
     n = torch.bincount(block, minlength=r).double()

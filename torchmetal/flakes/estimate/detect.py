@@ -19,6 +19,7 @@ sRGB-encoded residual colour (computed on foreground pixels only).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import torch
@@ -109,7 +110,7 @@ def _check_inputs(photos: Tensor, phong: Tensor, irradiance: Tensor, valid: Tens
 
 
 def _morph(mask: Tensor, close: int, open_: int) -> Tensor:
-    import kornia.morphology as km
+    import kornia.morphology as km  # deferred: kornia is heavy to import
 
     x = mask.to(torch.float32)
     if close > 1:
@@ -120,8 +121,6 @@ def _morph(mask: Tensor, close: int, open_: int) -> Tensor:
 
 
 def _detect_chunk(res: Tensor, valid: Tensor, all_valid: bool, *, k_hi, k_lo, tile, background, close, open_, min_area, backend, times):
-    import time
-
     t0 = time.perf_counter()
     s = res.mean(1, keepdim=True)
     hp = s - box_mean(s, background, None if all_valid else valid)
@@ -215,7 +214,7 @@ def _lab(rgb_px: Tensor) -> Tensor:
     """Lab (M, 3) of linear residual colours (M, 3), clamped to [0, 1] and sRGB-encoded."""
     if rgb_px.shape[0] == 0:
         return rgb_px.new_zeros(0, 3)
-    from kornia.color import rgb_to_lab
+    from kornia.color import rgb_to_lab  # deferred: kornia is heavy to import
 
     img = linear_to_srgb(rgb_px.clamp(0.0, 1.0)).t().reshape(1, 3, -1, 1)
     return rgb_to_lab(img).reshape(3, -1).t()

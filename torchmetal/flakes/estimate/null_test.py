@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -42,8 +43,7 @@ def drop_extended(particles: Particles, extent: float = EXTENT) -> tuple[Particl
 
 def _locations(h: int, w: int, *parts: Particles) -> list[Tensor]:
     """A location label per particle of each part: centres within 1 px (any shot, any part) join."""
-    import cv2
-    import numpy as np
+    import cv2  # deferred: OpenCV is heavy to import (the screen loads this module on every capture)
 
     occupied = np.zeros((h, w), np.uint8)
     rows, cols = [], []

@@ -33,7 +33,7 @@ def overlay_detections(
     Returns:
         (H, W, 3) uint8 RGB picture.
     """
-    import cv2
+    import cv2  # deferred: OpenCV is heavy to import
 
     check_shape(image, (3, "H", "W"), "image")
     rgb = (linear_to_srgb((image.detach().float().cpu() * gain).clamp(0.0, 1.0)) * 255 + 0.5).to(torch.uint8)
@@ -55,7 +55,7 @@ def save_detection_overlay(path: str | Path, image: Tensor, particles: Particles
         InputError: the path does not end in ``.png`` or cannot be written (one line, no cv2
             traceback).
     """
-    import cv2
+    import cv2  # deferred: OpenCV is heavy to import
 
     path = Path(path)
     if path.suffix.lower() != ".png":

@@ -40,6 +40,9 @@ from torchmetal.flakes.estimate.lobe_core import CORE_LEVEL, LOG_CORE
 from torchmetal.flakes.estimate.null_test import EXTENT, MIN_EXCESS, SNR_LADDER, glint_rule
 from torchmetal.flakes.estimate.rim import interior
 from torchmetal.flakes.model.filters import box_mean
+from torchmetal.geometry import grid_shading_terms, is_flat, pixel_axes
+from torchmetal.lobes import ggx_lobe, grid_half_terms
+from torchmetal.phong import exp_normal
 
 SCREEN_STRIDE = 2  # the pipeline renders and screens every 2nd row and column
 TILE = 32
@@ -137,10 +140,6 @@ def residual_groups(fit, capture, stride: int = SCREEN_STRIDE, chunk: int | None
     """:func:`sampled_residual` ``chunk`` shots at a time: yields (shot range, (B, h, w) residual,
     (B, h, w) bool core of the fit's highlight or None without a specular) — the core as
     :func:`~torchmetal.flakes.estimate.lobe_core.lobe_core_at` defines it, from the lobe the render forms anyway."""
-    from torchmetal.geometry import grid_shading_terms, is_flat, pixel_axes
-    from torchmetal.lobes import ggx_lobe, grid_half_terms
-    from torchmetal.phong import exp_normal
-
     dt = torch.float32
     h, w = fit.texture.shape[-2:]
     grid = (..., slice(None, None, stride), slice(None, None, stride))

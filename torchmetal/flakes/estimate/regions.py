@@ -43,7 +43,7 @@ def label_components(mask: Tensor, *, backend: str = "auto") -> tuple[Tensor, in
     if backend == "opencv":
         if m.device.type != "cpu":
             raise InputError(f"backend 'opencv': expected a CPU tensor, found device {m.device}")
-        import cv2
+        import cv2  # deferred: OpenCV is heavy to import
 
         out = torch.zeros(m.shape, dtype=torch.int64)
         offset = 0
@@ -54,7 +54,7 @@ def label_components(mask: Tensor, *, backend: str = "auto") -> tuple[Tensor, in
             out[b] = torch.where(lab_t > 0, lab_t + offset, lab_t)
             offset += n - 1
         return out, offset
-    from kornia.contrib import connected_components_union_find
+    from kornia.contrib import connected_components_union_find  # deferred: kornia is heavy to import
 
     raw = connected_components_union_find(m.unsqueeze(1)).squeeze(1)
     fg = raw > 0

@@ -19,6 +19,7 @@ is not.
 from __future__ import annotations
 
 import math
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields, replace
 
@@ -282,8 +283,6 @@ def flake_statistics(
             expectation) means "consistent with noise" and the stage is skipped.
         max_cells, max_flakes: work limits of the likelihood (grid cells, flakes in the sum).
     """
-    import time
-
     times = {}
     t0 = time.perf_counter()
     n, _, h, w = det.signal.shape

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -44,8 +45,6 @@ MAX_OVERLAP = 16
 
 def _gauss_legendre(n: int, dtype, device) -> tuple[Tensor, Tensor]:
     """Gauss–Legendre nodes and weights on [0, 1]."""
-    import numpy as np
-
     x, w = np.polynomial.legendre.leggauss(n)
     return torch.tensor(0.5 * (x + 1), dtype=dtype, device=device), torch.tensor(0.5 * w, dtype=dtype, device=device)
 

@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -254,20 +256,12 @@ def observed_json(obs: ObservedFlakes) -> dict:
 
 def save_observed(obs: ObservedFlakes, root) -> None:
     """Write the arrays of ``obs`` as .npy files (float32) into the directory ``root``."""
-    from pathlib import Path
-
-    import numpy as np
-
     for name, v in obs.arrays().items():
         np.save(Path(root) / ARRAYS[name], np.ascontiguousarray(v.detach().cpu().float().numpy()))
 
 
 def load_observed(root, entry: dict | None) -> ObservedFlakes | None:
     """Read the observed flakes named by material.json's ``observed_flakes`` entry (None → None)."""
-    from pathlib import Path
-
-    import numpy as np
-
     if not entry:
         return None
     if not isinstance(entry, dict) or not isinstance(entry.get("files"), dict) or "shape" not in entry:
