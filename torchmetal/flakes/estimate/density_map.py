@@ -146,7 +146,7 @@ def flake_areas(particles, flake_id: Tensor, shots: list[int] | None = None) -> 
 def _area_map(block: Tensor, y: Tensor, nu: Tensor, snr: Tensor, grid: tuple[int, int]) -> tuple[Tensor | None, dict]:
     """Per-block log-area offsets (gh, gw) when the blocks' mean log areas differ beyond their
     standard errors (module docstring), else None; and the test's report."""
-    from scipy.stats import chi2  # deferred: scipy is heavy to import
+    from scipy.stats import chi2  # deferred: scipy is heavy to import (and an optional dependency)
 
     r = grid[0] * grid[1]
     sel = snr >= AREA_SNR
@@ -249,7 +249,7 @@ def _shrink(n: Tensor, e: Tensor) -> tuple[Tensor, float, Tensor]:
 
 def _colour_map(model: FlakeModel, block: Tensor, colours: Tensor, grid: tuple[int, int]) -> tuple[Tensor | None, dict]:
     """Per-block colour means (gh, gw, 3) when the blocks' colours differ beyond their standard errors."""
-    from scipy.stats import chi2  # deferred: scipy is heavy to import
+    from scipy.stats import chi2  # deferred: scipy is heavy to import (and an optional dependency)
 
     r = grid[0] * grid[1]
     n = torch.bincount(block, minlength=r).double()
