@@ -141,15 +141,17 @@ class TestPSNR:
         assert report.psnr is psnr
 
     def test_import_is_cheap(self):
+        """No heavy package, and of the flakes only the render model (MD lives there; no estimation, no renderer)."""
         code = ("import sys, torchmetal.metrics; "
-                "print(' '.join(m for m in ('kornia', 'onnx', 'onnxruntime', 'matplotlib', 'torchmetal.flakes.md') "
+                "print(' '.join(m for m in ('kornia', 'onnx', 'onnxruntime', 'matplotlib', 'cv2', 'scipy', "
+                "'torchmetal.flakes.estimate', 'torchmetal.flakes.stage', 'torchmetal.renderer') "
                 "if m in sys.modules))")
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
         assert out.stdout.strip() == ""
 
 
 def test_md_wrapper():
-    from torchmetal.flakes.md import metallic_difference
+    from torchmetal.flakes.model.md import metallic_difference
 
     g = torch.Generator().manual_seed(4)
     a = torch.rand(3, 32, 32, generator=g) * 0.1

@@ -14,8 +14,8 @@ import torch
 
 from torchmetal.demo import DEMO_FLAKES
 from torchmetal.fit.result import skip_stages
-from torchmetal.flakes.md import metallic_difference
 from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.model.md import metallic_difference
 from torchmetal.pipeline import fit_material
 from torchmetal.renderer import MaterialRenderer
 from torchmetal.synth import synth_capture
@@ -70,7 +70,7 @@ def test_md_of_left_out_photo(left_out):
 def test_sparkles_are_needed(left_out):
     for case, r in left_out.items():
         # ~200 flakes, ~120 detected: the estimator's own noise is ~10 % here (the 10 % accuracy
-        # target is tested at 384² on the flake stage, tests/flakes/test_stats.py)
+        # target is tested at 384² on the flake stage, tests/flakes/estimate/test_stats.py)
         assert r["density"] is not None and abs(r["density"] - 1) < 0.25, (case, r)
         if r["md_no_flakes"] > 5.0:  # photo textures hide most sparkle in their own detail
             assert r["md"] < 0.5 * r["md_no_flakes"], (case, r)

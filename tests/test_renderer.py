@@ -11,8 +11,8 @@ import torch
 
 import torchmetal.renderer as renderer_mod
 from torchmetal.errors import InputError
-from torchmetal.flakes.field import flake_field, sparkle_render
 from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.model.field import flake_field, sparkle_render
 from torchmetal.material import Material
 from torchmetal.onnx_export import scaled_error
 from torchmetal.phong import phong_render

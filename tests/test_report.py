@@ -16,8 +16,8 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
+from torchmetal.flakes.estimate.results import Particles  # noqa: E402
 from torchmetal.flakes.model import FlakeModel  # noqa: E402
-from torchmetal.flakes.results import Particles  # noqa: E402
 from torchmetal.phong import phong_render  # noqa: E402
 from torchmetal.report import (  # noqa: E402
     exposure_for,

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from torchmetal.errors import InputError
-from torchmetal.flakes.field import sparkle_render
 from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.model.field import sparkle_render
 from torchmetal.geometry import shading_geometry
 from torchmetal.io.capture import load_capture
 from torchmetal.phong import phong_render

@@ -41,8 +41,8 @@ from pathlib import Path
 import torch
 
 from torchmetal import pipeline
-from torchmetal.flakes.md import metallic_difference
 from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.model.md import metallic_difference
 from torchmetal.material import save_material
 from torchmetal.metrics import psnr
 from torchmetal.onnx_export import export_onnx

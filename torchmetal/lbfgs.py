@@ -2,7 +2,7 @@
 
 ``torch.optim.Optimizer.__init__`` imports ``torch._dynamo`` on its first call: 1.9 s of a fresh
 process on this 2-core machine, more than the whole flake statistics fit it served
-(:mod:`torchmetal.flakes.stats`, 4 parameters). :func:`minimize` is the iteration of
+(:mod:`torchmetal.flakes.estimate.stats`, 4 parameters). :func:`minimize` is the iteration of
 ``torch.optim.LBFGS.step`` (``lr=1``, ``line_search_fn="strong_wolfe"``) on a flat parameter
 vector, with torch's own line search (``torch.optim.lbfgs._strong_wolfe``, a plain function): the
 same iterates, tested against ``torch.optim.LBFGS``.

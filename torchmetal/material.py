@@ -7,9 +7,9 @@ material/
   normals.npy            (H, W, 3) float32, only when not flat
   specular_labels.npy    (H, W) int32, only with clustered specular
   gloss_s.npy, gloss_alpha.npy   (H, W, 3) float32 gloss maps, only with specular="maps"
-  flakes_*.npy           observed flakes (torchmetal.flakes.observed), named in material.json
+  flakes_*.npy           observed flakes (torchmetal.flakes.model.observed), named in material.json
   flakes_density_map.npy, flakes_color_map.npy   (gh, gw) / (gh, gw, 3) float32 flake-density map and
-                         per-block colour means (torchmetal.flakes.density_map), named in material.json
+                         per-block colour means (torchmetal.flakes.estimate.density_map), named in material.json
   flakes_area_map.npy    (gh, gw) float32 per-block flake log-area offsets, named in material.json
   renderer.onnx          when exported
 ```
@@ -33,7 +33,7 @@ from torch import Tensor
 
 from torchmetal.errors import MaterialError
 from torchmetal.flakes.model import FlakeModel
-from torchmetal.flakes.observed import ObservedFlakes, load_observed, observed_json, save_observed
+from torchmetal.flakes.model.observed import ObservedFlakes, load_observed, observed_json, save_observed
 from torchmetal.io.capture_save import replace_dir
 from torchmetal.lobes import LOBES
 
@@ -69,7 +69,7 @@ class Material:
     flakes: FlakeModel | None = None
     report: dict = field(default_factory=dict)
     lobe: str = "phong"
-    observed_flakes: "ObservedFlakes | None" = None  # the sample's own flakes (torchmetal.flakes.observed)
+    observed_flakes: "ObservedFlakes | None" = None  # the sample's own flakes (torchmetal.flakes.model.observed)
     gloss_s: Tensor | None = None  # (3, H, W) gloss maps (torchmetal.fit.gloss); s, alpha hold their means
     gloss_alpha: Tensor | None = None
 

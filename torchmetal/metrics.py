@@ -13,14 +13,15 @@ function                         what it measures
 :func:`psnr`                     10·log10(peak² / MSE) in dB, optionally masked, linear or sRGB
 :func:`mse`                      mean squared difference, optionally masked and clipped
 :func:`srgb_encode`              linear → sRGB (IEC 61966-2-1 OETF), torch or numpy
-:func:`md`                       the paper's Metallic Difference (:mod:`torchmetal.flakes.md`)
+:func:`md`                       the paper's Metallic Difference (:mod:`torchmetal.flakes.model.md`)
 :func:`sparkle_count`            connected bright blobs in a residual above k robust σ
 :func:`chroma_artifact_share`    share of 8×8 blocks whose CIELAB chroma differs by > 15
 ===============================  ==============================================================
 
 Inputs are torch tensors or numpy arrays in any layout (``(…, 3, H, W)`` or ``(…, H, W, 3)``);
 PSNR and MSE are element-wise, so only the two shapes and the mask's broadcast matter. Importing
-this module is cheap: torch and numpy only; OpenCV and the MD code are imported when first used.
+this module is cheap: torch, numpy and the flake render model's MD (:mod:`torchmetal.flakes.model.md`, torch
+only); OpenCV and kornia are imported when first used.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import InputError
+from torchmetal.flakes.model.md import metallic_difference
 from torchmetal.io.images import linear_to_srgb
 
 __all__ = ["psnr", "mse", "srgb_encode", "md", "sparkle_count", "chroma_artifact_share"]
@@ -210,9 +212,8 @@ def md(
 ) -> float | Tensor:
     """The paper's Metallic Difference, a sparkle-aware distance in [0, 100] (lower = closer).
 
-    A thin wrapper of :func:`torchmetal.flakes.md.metallic_difference` (see that module for the
-    definition), imported on first call so that this module stays cheap to import and free of
-    import cycles with :mod:`torchmetal.flakes`.
+    A thin wrapper of :func:`torchmetal.flakes.model.md.metallic_difference` (see that module for the
+    definition): the flake render model's layer lies below this module, so it imports MD directly.
 
     Args:
         img_a, img_b: (H, W), (C, H, W) or (B, C, H, W) linear torch images of the same shape,
@@ -225,8 +226,6 @@ def md(
     Returns:
         MD in [0, 100].
     """
-    from torchmetal.flakes.md import metallic_difference  # on use: importing metrics loads no flakes code (tested)
-
     return metallic_difference(img_a, img_b, window, k=k, regions=regions, reduction=reduction)
 
 

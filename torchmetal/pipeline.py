@@ -9,12 +9,12 @@ tests but do not bring left-out shots' sparkle statistics closer give the flake-
 The Phong fit is plain least squares by default (``robust="auto"``, ``weights="uniform"``). The flake stage
 first asks whether the detections are glints at all: misfit gives residuals of both signs, glints positive
 ones, so detections must exceed those of the mirrored residual
-(:func:`~torchmetal.flakes.null_test.glint_excess`), counting spots only (a sheen band, the streak of a
+(:func:`~torchmetal.flakes.estimate.null_test.glint_excess`), counting spots only (a sheen band, the streak of a
 highlight, the mask's rim are misfit). Only then is the Phong fit redone with Huber weights for the flake
 statistics (glints are outliers of the Phong model), while the material's coating is refitted by least
 squares without the detected observations (glints seen again in a held-out shot would make a "glinty"
 specular cluster win the selection), and before the flake statistics the texture under the detections is
-re-solved without the shots where it glints (:mod:`torchmetal.flakes.texture`); otherwise the per-pixel
+re-solved without the shots where it glints (:mod:`torchmetal.flakes.estimate.texture`); otherwise the per-pixel
 texture absorbs part of every glint and the statistics see weakened glints. docs/design.md §6 has the
 measurements behind each step.
 """
@@ -30,14 +30,14 @@ from torchmetal.errors import InputError
 from torchmetal.fit import FitResult, fit_phong
 from torchmetal.flakes.choice import choose_observed, keep_flakes
 from torchmetal.flakes.density_choice import choose_density_map
-from torchmetal.flakes.lobe_core import drop_core
-from torchmetal.flakes.null_test import drop_extended, glint_excess
-from torchmetal.flakes.observed import observed_flakes as measure_observed
-from torchmetal.flakes.prescreen import screen_fit
-from torchmetal.flakes.results import FlakeStageResult, Particles
-from torchmetal.flakes.rim import drop_rim
+from torchmetal.flakes.estimate.lobe_core import drop_core
+from torchmetal.flakes.estimate.null_test import drop_extended, glint_excess
+from torchmetal.flakes.estimate.observed_flakes import observed_flakes as measure_observed
+from torchmetal.flakes.estimate.prescreen import screen_fit
+from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
+from torchmetal.flakes.estimate.rim import drop_rim
+from torchmetal.flakes.estimate.texture import grown_detections, texture_without_glints
 from torchmetal.flakes.stage import detect_capture, flake_stage
-from torchmetal.flakes.texture import grown_detections, texture_without_glints
 from torchmetal.io.capture import Capture
 from torchmetal.material import Material
 from torchmetal.normals import with_normals
@@ -101,7 +101,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     ``coat_fit``, the coating is ``coat_fit(capture without the detected observations)`` — glints must
     not steer the specular (a held-out shot shows the same flakes glinting, so a "glinty" specular
     cluster wins there) — and its texture is re-solved under the detections.
-    A pixel screen (:func:`~torchmetal.flakes.prescreen.screen_fit`) goes first: when its
+    A pixel screen (:func:`~torchmetal.flakes.estimate.prescreen.screen_fit`) goes first: when its
     residual outliers are as often negative as positive, the stage stops before any detection.
     Returns (stage result, the coating's fit, its texture)."""
     t0 = time.perf_counter()
@@ -122,7 +122,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     # the core of the coating's own highlight is left out of both sides: a lobe of the wrong shape leaves
     # compact positive peaks there (a sharp highlight on a sphere), glints are counted everywhere else
     mirror = detect_capture(capture, phong_images, mirrored=True)
-    # and so is the rim of the sample's mask (partial pixels, unreliable normals: flakes.rim)
+    # and so is the rim of the sample's mask (partial pixels, unreliable normals: flakes.estimate.rim)
     positive, core_pos = drop_core(fit, capture, det.particles)
     mirrored, core_mir = drop_core(fit, capture, mirror.particles)
     positive, rim_pos = drop_rim(capture, positive)
@@ -188,7 +188,7 @@ def fit_material(
             (see the module docstring).
         seed: seed of the material's flake field.
         observed_flakes: keep the flakes the fit shots saw where they are
-            (:mod:`torchmetal.flakes.observed`), the field filling the rest: "auto" when left-out
+            (:mod:`torchmetal.flakes.estimate.observed_flakes`), the field filling the rest: "auto" when left-out
             shots render better with them on PSNR and MD (:func:`~torchmetal.flakes.choice.choose_observed`), "on"/True
             always, "off"/False never.
         progress: show progress bars.

@@ -2,7 +2,7 @@
 
 ``MaterialRenderer(material)(light (B,4), light_intensity (B,3), camera (B,4)) -> (B,3,H,W)``
 computes exactly the model of :func:`torchmetal.phong.phong_render` plus
-:func:`torchmetal.flakes.field.sparkle_render` (to float32 rounding), but is written for speed
+:func:`torchmetal.flakes.model.field.sparkle_render` (to float32 rounding), but is written for speed
 and for a small ONNX graph (docs/design.md §2.4):
 
 - **Only what the material uses is in the graph.** No flake ops when the material has no flakes
@@ -20,7 +20,7 @@ and for a small ONNX graph (docs/design.md §2.4):
 - **Sparse sparkles.** The flake field is baked once; only the pixels with a non-zero flake
   footprint (a few % of the texture) are kept, as flat indices plus their flake normal and
   weighted colour. Their glints are shaded with the flake module's own
-  :func:`~torchmetal.flakes.field.sparkle_shading` at those points only and scatter-added into
+  :func:`~torchmetal.flakes.model.field.sparkle_shading` at those points only and scatter-added into
   the Phong image. If the footprint covers more than a quarter of the texture, dense maps are
   used instead.
 
@@ -52,8 +52,8 @@ from torch import Tensor, nn
 
 from torchmetal.checks import check_finite, check_float, check_shape
 from torchmetal.errors import InputError
-from torchmetal.flakes.field import FlakeField, sparkle_shading
-from torchmetal.flakes.observed import material_flake_field
+from torchmetal.flakes.model.field import FlakeField, sparkle_shading
+from torchmetal.flakes.model.observed import material_flake_field
 from torchmetal.geometry import is_flat, shading_geometry, surface_points
 from torchmetal.lobes import fresnel_ratio, ggx_k
 from torchmetal.material import Material

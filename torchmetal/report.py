@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchmetal.flakes.md import metallic_difference
+from torchmetal.flakes.model.md import metallic_difference
 from torchmetal.geometry import shading_geometry, surface_points
 from torchmetal.io.capture import Capture
 from torchmetal.io.images import linear_to_srgb
@@ -239,7 +239,7 @@ def particle_ellipses(particles, shot: int | None = None) -> list[tuple[float, f
     lengths, angle in degrees from +column towards up (counter-clockwise on screen).
 
     Args:
-        particles: a :class:`~torchmetal.flakes.results.Particles` table (fields ``shot``,
+        particles: a :class:`~torchmetal.flakes.estimate.results.Particles` table (fields ``shot``,
             ``cy``, ``cx``, ``major``, ``minor``, ``angle``) or None.
         shot: keep only the particles of this shot.
     """
@@ -259,7 +259,7 @@ def plot_flakes(ax, residual: Tensor, particles=None, *, shot: int | None = None
 
     Args:
         residual: (3, H, W) linear residual; negative values show black.
-        particles: :class:`~torchmetal.flakes.results.Particles` or None; shot: draw this shot's.
+        particles: :class:`~torchmetal.flakes.estimate.results.Particles` or None; shot: draw this shot's.
         window: optional (row0, row1, col0, col1) to zoom into (the exposure still comes from the
             whole residual).
 

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import torch
 
-from torchmetal.flakes.field import FlakeField, flake_field, sparkle_render
 from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.model.field import FlakeField, flake_field, sparkle_render
 from torchmetal.geometry import normalize, shading_geometry
 from torchmetal.phong import phong_render
 
@@ -130,7 +130,7 @@ def make_scene(
 
 def true_flakes(model: FlakeModel, h: int, w: int, normals: torch.Tensor) -> dict:
     """Per-flake truth of :func:`flake_field` (same hash draws): centre, normal, colour, area."""
-    from torchmetal.flakes.field import _normal_pair, _tangent_frame, cell_size, hash_uniform
+    from torchmetal.flakes.model.field import _normal_pair, _tangent_frame, cell_size, hash_uniform
 
     c = cell_size(model.density)
     presence = min(1.0, model.density * c * c)

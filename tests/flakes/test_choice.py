@@ -13,9 +13,9 @@ import pytest
 import torch
 
 import torchmetal.flakes.choice as choice
-from torchmetal.flakes.choice import _held_shots, _observed_without, choose_observed, keep_flakes
+from torchmetal.flakes.choice import choose_observed, held_shots, keep_flakes, observed_without
+from torchmetal.flakes.estimate.results import Particles
 from torchmetal.flakes.model import FlakeModel
-from torchmetal.flakes.results import Particles
 
 
 def _particles(shots: list[int], cy: list[float], cx: list[float]) -> Particles:
@@ -38,18 +38,18 @@ def _capture(n: int = 4, h: int = 24, w: int = 24):
 def test_held_shots_are_those_with_most_associated_detections():
     p = _particles([0, 2, 2, 3, 3, 3, 1], [5.0] * 7, [5.0] * 7)
     fid = torch.tensor([0, 1, 2, 0, 1, 2, -1])  # shot 1's only detection is not associated
-    assert _held_shots(p, fid, 4, 2) == [3, 2]
-    assert _held_shots(p, fid, 4, 9) == [3, 2, 0]  # never a shot without associated detections
+    assert held_shots(p, fid, 4, 2) == [3, 2]
+    assert held_shots(p, fid, 4, 9) == [3, 2, 0]  # never a shot without associated detections
 
 
 def test_observed_without_leaves_the_shot_out_of_detections_and_probes():
     cap = _capture()
     p = _particles([0, 1, 2, 3], [5.0, 5.0, 15.0, 15.0], [5.0, 5.0, 15.0, 15.0])
     fid = torch.tensor([0, 0, 1, 1])
-    obs = _observed_without(cap, p, fid, FlakeModel(density=0.01, glint_sigma=0.05), 2)
+    obs = observed_without(cap, p, fid, FlakeModel(density=0.01, glint_sigma=0.05), 2)
     assert obs is not None and len(obs) == 2  # flake 1 is still seen, in shot 3 (renumbered 2)
     assert torch.equal(obs.probe_lights, cap.lights[[0, 1, 3]])
-    alone = _observed_without(cap, p, torch.tensor([0, 0, 1, -1]), FlakeModel(density=0.01, glint_sigma=0.05), 2)
+    alone = observed_without(cap, p, torch.tensor([0, 0, 1, -1]), FlakeModel(density=0.01, glint_sigma=0.05), 2)
     assert len(alone) == 1  # flake 1 was seen in shot 2 only
 
 

@@ -1,4 +1,4 @@
-"""Glitter where it is: the flake-density map (torchmetal.flakes.density_map, density_choice), its field,
+"""Glitter where it is: the flake-density map (torchmetal.flakes.estimate.density_map, density_choice), its field,
 its material files, its ONNX renderer and its choice on left-out shots."""
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import torch
 
 import torchmetal.flakes.density_choice as dc
 from torchmetal.errors import MaterialError
-from torchmetal.flakes.density_map import AREA_P, estimate_map, map_grid, with_map
-from torchmetal.flakes.field import flake_field
+from torchmetal.flakes.estimate.density_map import AREA_P, estimate_map, map_grid, with_map
+from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
 from torchmetal.flakes.model import MAX_DENSITY, FlakeModel
-from torchmetal.flakes.results import FlakeStageResult, Particles
+from torchmetal.flakes.model.field import flake_field
 from torchmetal.material import Material, load_material, save_material
 
 
@@ -192,7 +192,7 @@ def test_sparkle_counts_per_block():
 def test_half_glitter_zoo_scene(tmp_path):
     """Zoo flakes_half: the fit keeps a map, its density right of the glitter ≪ left, and the render has
     no flake right of it."""
-    from torchmetal.flakes.observed import material_flake_field
+    from torchmetal.flakes.model.observed import material_flake_field
     from torchmetal.io.capture import load_capture
     from torchmetal.pipeline import fit_material
     from torchmetal.synth.zoo import SCENES, make_case
@@ -216,7 +216,7 @@ def test_half_glitter_zoo_scene(tmp_path):
 
 import math  # noqa: E402
 
-from torchmetal.flakes.field import field_cell  # noqa: E402
+from torchmetal.flakes.model.field import field_cell  # noqa: E402
 
 AREA_MAPPED = replace(MAPPED, area_map=torch.tensor([[math.log(2.0), 0.0], [-0.4, 0.2]]))
 
@@ -345,3 +345,15 @@ def test_bake_follows_a_half_zero_map():
         assert bool(diff[:, :half].any()) and not bool(diff[:, half + c:].any())
         assert int(diff[:, :half].sum()) > 20 * int(diff[:, half:].sum())
         assert em.extras["flake_bake"]["flakes"] > 0
+
+
+def test_chi2_sf_is_the_upper_tail_without_scipy():
+    from torchmetal.flakes.estimate import density_map
+    from torchmetal.flakes.estimate.density_map import chi2_sf
+
+    # reference values: the χ² upper tail (scipy.stats.chi2.sf) at a few points
+    assert chi2_sf(0.0, 3) == 1.0
+    assert abs(chi2_sf(1.5, 3) - 0.6822703303362125) < 1e-12
+    assert abs(chi2_sf(10.0, 4) - 0.04042768199451279) < 1e-12
+    assert abs(chi2_sf(100.0, 15) - 1.3047043436251422e-14) < 1e-24
+    assert "scipy" not in density_map.__dict__

@@ -16,7 +16,7 @@ import torch
 from torchmetal.errors import MaterialError
 from torchmetal.flakes.choice import HELD
 from torchmetal.flakes.model import FlakeModel
-from torchmetal.flakes.observed import ObservedFlakes, material_flake_field, observed_field
+from torchmetal.flakes.model.observed import ObservedFlakes, material_flake_field, observed_field
 from torchmetal.material import Material, load_material, save_material
 from torchmetal.renderer import MaterialRenderer
 
@@ -53,7 +53,7 @@ def test_footprint_area_and_place():
 def _fill_fields(obs):
     """The statistical field alone, the material's field, the observed flakes' own field, the fill
     pixels (material field, not observed) and the fit shots' half vectors (2, 3, H, W), on 32² flat."""
-    from torchmetal.flakes.field import flake_field
+    from torchmetal.flakes.model.field import flake_field
     from torchmetal.geometry import shading_geometry
 
     n = torch.zeros(3, 32, 32)
@@ -68,7 +68,7 @@ def _fill_fields(obs):
 
 
 def test_fill_skips_observed_pixels_and_probed_normals():
-    from torchmetal.flakes.observed import PROBED_GLINT
+    from torchmetal.flakes.model.observed import PROBED_GLINT
 
     stat, f, own, fill, half = _fill_fields(_obs())
     assert bool(fill.any()) and int(fill.sum()) < int((stat.weight[0] > 0).sum())
@@ -84,7 +84,7 @@ def test_fill_drops_flakes_a_fit_shot_would_have_detected():
     """The cause of flakes_b's excess sparkles (count ratio 1.28): fill flakes glinting in a fit shot at a
     factor below 1/2 but far above the detector's floor were kept, doubling the flakes the fit shots
     saw off their glint peak. With ``detect_amp`` no kept fill flake would have been detected."""
-    from torchmetal.flakes.observed import PROBED_GLINT
+    from torchmetal.flakes.model.observed import PROBED_GLINT
 
     obs = _obs(detect_amp=0.02)
     stat, f, own, fill, half = _fill_fields(obs)
@@ -97,8 +97,8 @@ def test_fill_drops_flakes_a_fit_shot_would_have_detected():
 
 
 def test_detect_amp_from_detections_and_saved(tmp_path):
-    from torchmetal.flakes.observed import _detect_amp
-    from torchmetal.flakes.results import Particles
+    from torchmetal.flakes.estimate.observed_flakes import _detect_amp
+    from torchmetal.flakes.estimate.results import Particles
 
     one = torch.ones(3)
     p = Particles(shot=torch.tensor([0, 1, 2]), area=2 * one, cy=one, cx=one, major=4 * one, minor=4 * one, angle=0 * one,
@@ -118,7 +118,7 @@ def test_faint_detection_is_placed_by_the_flakes_brightness():
     kept at the half vector, rendered dim in every new view: flakes_b's observed flakes 0.67 of the
     true peak, 45 of 146 normals > 2.5° off). A detection at the mean brightness, which a clipped shot
     could not have seen, stays."""
-    from torchmetal.flakes.placement import place_normals
+    from torchmetal.flakes.estimate.placement import place_normals
 
     sig = 0.04
     h0 = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)

@@ -10,9 +10,9 @@ model was fitted. Shot 3 is left out and rendered with and without the flake ter
 import pytest
 import torch
 
-from torchmetal.flakes.md import metallic_difference
+from torchmetal.flakes.estimate.overlay import save_detection_overlay
 from torchmetal.flakes.model import MAX_DENSITY
-from torchmetal.flakes.report import save_detection_overlay
+from torchmetal.flakes.model.md import metallic_difference
 from torchmetal.io.capture import load_capture
 from torchmetal.io.shared_data import shared_data_dir
 from torchmetal.pipeline import fit_material

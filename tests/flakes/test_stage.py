@@ -7,8 +7,8 @@ import torch
 
 from tests.flakes.scenes import capture_of, make_scene
 from torchmetal.errors import InputError
+from torchmetal.flakes.estimate.results import FlakeStageResult
 from torchmetal.flakes.model import FlakeModel
-from torchmetal.flakes.results import FlakeStageResult
 from torchmetal.flakes.stage import flake_stage, irradiance_maps
 
 MODEL = FlakeModel(density=0.01, area_log_mean=math.log(6.0), area_log_std=0.35, tilt_sigma=0.15, glint_sigma=0.03,
@@ -57,7 +57,7 @@ class TestGlintNull:
     """glint_excess / detect_capture(mirrored=True): glints exceed their mirror; symmetric misfit does not."""
 
     def test_glints_exceed_the_mirror(self, scene):
-        from torchmetal.flakes.null_test import glint_excess
+        from torchmetal.flakes.estimate.null_test import glint_excess
         from torchmetal.flakes.stage import detect_capture
 
         cap = capture_of(scene)
@@ -70,7 +70,7 @@ class TestGlintNull:
         """Bright and dark specks in equal numbers (a misfit of either sign) give no excess."""
         from dataclasses import replace
 
-        from torchmetal.flakes.null_test import glint_excess
+        from torchmetal.flakes.estimate.null_test import glint_excess
         from torchmetal.flakes.stage import detect_capture
 
         cap = capture_of(scene)
@@ -88,8 +88,8 @@ class TestGlintNull:
 
 
 def test_extended_detections_are_left_out_of_the_null_test():
-    from torchmetal.flakes.null_test import EXTENT, drop_extended
-    from torchmetal.flakes.results import Particles
+    from torchmetal.flakes.estimate.null_test import EXTENT, drop_extended
+    from torchmetal.flakes.estimate.results import Particles
 
     p = Particles.empty()
     p = Particles(**{k: torch.zeros((4, *v.shape[1:]), dtype=v.dtype) for k, v in vars(p).items()})

@@ -5,7 +5,7 @@ import torch
 
 from tests.formats.kinds import make_material
 from torchmetal.errors import ExportError
-from torchmetal.flakes.field import flake_field
+from torchmetal.flakes.model.field import flake_field
 from torchmetal.formats.engine import engine_material, engine_render
 from torchmetal.renderer import MaterialRenderer
 

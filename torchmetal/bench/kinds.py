@@ -70,7 +70,7 @@ def _optional(kind: str, mat, size: int, g):
         ramp = torch.linspace(0.0, 1.0, size).reshape(1, 1, size).expand(3, size, size)
         return dataclasses_replace(mat, gloss_s=(0.2 + 0.6 * ramp).contiguous(), gloss_alpha=(20.0 + 200.0 * ramp).contiguous())
     # on use: loads torch (this module imports numpy only)
-    from torchmetal.flakes.observed import ObservedFlakes
+    from torchmetal.flakes.model.observed import ObservedFlakes
     from torchmetal.onnx_export import parity_inputs
 
     j = max(int(0.003 * size * size), 1)

@@ -1,4 +1,4 @@
-"""Score the sample's own flakes (:mod:`torchmetal.flakes.observed`) on held-out shots of a zoo flake scene.
+"""Score the sample's own flakes (:mod:`torchmetal.flakes.model.observed`) on held-out shots of a zoo flake scene.
 
 For a fitted material on a :class:`~torchmetal.synth.zoo.ZooCase`, three renders of the held-out
 shots are compared with their clean truth: ``none`` (no sparkles), ``statistical`` (the hash field

@@ -140,8 +140,8 @@ def task_realflakes(cfg: dict) -> dict:
     import torch
 
     # on use: loads torch (this module imports numpy only)
-    from torchmetal.flakes.md import metallic_difference
-    from torchmetal.flakes.report import save_detection_overlay
+    from torchmetal.flakes.estimate.overlay import save_detection_overlay
+    from torchmetal.flakes.model.md import metallic_difference
     from torchmetal.io.capture import load_capture
     from torchmetal.pipeline import fit_material
     from torchmetal.renderer import MaterialRenderer

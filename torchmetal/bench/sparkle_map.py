@@ -1,4 +1,4 @@
-"""Evidence for the flake-density map (:mod:`torchmetal.flakes.density_map`): where the sparkles are.
+"""Evidence for the flake-density map (:mod:`torchmetal.flakes.estimate.density_map`): where the sparkles are.
 
 Two samples, each fitted by :func:`~torchmetal.pipeline.fit_material` without one shot, which is then
 rendered with the uniform flake model and with the density map (whichever the fit kept):

@@ -1,6 +1,16 @@
-"""Metallic flakes: the statistical model, its deterministic field, detection and metrics."""
+"""Metallic flakes, by layer.
 
-from torchmetal.flakes.field import FlakeField, flake_field, sparkle_render, sparkle_shading
-from torchmetal.flakes.model import FlakeModel
+- :mod:`torchmetal.flakes.model` (low): the render model: the statistical model, its deterministic field,
+  the observed flakes and MD. The material, the renderer and the metrics import it.
+- :mod:`torchmetal.flakes.estimate` (middle): detection and statistics, from a capture and its Phong renders.
+- here (high, above the renderer): the stage (:mod:`~torchmetal.flakes.stage`: detect → associate → fit) and
+  the choices made on left-out shots (:mod:`~torchmetal.flakes.choice`: observed flakes, flakes or none;
+  :mod:`~torchmetal.flakes.density_choice`: a density map), which render candidates to compare them.
+
+A layer imports only the ones below it. The names exported here are the render model's.
+"""
+
+from torchmetal.flakes.model.field import FlakeField, flake_field, sparkle_render, sparkle_shading
+from torchmetal.flakes.model.params import FlakeModel
 
 __all__ = ["FlakeModel", "FlakeField", "flake_field", "sparkle_shading", "sparkle_render"]

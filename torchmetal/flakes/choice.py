@@ -1,8 +1,8 @@
 """Observed or statistical flakes (:func:`choose_observed`), and flakes or none (:func:`keep_flakes`)?
 Decided on shots the observed flakes were not measured from.
 
-The sample's own flakes (:mod:`torchmetal.flakes.observed`) put the glints where the fit shots saw
-them; the statistical field (:mod:`torchmetal.flakes.field`) only gets their statistics right. Which
+The sample's own flakes (:mod:`torchmetal.flakes.model.observed`) put the glints where the fit shots saw
+them; the statistical field (:mod:`torchmetal.flakes.model.field`) only gets their statistics right. Which
 renders a new view better depends on the sample and the views (flakes seen from a few directions
 say little about a far direction's glints; there the field's statistics are the better guess).
 So, like the specular and lobe choices, the default asks shots
@@ -20,16 +20,20 @@ The dense hemisphere capture of tests/test_pipeline.py (case 4): left out 42.8 v
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import torch
 
 from torchmetal.fit.decision import Decision
+from torchmetal.flakes.estimate.observed_flakes import observed_flakes
+from torchmetal.metrics import md, psnr
+from torchmetal.renderer import MaterialRenderer
 
 HELD = 2  # left-out shots (the ones with the most associated detections)
 MD_WINDOW = 16  # MD's block (px) in the left-out scores: smaller images cannot be scored
 
 
-def _held_shots(particles, flake_id: torch.Tensor, num_shots: int, count: int) -> list[int]:
+def held_shots(particles, flake_id: torch.Tensor, num_shots: int, count: int) -> list[int]:
     """Up to ``count`` shots with the most associated detections (ties: the lower index)."""
     shots = particles.shot[flake_id >= 0]
     per = torch.bincount(shots, minlength=num_shots)
@@ -37,13 +41,9 @@ def _held_shots(particles, flake_id: torch.Tensor, num_shots: int, count: int) -
     return [k for k in order[:count] if int(per[k]) > 0]
 
 
-def _observed_without(capture, particles, flake_id: torch.Tensor, model, k: int):
+def observed_without(capture, particles, flake_id: torch.Tensor, model, k: int):
     """Observed flakes measured from every shot but ``k`` (shot indices renumbered; the probe shots
     exclude ``k``). The photos themselves are not read again: only the shots' geometry."""
-    from types import SimpleNamespace
-
-    from torchmetal.flakes.observed import observed_flakes
-
     keep = torch.tensor([i for i in range(capture.num_shots) if i != k], dtype=torch.long)
     others = SimpleNamespace(images=capture.images, normals=capture.normals, size=capture.size, mask=capture.mask,
                              **{f: getattr(capture, f)[keep.to(capture.lights.device)]
@@ -56,9 +56,6 @@ def _observed_without(capture, particles, flake_id: torch.Tensor, model, k: int)
 
 def _scores(material, capture, k: int) -> dict:
     """PSNR (dB, linear, peak 1) and MD of the material's render of shot ``k`` against its photo."""
-    from torchmetal.metrics import md, psnr
-    from torchmetal.renderer import MaterialRenderer
-
     with torch.no_grad():
         pred = MaterialRenderer(material)(capture.lights[k : k + 1].float(), capture.intensities[k : k + 1].float(),
                                           capture.cameras[k : k + 1].float())
@@ -67,7 +64,7 @@ def _scores(material, capture, k: int) -> dict:
     return {"psnr": float(psnr(pred, photo, mask=valid)), "md": float(md(pred[0], photo[0], window=MD_WINDOW))}
 
 
-def _mean(rows: list[dict], key: str) -> float:
+def mean_score(rows: list[dict], key: str) -> float:
     """Mean of one score over the left-out shots."""
     return sum(r[key] for r in rows) / len(rows)
 
@@ -84,8 +81,6 @@ def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tup
         (ObservedFlakes measured from every shot, or None; report {"held": [...], "observed": [...],
         "statistical": [...], "kept": bool, "reason": str}).
     """
-    from torchmetal.flakes.observed import observed_flakes
-
     parts, fid, model = flake_result.particles, flake_result.flake_id, flake_result.model
     report = {"held": [], "observed": [], "statistical": [], "kept": False}
     if min(capture.images.shape[-2:]) < MD_WINDOW:
@@ -97,8 +92,8 @@ def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tup
     if capture.num_shots < 3:
         report["reason"] = f"{capture.num_shots} shots: none to leave out of the observed flakes"
         return None, report
-    for k in _held_shots(parts, fid, capture.num_shots, held):
-        obs = _observed_without(capture, parts, fid, model, k)
+    for k in held_shots(parts, fid, capture.num_shots, held):
+        obs = observed_without(capture, parts, fid, model, k)
         if obs is None:
             continue
         stat = _scores(material, capture, k)
@@ -109,8 +104,8 @@ def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tup
     if not report["held"]:
         report["reason"] = "no left-out shot keeps associated detections in the others"
         return None, report
-    o_psnr, s_psnr = _mean(report["observed"], "psnr"), _mean(report["statistical"], "psnr")
-    o_md, s_md = _mean(report["observed"], "md"), _mean(report["statistical"], "md")
+    o_psnr, s_psnr = mean_score(report["observed"], "psnr"), mean_score(report["statistical"], "psnr")
+    o_md, s_md = mean_score(report["observed"], "md"), mean_score(report["statistical"], "md")
     better = o_psnr > s_psnr and o_md <= s_md
     report["kept"] = better
     report["reason"] = (f"left-out shots: observed flakes {o_psnr:.2f} dB, MD {o_md:.2f}; statistical field "
@@ -158,10 +153,10 @@ def keep_flakes(capture, material, plain, flake_result, observed_report: dict | 
         if fid is None or not bool((fid >= 0).any()):
             rep["reason"] = "no associated detections to choose left-out shots by: kept"
             return True, rep
-        for k in _held_shots(flake_result.particles, fid, capture.num_shots, held):
+        for k in held_shots(flake_result.particles, fid, capture.num_shots, held):
             cand = material
             if material.observed_flakes is not None and capture.num_shots >= 3:
-                cand = replace(material, observed_flakes=_observed_without(
+                cand = replace(material, observed_flakes=observed_without(
                     capture, flake_result.particles, fid, flake_result.model, k))
             rep["held"].append(k)
             rep["flakes"].append(_scores(cand, capture, k))
@@ -169,7 +164,7 @@ def keep_flakes(capture, material, plain, flake_result, observed_report: dict | 
         rep["reason"] = "no left-out shot: kept"
         return True, rep
     rep["none"] = [_scores(plain, capture, k) for k in rep["held"]]
-    f_md, n_md = _mean(rep["flakes"], "md"), _mean(rep["none"], "md")
+    f_md, n_md = mean_score(rep["flakes"], "md"), mean_score(rep["none"], "md")
     rep["kept"] = f_md <= n_md
     rep["reason"] = (f"left-out shots {rep['held']}: MD {f_md:.2f} with the flake model, {n_md:.2f} without "
                      "(kept when no higher)")

@@ -1,4 +1,4 @@
-"""Uniform density or a density map (:mod:`torchmetal.flakes.density_map`)? Decided on left-out shots.
+"""Uniform density or a density map (:mod:`torchmetal.flakes.estimate.density_map`)? Decided on left-out shots.
 
 Like the other flake choices (:mod:`torchmetal.flakes.choice`): for each of the ``HELD`` shots with the
 most associated detections, the map is estimated from the *other* shots' detections only, and the
@@ -10,7 +10,7 @@ left-out photo is compared with the material rendered with the uniform model and
   render and of the photo, scored as the mean |log((pred + 1)/(obs + 1))| over the blocks.
 
 The candidates are the uniform model and a map per detectability model ("map:glint", "map:area":
-:func:`~torchmetal.flakes.density_map.detectability`). A map wins when its mean MD and its mean
+:func:`~torchmetal.flakes.estimate.density_map.detectability`). A map wins when its mean MD and its mean
 block error are both no higher than the uniform model's and one is lower (a default must never be
 worse than the simpler option, and a tie keeps the simpler one: zoo flakes_b, whose observed flakes
 leave the map nothing to change, scores identically), the lowest MD among those; it is then estimated from every shot. The coating, the flake statistics and the observed flakes (when kept, measured without the
@@ -27,10 +27,12 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.fit.decision import Decision
-from torchmetal.flakes.choice import HELD, MD_WINDOW, _held_shots, _mean, _observed_without
-from torchmetal.flakes.density_map import DETECT_MODES, estimate_map, with_map
-from torchmetal.flakes.field import map_blocks
-from torchmetal.flakes.filters import box_mean
+from torchmetal.flakes.choice import HELD, MD_WINDOW, held_shots, mean_score, observed_without
+from torchmetal.flakes.estimate.density_map import DETECT_MODES, estimate_map, with_map
+from torchmetal.flakes.model.field import map_blocks
+from torchmetal.flakes.model.filters import box_mean
+from torchmetal.metrics import md
+from torchmetal.renderer import MaterialRenderer
 
 SPARKLE_K = 5.0  # sparkle threshold in robust σ of the high-pass (MD's)
 
@@ -65,8 +67,6 @@ def block_error(pred: Tensor, obs: Tensor) -> float:
 
 def render_shot(material, capture, k: int) -> Tensor:
     """The material's render of shot ``k``, (3, H, W)."""
-    from torchmetal.renderer import MaterialRenderer
-
     with torch.no_grad():
         return MaterialRenderer(material)(capture.lights[k : k + 1].float(), capture.intensities[k : k + 1].float(),
                                           capture.cameras[k : k + 1].float())[0]
@@ -79,8 +79,6 @@ def shot_valid(capture, k: int) -> Tensor:
 
 def score_shot(material, capture, k: int, grid: tuple[int, int]) -> dict:
     """MD, block sparkle error and the per-block sparkle counts of shot ``k``'s render against its photo."""
-    from torchmetal.metrics import md
-
     pred = render_shot(material, capture, k)
     photo = capture.images[k].float()
     p, o = sparkle_counts(pred, photo, grid, shot_valid(capture, k))
@@ -92,7 +90,7 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
     """``material.flakes`` with a density map when left-out shots prefer it, else unchanged.
 
     The candidates are the uniform model and a map per detectability mode
-    (:data:`~torchmetal.flakes.density_map.DETECT_MODES`: "map:glint", "map:area").
+    (:data:`~torchmetal.flakes.estimate.density_map.DETECT_MODES`: "map:glint", "map:area").
 
     Args:
         capture: the fitted capture; material: the material with its kept flake model (and observed
@@ -123,7 +121,7 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
         return model, rep
     parts = flake_result.particles
     rep["folds"] = []
-    for k in _held_shots(parts, fid, capture.num_shots, held):
+    for k in held_shots(parts, fid, capture.num_shots, held):
         others = [i for i in range(capture.num_shots) if i != k]
         maps = {f"map:{m}": estimate_map(capture, model, parts, fid, others, mode=m) for m in DETECT_MODES}
         if any(dm is None or dm.uniform for dm in maps.values()):
@@ -131,7 +129,7 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
             continue
         base = material
         if material.observed_flakes is not None:
-            base = replace(material, observed_flakes=_observed_without(capture, parts, fid, model, k))
+            base = replace(material, observed_flakes=observed_without(capture, parts, fid, model, k))
         grid = maps["map:glint"].grid
         rep["held"].append(k)
         rep["per_shot"]["uniform"].append(score_shot(base, capture, k, grid))
@@ -141,7 +139,7 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
     if not rep["held"]:
         rep["reason"] = "no left-out shot gave a non-uniform map (too few flakes, one block, or Poisson-like counts)"
         return model, rep
-    rep["scores"] = {c: {"md": _mean(rep["per_shot"][c], "md"), "block_error": _mean(rep["per_shot"][c], "block_error")}
+    rep["scores"] = {c: {"md": mean_score(rep["per_shot"][c], "md"), "block_error": mean_score(rep["per_shot"][c], "block_error")}
                      for c in cands}
     uni = rep["scores"]["uniform"]
     def beats(v: dict) -> bool:  # no worse on both scores, better on one (a tie keeps the simpler model)

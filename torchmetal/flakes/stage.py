@@ -15,9 +15,10 @@ import torch
 from torch import Tensor
 
 from torchmetal.checks import check_shape
-from torchmetal.flakes.detect import Detection, detect_flakes
-from torchmetal.flakes.results import FlakeStageResult
-from torchmetal.flakes.shot_geometry import Geometry
+from torchmetal.flakes.estimate.detect import Detection, detect_flakes
+from torchmetal.flakes.estimate.results import FlakeStageResult
+from torchmetal.flakes.estimate.shot_geometry import Geometry
+from torchmetal.flakes.estimate.stats import flake_statistics
 from torchmetal.geometry import grid_distance2, pixel_axes
 
 
@@ -30,12 +31,12 @@ def irradiance_maps(capture, *, dtype: torch.dtype = torch.float32) -> Tensor:
 
 
 def detect_capture(capture, phong_images: Tensor, *, mirrored: bool = False, **detect) -> Detection:
-    """:func:`~torchmetal.flakes.detect.detect_flakes` on every shot of ``capture``: residual
+    """:func:`~torchmetal.flakes.estimate.detect.detect_flakes` on every shot of ``capture``: residual
     against ``phong_images`` (N, 3, H, W), irradiance from the shots' lights, and only mask pixels
     that are not saturated in any channel.
 
     ``mirrored``: detect in the residual's mirror image instead, photo' = 2·Phong − photo — the
-    empirical null of :func:`~torchmetal.flakes.null_test.glint_excess`. Noise and a misfit of the Phong model (texture edges,
+    empirical null of :func:`~torchmetal.flakes.estimate.null_test.glint_excess`. Noise and a misfit of the Phong model (texture edges,
     an imperfect lobe, quantisation) give residuals of both signs; glints are positive only, so
     what the detector finds in the mirror is what misfit alone produces at each SNR.
     """
@@ -64,9 +65,9 @@ def flake_stage(
             intensities, cameras, size, saturated).
         phong_images: (N, 3, H, W) Phong render of every shot (same geometry as the photos).
         seed: hash seed stored in the fitted model (the render's flake field).
-        detect: extra keyword arguments of :func:`~torchmetal.flakes.detect.detect_flakes`
+        detect: extra keyword arguments of :func:`~torchmetal.flakes.estimate.detect.detect_flakes`
             (k_hi, k_lo, tile, background, close, open, min_area, cc_backend, chunk).
-        stats: extra keyword arguments of :func:`~torchmetal.flakes.stats.flake_statistics`
+        stats: extra keyword arguments of :func:`~torchmetal.flakes.estimate.stats.flake_statistics`
             (assoc_radius, min_flakes, max_cells, max_flakes).
         detection: :func:`detect_capture` of these renders when the caller already has it
             (``detect`` is then unused).
@@ -80,8 +81,6 @@ def flake_stage(
     det = detect_capture(capture, phong_images, **(detect or {})) if detection is None else detection
     t2 = time.perf_counter()
     geo = Geometry(capture.normals, capture.lights, capture.intensities, capture.cameras, capture.size)
-    from torchmetal.flakes.stats import flake_statistics  # heavy: not imported when the screen skips the stage
-
     res = flake_statistics(det, geo, seed=seed, **(stats or {}))
     t3 = time.perf_counter()
     report = dict(res.report)

@@ -29,7 +29,7 @@ from dataclasses import replace
 import torch
 
 from torchmetal.errors import ExportError
-from torchmetal.flakes.field import flake_field
+from torchmetal.flakes.model.field import flake_field
 from torchmetal.formats.engine_brdf import (
     COAT_F0,
     Coat,

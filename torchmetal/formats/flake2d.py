@@ -240,7 +240,7 @@ def drawn_coverage(model, side: int = 192) -> tuple[float, float]:
     from dataclasses import replace
 
     # on use: loads torch (this module imports numpy only)
-    from torchmetal.flakes.field import flake_field
+    from torchmetal.flakes.model.field import flake_field
 
     f = flake_field(replace(model, density_map=None, color_map=None, area_map=None), side, side)
     return float((f.weight >= 0.5).float().mean()), f.count / float(side * side)
@@ -277,7 +277,7 @@ def glint_statistics(model, inputs: Flake2dInputs, width_px: int, tilts_deg=(0.0
     (texel²), and per half-vector tilt the fraction of flakes whose normal lies within ``cone_deg``
     (default 2·glint σ) of it. torchmetal's side is its own flake field."""
     # on use: loads torch (this module imports numpy only)
-    from torchmetal.flakes.field import flake_field
+    from torchmetal.flakes.model.field import flake_field
 
     f = flake_field(model, height_px, height_px)
     weight = f.weight[0].numpy()

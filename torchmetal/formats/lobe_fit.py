@@ -18,7 +18,7 @@ direction, wide enough for the lobe to fall to 1e-3 of its peak, so the error is
 ``target`` is any function ``(l (N, 3), v (N, 3)) -> (N, C)`` of unit directions in the local frame
 (normal (0, 0, 1)); :func:`lobe_target` (the material's lobe — Phong, Blinn or GGX — through
 :func:`torchmetal.lobes.lobe_value`) and :func:`glint_target` (one flake's glint, through
-:func:`torchmetal.flakes.field.sparkle_shading`) build the ones torchmetal's materials need. The fit is a coarse scan of
+:func:`torchmetal.flakes.model.field.sparkle_shading`) build the ones torchmetal's materials need. The fit is a coarse scan of
 log r, a bounded 1-D refinement, and a closed-form least-squares amplitude at every r.
 The reported error is the relative L2 error ‖fit − target‖/‖target‖ per channel.
 """
@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.errors import ExportError
-from torchmetal.flakes.field import FlakeField, sparkle_shading
+from torchmetal.flakes.model.field import FlakeField, sparkle_shading
 from torchmetal.formats.brent import minimize_bounded
 from torchmetal.geometry import ShadingGeometry
 from torchmetal.io.capture import Capture, load_capture
@@ -170,7 +170,7 @@ def phong_target(s: Tensor, alpha: Tensor) -> Target:
 
 
 def glint_target(color, sigma: float) -> Target:
-    """One glint of :func:`torchmetal.flakes.field.sparkle_shading` in its flake's frame (flake normal
+    """One glint of :func:`torchmetal.flakes.model.field.sparkle_shading` in its flake's frame (flake normal
     +z, full footprint, glint colour ``color``): c_c·exp(−|m − h|²/(2σ²)) for n·l > 0."""
     color = torch.as_tensor(color, dtype=torch.float64).reshape(3, 1, 1)
 

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from torchmetal.errors import ExportError
-from torchmetal.flakes.density_map import block_pixels
+from torchmetal.flakes.estimate.density_map import block_pixels
 from torchmetal.formats.engine import EngineMaterial, engine_material
 from torchmetal.formats.flake2d import density_to_probability, flake2d_inputs
 from torchmetal.formats.lobe_fit import fit_glint, resolve_views

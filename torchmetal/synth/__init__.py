@@ -40,8 +40,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.errors import CaptureError, InputError
-from torchmetal.flakes.field import flake_field, sparkle_render
 from torchmetal.flakes.model import FlakeModel
+from torchmetal.flakes.model.field import flake_field, sparkle_render
 from torchmetal.geometry import surface_points
 from torchmetal.io.capture import Capture
 from torchmetal.io.capture_save import prepare_target, replace_dir, write_capture_files

@@ -1,0 +1,58 @@
+"""Local filters of the flake stage: box means by running sums (cost independent of the radius).
+
+Light to import (torch only): the glint screen (:mod:`torchmetal.flakes.estimate.prescreen`) uses them on
+every capture, detection and MD on flake captures.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+SHIFT_MAX_RADIUS = 12  # up to here shifted adds beat the two cumsums on CPU (r = 7: 7 vs 18 ms at 8×512²)
+
+
+def _axis_sum(v: Tensor, radius: int, dim: int) -> Tensor:
+    """Sums over 2r+1 neighbours along ``dim`` (-1 or -2), clipped at the border: shifted adds of a
+    zero-padded copy for small r (a CPU cumsum costs several adds), running sums otherwise (cost
+    independent of r; float32 sums: absolute error ~1e-7 × max|v| × length)."""
+    r, n = radius, v.shape[dim]
+    pad = (r, r) if dim == -1 else (0, 0, r, r)
+    if r <= SHIFT_MAX_RADIUS:
+        p = F.pad(v, pad)
+        out = p.narrow(dim, 0, n).clone()
+        for k in range(1, 2 * r + 1):
+            out += p.narrow(dim, k, n)
+        return out
+    c = F.pad(v, (r + 1, r) if dim == -1 else (0, 0, r + 1, r)).cumsum(dim)
+    return c.narrow(dim, 2 * r + 1, n) - c.narrow(dim, 0, n)
+
+
+def _window_sum(v: Tensor, radius: int) -> Tensor:
+    """Sums over (2r+1)² windows (clipped at the border), separably."""
+    return _axis_sum(_axis_sum(v, radius, -1), radius, -2)
+
+
+def box_mean(x: Tensor, radius: int, weight: Tensor | None = None) -> Tensor:
+    """Mean over a (2r+1)² window, separably (shifted adds for r ≤ :data:`SHIFT_MAX_RADIUS`, running
+    sums beyond: cost independent of r).
+
+    Args:
+        x: (B, C, H, W) values; weight: optional (B, 1|C, H, W) weights (e.g. a valid mask):
+            the result is then Σ w·x / Σ w over the window (0 where Σ w = 0).
+
+    Returns:
+        (B, C, H, W); windows are clipped at the border. Running sums are float32: the
+        absolute error is ~1e-7 × max|x| × W, far below the noise of 8/16-bit photos.
+    """
+    h, w = x.shape[-2:]
+    if weight is None:
+        ones_h = torch.ones(1, 1, h, 1, dtype=x.dtype, device=x.device)
+        ones_w = torch.ones(1, 1, 1, w, dtype=x.dtype, device=x.device)
+        den = _window_sum(ones_h, radius) * _window_sum(ones_w, radius)
+        return _window_sum(x, radius) / den
+    wt = weight.to(x.dtype)
+    den = _window_sum(wt, radius)
+    num = _window_sum(x * wt, radius)
+    return torch.where(den > 0.5, num / den.clamp_min(0.5), torch.zeros_like(num))
