@@ -66,7 +66,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
               "torchmetal.lbfgs", "torchmetal.phong", "torchmetal.lobes")),
     ("io", ("torchmetal.io",)),
     ("model", ("torchmetal.flakes.model", "torchmetal.material", "torchmetal.renderer", "torchmetal.metrics", "torchmetal.synth")),
-    ("fit", ("torchmetal.fit", "torchmetal.normals")),
+    ("fit", ("torchmetal.fit", "torchmetal.normals", "torchmetal.lightcal")),
     ("flakes", ("torchmetal.flakes",)),
     ("pipeline", ("torchmetal.pipeline",)),
     ("outputs", ("torchmetal.onnx_export", "torchmetal.formats", "torchmetal.report", "torchmetal.viewer.site",

@@ -8,15 +8,17 @@ score 1–6 at 256².
 """
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
 from torchmetal.demo import DEMO_FLAKES
+from torchmetal.errors import InputError
 from torchmetal.fit.result import skip_stages
 from torchmetal.flakes.model import FlakeModel
 from torchmetal.flakes.model.md import metallic_difference
-from torchmetal.pipeline import fit_material
+from torchmetal.pipeline import fit_material, render_shots
 from torchmetal.renderer import MaterialRenderer
 from torchmetal.synth import synth_capture
 
@@ -152,3 +154,22 @@ def test_default_chooses_lobe_and_normals_on_left_out_shots():
     names = [d["name"] for d in rep["decisions"]]
     assert names[:2] == ["normals", "lobe"] and rep["decisions"][0]["chosen"] == "estimate"
     assert [d["chosen"] for d in given.report["decisions"] if d["name"] == "lobe"] == ["ggx"]
+
+
+def test_light_calibration_stage_records_its_decision():
+    from torchmetal.lightcal import LightCalibration
+
+    cap = synth_capture(size=40, shots=8, layout="near", texture="procedural", seed=5, noise=0.01).capture
+    cap = replace(cap, images=cap.images * LightCalibration(falloff=-6.0).factor(cap))
+    res = fit_material(cap, flakes="off", normals="given", lobe="phong")
+    names = [d["name"] for d in res.report["decisions"]]
+    assert names[:1] == ["light"] and res.report["decisions"][0]["chosen"] == res.report["light"]["chosen"]
+    assert res.report["light"]["chosen"] != "off" and res.light.falloff < -3.0
+    assert res.report["stage_times"]["light"] > 0
+    off = fit_material(cap, flakes="off", normals="given", lobe="phong", light="off")
+    assert off.light.identity and "light" not in [d["name"] for d in off.report["decisions"]]
+    # the calibrated material predicts the photos better once the renders carry the falloff
+    err = lambda r: float(((render_shots(r.fit, cap) * r.light.factor(cap) - cap.images) ** 2).mean())  # noqa: E731
+    assert err(res) < err(off)
+    with pytest.raises(InputError, match="light: expected one of"):
+        fit_material(cap, light="flash")

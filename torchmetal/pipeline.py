@@ -39,6 +39,7 @@ from torchmetal.flakes.estimate.rim import drop_rim
 from torchmetal.flakes.estimate.texture import grown_detections, texture_without_glints
 from torchmetal.flakes.stage import detect_capture, flake_stage
 from torchmetal.io.capture import Capture
+from torchmetal.lightcal import LIGHT_MODES, LightCalibration, with_light
 from torchmetal.material import Material
 from torchmetal.normals import with_normals
 
@@ -57,6 +58,7 @@ class PipelineResult:
     fit: FitResult
     flakes: FlakeStageResult | None  # None when the stage was off
     report: dict = field(default_factory=dict)
+    light: LightCalibration = field(default_factory=LightCalibration)  # the capture's, where chosen
 
 
 def render_shots(fit, capture, *, chunk: int = 4) -> torch.Tensor:
@@ -80,13 +82,15 @@ def _without_glints(capture, labels: torch.Tensor):
 FLAKE_CHOICES = ("observed_choice", "flakes_choice", "density_map_choice")  # flake report entries holding a decision
 
 
-def decision_records(first, fit, normals_report: dict | None, flake_result) -> list[dict]:
+def decision_records(first, fit, normals_report: dict | None, flake_result, light_report: dict | None = None) -> list[dict]:
     """Every choice made on left-out shots, in the order made, as :class:`~torchmetal.fit.decision.Decision`
-    dicts: normals, the lobe (``first``, the first fit, chose it), the final fit's specular choices
+    dicts: normals, the light calibration, the lobe (``first``, the first fit, chose it), the final fit's specular choices
     (evidence, clusters, relabelling, gloss maps), then the flake choices."""
     out = []
     if normals_report and normals_report.get("decision"):
         out.append(normals_report["decision"])
+    if light_report and light_report.get("decision"):
+        out.append(light_report["decision"])
     out += [d for d in first.decisions if d["name"] == "lobe"]
     out += [d for d in fit.decisions if d["name"] != "lobe"]
     flakes = {} if flake_result is None else flake_result.report
@@ -172,6 +176,7 @@ def fit_material(
     lobe: str = "auto",
     normals: str = "auto",
     weights: str = "uniform",
+    light: str = "auto",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -201,13 +206,18 @@ def fit_material(
             stereo with the Phong terms, :func:`~torchmetal.normals.estimate_normals`; the material keeps them).
         weights: "uniform" (the default: plain least squares) or "noise" (each observation weighted by the
             inverse of its expected noise variance, ``fit_phong(noise_weights=True)``).
+        light: the light calibration (:mod:`torchmetal.lightcal`: the flash's falloff from its axis and
+            per-shot gains, nuisances of the capture, not the material): "auto" (the default: chosen on
+            left-out shots, none unless it predicts them better), "off", "falloff" or "gains" (falloff and
+            per-shot gains). ``result.light`` holds it: a render compared with the capture's photos is
+            multiplied by ``result.light.factor(capture)``.
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,
         errors, the list of skipped stages and every choice's ``Decision`` record ("decisions").
 
     The stages run in order (:data:`STAGES`), each ``(capture, state) → (capture, state)``: normals,
-    the Phong fit, the flake stage, the material, then the flake choices (observed flakes, flakes or
+    the light calibration, the Phong fit, the flake stage, the material, then the flake choices (observed flakes, flakes or
     none, the density map), each on shots left out; every choice's record ends in the report's "decisions"
     (:func:`decision_records`).
     """
@@ -218,16 +228,22 @@ def fit_material(
         raise InputError(f"observed_flakes: expected one of {OBSERVED_MODES} or a bool, found {observed_flakes!r}")
     if weights not in WEIGHTS:
         raise InputError(f"weights: expected one of {WEIGHTS}, found {weights!r}")
+    if light not in LIGHT_MODES:
+        raise InputError(f"light: expected one of {list(LIGHT_MODES)}, found {light!r}")
     t0 = time.perf_counter()
     opts = Options(scheme=scheme, specular=specular, flakes=flakes, tol=tol, max_iters=max_iters, robust=robust,
-                   seed=seed, observed=mode, progress=progress, lobe=lobe, normals=normals, weights=weights)
+                   seed=seed, observed=mode, progress=progress, lobe=lobe, normals=normals, weights=weights,
+                   light=light)
     state = State(opts)
     for stage in STAGES:
         capture, state = stage(capture, state)
     material = state.material
-    material.report["decisions"] = decision_records(state.first, state.fit, state.normals_report, state.flake_result)
+    material.report["light"] = state.light_report
+    material.report["decisions"] = decision_records(state.first, state.fit, state.normals_report, state.flake_result,
+                                                    state.light_report)
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
-    return PipelineResult(material=material, fit=state.fit, flakes=state.flake_result, report=material.report)
+    return PipelineResult(material=material, fit=state.fit, flakes=state.flake_result, report=material.report,
+                          light=state.light)
 
 
 @dataclass
@@ -246,6 +262,7 @@ class Options:
     lobe: str
     normals: str
     weights: str
+    light: str = "auto"
 
     def fit_kwargs(self) -> dict:
         """:func:`~torchmetal.fit.fit_phong` arguments every fit of the run shares (``robust`` aside)."""
@@ -259,6 +276,8 @@ class State:
 
     opts: Options
     normals_report: dict | None = None
+    light: LightCalibration = field(default_factory=LightCalibration)
+    light_report: dict | None = None
     first: FitResult | None = None  # the first Phong fit: the flake-free material's
     fit: FitResult | None = None  # the fit the material is made from
     flake_result: FlakeStageResult | None = None
@@ -278,6 +297,15 @@ def stage_normals(capture: Capture, st: State) -> tuple[Capture, State]:
     """The capture's normals: given, flat, estimated, or chosen on left-out shots ("auto")."""
     capture, st.normals_report = with_normals(capture, st.opts.normals,
                                               fit_kwargs=dict(tol=st.opts.tol, max_iters=st.opts.max_iters))
+    return capture, st
+
+
+def stage_light(capture: Capture, st: State) -> tuple[Capture, State]:
+    """The light calibration (:mod:`torchmetal.lightcal`): the capture's photos as isotropic lights of
+    constant power would have recorded them, when left-out shots prefer it ("auto")."""
+    capture, st.light, st.light_report = with_light(capture, st.opts.light,
+                                                    fit_kwargs=dict(tol=st.opts.tol, max_iters=st.opts.max_iters))
+    st.stage_times["light"] = st.light_report["time"]
     return capture, st
 
 
@@ -369,4 +397,4 @@ def stage_density(capture: Capture, st: State) -> tuple[Capture, State]:
     return capture, st
 
 
-STAGES = (stage_normals, stage_phong, stage_flakes, stage_material, stage_observed, stage_keep, stage_density)
+STAGES = (stage_normals, stage_light, stage_phong, stage_flakes, stage_material, stage_observed, stage_keep, stage_density)

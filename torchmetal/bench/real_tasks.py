@@ -109,7 +109,7 @@ def _gallery_png(path: Path, photo, render) -> Path:
 
 #: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe and the
 #: normals were chosen on left-out shots, and the richest options
-REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong"},
+REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong"}, "no_light": {"light": "off"},
                  "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}
 
 
@@ -127,9 +127,10 @@ def _material_fit_render(method: str):
         raise ValueError(f"real: expected a variant among global, clustered, {', '.join(variants)}; found {method!r}")
 
     def fit_render(train, one):
-        material = fit_material(train, seed=0, **variants[method]).material
-        with torch.no_grad():
-            return MaterialRenderer(material)(one.lights, one.intensities, one.cameras)
+        res = fit_material(train, seed=0, **variants[method])
+        with torch.no_grad():  # the photos' lights: the calibration's falloff (a left-out shot has no gain)
+            pred = MaterialRenderer(res.material)(one.lights, one.intensities, one.cameras)
+        return pred * res.light.without_gains().factor(one) if one is not train else pred * res.light.factor(one)
 
     return fit_render
 

@@ -76,6 +76,11 @@ def pixel_errors(fit: FitResult, hold: Capture) -> Tensor:
     would take the estimate and carry its glints in the normals (docs/design.md §4)."""
     with torch.no_grad():
         pred = fit.render(hold.lights, hold.intensities, hold.cameras)
+    return rendered_pixel_errors(pred, hold)
+
+
+def rendered_pixel_errors(pred: Tensor, hold: Capture) -> Tensor:
+    """:func:`pixel_errors` of a render ``pred`` (N, 3, H, W) of ``hold``'s shots."""
     v = valid_pixels(hold)
     sq = torch.where(v, (pred - hold.images).double() ** 2, torch.full_like(pred, math.nan, dtype=torch.float64))
     inside = hold.mask.reshape(-1).bool()

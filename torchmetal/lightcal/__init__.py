@@ -1,0 +1,28 @@
+"""Light calibration: nuisance parameters of the capture's lights, fitted beside the material and kept
+only where shots left out of the fit prefer them (DESIGN 2.2: "light calibration" is a candidate).
+
+A phone's flash is not the isotropic point light of capture.json: its beam falls off (or the phone's
+vignetting correction brightens the edges) with the angle from its axis, and its power can drift from
+shot to shot. Two nuisances model that:
+
+- **falloff**: each point light's intensity × cos(θ)^p, θ the angle between the direction from the light
+  to a surface point and the light's axis (from the light to the surface centre: the phone is aimed at
+  the sample); one exponent p for the capture;
+- **gains**: one multiplier per shot (geometric mean 1: the texture carries the overall level).
+
+Both scale a shot's irradiance per pixel, and the model is linear in irradiance, so a calibrated capture
+is the photos divided by the factor (:meth:`LightCalibration.apply`): the fit itself is unchanged. The
+material describes the sample, not the lights: it carries no calibration, and a render compared with one
+of the capture's photos is multiplied by :meth:`LightCalibration.factor` (a shot the fit did not see
+gets the falloff, not a gain).
+
+- :mod:`~torchmetal.lightcal.model`: :class:`LightCalibration` (factor, apply, the report's dict);
+- :mod:`~torchmetal.lightcal.estimate`: the exponent and gains from a fit's log-ratio residuals;
+- :mod:`~torchmetal.lightcal.choice`: ``light="auto"``: off, falloff or falloff + gains, decided on
+  left-out shots (:func:`~torchmetal.fit.decision.paired_choice`).
+"""
+
+from torchmetal.lightcal.choice import LIGHT_MODES, choose_light, with_light
+from torchmetal.lightcal.model import LightCalibration
+
+__all__ = ["LIGHT_MODES", "LightCalibration", "choose_light", "with_light"]

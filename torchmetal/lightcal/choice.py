@@ -1,0 +1,119 @@
+"""``light="auto"``: the light calibration (:mod:`torchmetal.lightcal`) kept when shots left out of the
+fit prefer it.
+
+Like the normals' choice (:func:`~torchmetal.normals.choice.choose_normals`): on a pixel grid of the
+capture (:func:`~torchmetal.normals.choice.strided_capture`), the shots are dealt into up to ``FOLDS``
+groups; for each, a fit on the other shots without calibration, and one step of
+:func:`~torchmetal.lightcal.estimate.calibrate` from it ("falloff", and "gains": falloff and per-shot
+gains), render the group — a left-out shot gets the falloff, never a gain, which it has no photo in the
+fit to say. Per pixel, the median squared error over the group's observations pairs up, and
+:func:`~torchmetal.fit.decision.paired_choice` keeps no calibration unless one lowers it beyond noise.
+
+The fits here have one global Phong lobe (``FIT``): the nuisance is global, and the default's specular
+trials would cost several times the rest of the choice. The chosen calibration is then estimated on all
+shots of the grid, in ``ROUNDS`` steps, and applied to the whole capture.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from torchmetal.errors import InputError
+from torchmetal.fit.api import fit_phong
+from torchmetal.fit.decision import Decision, paired_choice
+from torchmetal.lightcal.estimate import calibrate
+from torchmetal.lightcal.model import LightCalibration
+from torchmetal.normals.choice import rendered_pixel_errors, strided_capture
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
+
+LIGHT_MODES = ("auto", "off", "falloff", "gains")
+PIXELS = 64 * 64  # the decision's pixel grid
+FOLDS = 3  # shot groups left out in turn
+MIN_SHOTS = 4  # the calibration's fit needs 3 shots besides a left-out one
+FIT = {"specular": "global", "lobe": "phong"}  # the choice's fits (module docstring)
+ROUNDS = 3  # steps of the chosen calibration's estimate on all shots (a synthetic −6: −4.4 after one step)
+
+
+def _fold_errors(train: Capture, hold: Capture, fit_kwargs: dict) -> dict[str, Tensor]:
+    """Per-pixel held-out errors of no calibration, the falloff, and falloff + gains, fitted on ``train``."""
+    ref = fit_phong(train, **fit_kwargs)
+    out = {"off": _errors(ref, hold, LightCalibration())}
+    for mode in ("falloff", "gains"):
+        cal, fit = calibrate(train, ref, gains=mode == "gains", fit_kwargs=fit_kwargs)
+        out[mode] = _errors(fit, hold, cal.without_gains())
+    return out
+
+
+def _errors(fit, hold: Capture, cal: LightCalibration) -> Tensor:
+    with torch.no_grad():
+        pred = fit.render(hold.lights, hold.intensities, hold.cameras) * cal.factor(hold)
+    return rendered_pixel_errors(pred, hold)
+
+
+def _skip_reason(capture: Capture, *, test: bool = True) -> str | None:
+    """Why no calibration can be fitted (or, ``test``, tested on left-out shots); None when it can."""
+    n = capture.num_shots
+    if test and n < MIN_SHOTS:
+        return f"a left-out test of the light calibration needs >= {MIN_SHOTS} shots, found {n}"
+    if not bool((capture.lights[:, 3] > 0).any()):
+        return "directional lights only: no falloff to calibrate"
+    return None
+
+
+def choose_light(capture: Capture, *, fit_kwargs: dict | None = None, max_pixels: int = PIXELS,
+                 folds: int = FOLDS, **rule) -> tuple[str, Decision]:
+    """"off", "falloff" or "gains", decided on left-out shots (module docstring). ``rule``:
+    :func:`~torchmetal.fit.decision.paired_choice`'s ``z_min`` / ``min_gain``."""
+    skip = _skip_reason(capture)
+    if skip:
+        return "off", Decision("light", ("off", "falloff", "gains"), "off", reference="off", reason=skip)
+    kw = {**(fit_kwargs or {}), **FIT}
+    n = capture.num_shots
+    sub = strided_capture(capture, max_pixels)
+    groups = [list(range(g, n, min(folds, n)))[: n - 3] for g in range(min(folds, n))]
+    errors: dict[str, list[Tensor]] = {"off": [], "falloff": [], "gains": []}
+    for group in groups:
+        fold = _fold_errors(sub.subset([k for k in range(n) if k not in group]), sub.subset(group), kw)
+        for k, e in fold.items():
+            errors[k].append(e)
+    cat = {k: torch.cat(v) for k, v in errors.items()}
+    seen = ~torch.isnan(cat["off"])
+    for e in cat.values():
+        seen &= ~torch.isnan(e)
+    d = paired_choice("light", {k: e[seen] for k, e in cat.items()}, ref="off", **rule)
+    d.holds = groups
+    d.pixels = int(sub.images.shape[-2] * sub.images.shape[-1])
+    return d.chosen, d
+
+
+def with_light(capture: Capture, mode: str, *, fit_kwargs: dict | None = None,
+               max_pixels: int = PIXELS) -> tuple[Capture, LightCalibration, dict]:
+    """The capture calibrated as ``mode`` asks (:data:`LIGHT_MODES`; "auto": :func:`choose_light`), the
+    calibration, and the report entry (the calibration's dict, the mode, the decision where one was made).
+    The calibration is estimated on the capture's pixel grid (:func:`~torchmetal.normals.choice.strided_capture`)."""
+    if mode not in LIGHT_MODES:
+        raise InputError(f"light: expected one of {list(LIGHT_MODES)}, found {mode!r}")
+    t0 = time.perf_counter()
+    report: dict = {"mode": mode}
+    chosen = mode
+    if mode == "auto":
+        chosen, decision = choose_light(capture, fit_kwargs=fit_kwargs, max_pixels=max_pixels)
+        report.update(chosen=chosen, decision=decision.to_dict())
+    elif mode != "off" and (skip := _skip_reason(capture, test=False)) is not None:
+        chosen = "off"
+        report["skipped"] = skip
+    cal = LightCalibration()
+    if chosen != "off":
+        kw = {**(fit_kwargs or {}), **FIT}
+        sub = strided_capture(capture, max_pixels)
+        fit = fit_phong(sub, **kw)
+        for step in range(ROUNDS):  # the texture absorbs part of the falloff in one step: refine
+            cal, fit = calibrate(sub, fit, gains=chosen == "gains", fit_kwargs=kw, base=cal, refit=step < ROUNDS - 1)
+    report.update(cal.to_dict(), time=time.perf_counter() - t0)
+    return cal.apply(capture), cal, report
