@@ -26,6 +26,7 @@ moves h smoothly, so glints fade in and out instead of flickering.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -252,7 +253,7 @@ def _colour(model: FlakeModel, ci: Tensor, cj: Tensor, u, cell_mean: Tensor | No
     return (mean + torch.einsum("ij,jhw->ihw", chol, z)).clamp_min(0.0)
 
 
-def colour_factor(cov) -> Tensor:
+def colour_factor(cov: Sequence[Sequence[float]] | Tensor) -> Tensor:
     """L (3, 3) float64 with L·Lᵀ = cov: the symmetric square root of cov's PSD part.
 
     An eigen-decomposition with negative eigenvalues clipped to 0, so a covariance that is PSD
