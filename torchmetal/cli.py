@@ -11,9 +11,15 @@ import importlib
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from torchmetal.errors import InputError, TorchmetalError
 from torchmetal.formats import FORMATS, default_output, export_material
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
+    from torchmetal.pipeline import PipelineResult
+    from torchmetal.scale.tiles import TiledCapture
 
 # Verbs that live beside their feature: each module imports only argparse at the top and has
 # ``register(sub)`` that adds its sub-parser(s), whose ``func`` does the heavy imports.
@@ -36,44 +42,15 @@ def _vec(n: int):
 
 def cmd_fit(args: argparse.Namespace) -> int:
     # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
-    from torchmetal.io.capture import load_capture
     from torchmetal.material import save_material
-    from torchmetal.pipeline import fit_material
 
-    scratch = None
+    scratch: list = []
     extra: dict[str, Path] = {}
     try:  # scratch tiles and the ONNX file go, on success or failure (run() skips the interpreter's teardown)
         if args.tile is not None:  # tile by tile from memory-mapped files (torchmetal.scale.tiled), scratch beside the output
-            import tempfile
-
-            if args.normals not in ("given", "auto"):
-                raise InputError(f"--normals {args.normals}: expected 'given' or 'auto' with --tile (tiled fits use the "
-                                 "capture's normals)")
-
-            if args.lobe not in ("phong", "auto"):
-                raise InputError(f"--lobe {args.lobe}: expected 'phong' or 'auto' with --tile (tiled fits use the paper's "
-                                 "lobe)")
-            # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
-            from torchmetal.scale.tiled import fit_tiled_material
-
-            Path(args.output).resolve().parent.mkdir(parents=True, exist_ok=True)
-            out_dir = Path(args.output).resolve().parent
-            scratch = tempfile.TemporaryDirectory(prefix=f".{Path(args.output).name}.tiles.", dir=out_dir)
-            result = fit_tiled_material(
-                args.capture, tile=args.tile, scheme=args.scheme, specular=args.specular, flakes=args.flakes, tol=args.tol,
-                max_iters=args.max_iters, robust=args.robust, seed=args.seed, progress=not args.quiet, scratch=scratch.name,
-                engine=args.tile_engine if args.tile_workers > 1 or args.tile_engine == "ray" else None,
-                workers=args.tile_workers,
-            )
-            capture = result.capture
+            result, capture = _fit_tiled(args, scratch)
         else:
-            capture = load_capture(args.capture)
-            result = fit_material(
-                capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
-                tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
-                progress=not args.quiet, normals=args.normals, lobe=args.lobe, observed_flakes=args.observed_flakes,
-                weights=args.weights,
-            )
+            result, capture = _fit_whole(args)
         if args.export:
             # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
             from torchmetal.onnx_export import export_onnx
@@ -83,8 +60,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             extra["renderer.onnx"] = onnx_path
         save_material(result.material, args.output, extra_files=extra)
     finally:
-        if scratch is not None:
-            scratch.cleanup()
+        for tmp in scratch:
+            tmp.cleanup()
         for p in extra.values():
             p.unlink(missing_ok=True)
     rep = result.report
@@ -97,6 +74,48 @@ def cmd_fit(args: argparse.Namespace) -> int:
         f"skipped: {'; '.join(rep['skipped']) or 'nothing'} -> {args.output}"
     )
     return 0
+
+
+def _fit_tiled(args: argparse.Namespace, scratch: list) -> tuple[PipelineResult, TiledCapture]:
+    """``fit --tile``: the tiled fit (its scratch directory, beside the output, appended to ``scratch``)."""
+    import tempfile
+
+    if args.normals not in ("given", "auto"):
+        raise InputError(f"--normals {args.normals}: expected 'given' or 'auto' with --tile (tiled fits use the "
+                         "capture's normals)")
+
+    if args.lobe not in ("phong", "auto"):
+        raise InputError(f"--lobe {args.lobe}: expected 'phong' or 'auto' with --tile (tiled fits use the paper's "
+                         "lobe)")
+    # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
+    from torchmetal.scale.tiled import fit_tiled_material
+
+    Path(args.output).resolve().parent.mkdir(parents=True, exist_ok=True)
+    out_dir = Path(args.output).resolve().parent
+    scratch.append(tempfile.TemporaryDirectory(prefix=f".{Path(args.output).name}.tiles.", dir=out_dir))
+    result = fit_tiled_material(
+        args.capture, tile=args.tile, scheme=args.scheme, specular=args.specular, flakes=args.flakes, tol=args.tol,
+        max_iters=args.max_iters, robust=args.robust, seed=args.seed, progress=not args.quiet, scratch=scratch[0].name,
+        engine=args.tile_engine if args.tile_workers > 1 or args.tile_engine == "ray" else None,
+        workers=args.tile_workers,
+    )
+    return result, result.capture
+
+
+def _fit_whole(args: argparse.Namespace) -> tuple[PipelineResult, Capture]:
+    """``fit`` without ``--tile``: the capture loaded, fitted in memory."""
+    # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
+    from torchmetal.io.capture import load_capture
+    from torchmetal.pipeline import fit_material
+
+    capture = load_capture(args.capture)
+    result = fit_material(
+        capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
+        tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
+        progress=not args.quiet, normals=args.normals, lobe=args.lobe, observed_flakes=args.observed_flakes,
+        weights=args.weights,
+    )
+    return result, capture
 
 
 def _density_text(flakes) -> str:
@@ -195,13 +214,28 @@ def _bench_argv(argv: list[str]) -> list[str] | None:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="torchmetal", description="Photos of a coated surface → Phong + metallic-flake material → ONNX renderer.")
     sub = p.add_subparsers(dest="verb", required=True, metavar="VERB")
+    _add_demo(sub)
+    _add_fit(sub)
+    _add_render(sub)
+    _add_export(sub)
+    _add_synth(sub)
+    for name in EXTRA_VERBS:
+        importlib.import_module(name).register(sub)
+    _add_bench(sub)
+    return p
 
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    """``demo``'s arguments."""
     d = sub.add_parser("demo", help="synthetic capture → fit → render → report (no arguments needed)")
     d.add_argument("-o", "--output", default="torchmetal-demo", help="report folder (default: %(default)s)")
     d.add_argument("--size", type=int, default=256, help="image size of the embedded capture")
     d.add_argument("--quick", action="store_true", help="smaller, faster run")
     d.set_defaults(func=cmd_demo)
 
+
+def _add_fit(sub: argparse._SubParsersAction) -> None:
+    """``fit``'s arguments."""
     f = sub.add_parser("fit", help="fit a material to a capture directory")
     f.add_argument("capture", help="capture directory (docs/design.md §2.1)")
     f.add_argument("-o", "--output", required=True, help="material directory to write")
@@ -242,6 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     f.set_defaults(func=cmd_fit)
 
+
+def _add_render(sub: argparse._SubParsersAction) -> None:
+    """``render``'s arguments."""
     r = sub.add_parser("render", help="render a material for one light and camera")
     r.add_argument("material", help="material directory")
     r.add_argument("--light", type=_vec(4), required=True, help="'x y z w' (w=1 point, w=0 direction)")
@@ -254,6 +291,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-flakes", action="store_true", help="render without sparkles")
     r.set_defaults(func=cmd_render)
 
+
+def _add_export(sub: argparse._SubParsersAction) -> None:
+    """``export``'s arguments."""
     e = sub.add_parser("export", help="export a material: ONNX renderer (default) or an engine format")
     e.add_argument("material", help="material directory")
     e.add_argument("--format", choices=list(FORMATS), default="onnx", help="what to write (default: %(default)s)")
@@ -264,6 +304,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--webgpu", action="store_true", help="also copy onnxruntime-web's WebGPU build (web only)")
     e.set_defaults(func=cmd_export)
 
+
+def _add_synth(sub: argparse._SubParsersAction) -> None:
+    """``synth``'s arguments."""
     s = sub.add_parser("synth", help="write a synthetic capture with ground truth")
     s.add_argument("-o", "--output", required=True, help="capture directory to write")
     s.add_argument("--size", type=int, default=256)
@@ -279,13 +322,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spec-clusters", type=int, default=1, help="regions with their own specular terms")
     s.set_defaults(func=cmd_synth)
 
-    for name in EXTRA_VERBS:
-        importlib.import_module(name).register(sub)
 
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    """``bench``: everything after the verb goes to ``torchmetal.bench``."""
     b = sub.add_parser("bench", help="benchmark run time against error (see: torchmetal bench --help)", add_help=False)
     b.add_argument("rest", nargs=argparse.REMAINDER)
     b.set_defaults(func=cmd_bench)
-    return p
 
 
 def main(argv: list[str] | None = None) -> int:

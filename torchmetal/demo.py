@@ -37,6 +37,7 @@ import math
 import os
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -51,6 +52,12 @@ from torchmetal.renderer import MaterialRenderer
 from torchmetal.report import _num_particles, report_figure
 from torchmetal.synth import synth_capture
 
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
+    from torchmetal.material import Material
+    from torchmetal.pipeline import PipelineResult
+    from torchmetal.synth import SynthResult
+
 __all__ = ["run_demo", "demo_capture", "DEMO_FLAKES"]
 
 #: flake statistics of the embedded sample (densities are per pixel)
@@ -58,7 +65,7 @@ DEMO_FLAKES = dict(density=0.003, area_log_mean=math.log(8.0), area_log_std=0.35
                    aspect_std=0.12, color_mean=(0.9, 0.85, 0.7), tilt_sigma=0.12, glint_sigma=0.04)
 
 
-def demo_capture(size: int = 256, shots: int = 12, *, seed: int = 0, flake_seed: int = 11):
+def demo_capture(size: int = 256, shots: int = 12, *, seed: int = 0, flake_seed: int = 11) -> SynthResult:
     """The embedded sample: a :class:`~torchmetal.synth.SynthResult` with ``shots`` shots.
 
     Procedural texture, global Phong specular, metallic flakes (:data:`DEMO_FLAKES`), 0.5 %
@@ -138,20 +145,50 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
 
     t = time.perf_counter()
     synth = demo_capture(size, shots + 1)
-    full = synth.capture
     held = [shots // 2]  # a shot from the middle of the ring, not the end
     fit_idx = [k for k in range(shots + 1) if k not in held]
-    capture, heldout = full.subset(fit_idx), full.subset(held)
-    truth = synth.truth
+    capture, heldout = synth.capture.subset(fit_idx), synth.capture.subset(held)
     times["synth"] = time.perf_counter() - t
 
     t = time.perf_counter()
     result = pipeline.fit_material(capture, scheme="refine", flakes="auto", seed=0, progress=False)
     times["fit"] = time.perf_counter() - t
-    material, fit = result.material, result.fit
+    material = result.material
 
     # ---- numbers
     t = time.perf_counter()
+    renderer = MaterialRenderer(material).eval()
+
+    def render_fn(light, intensity, camera):
+        with torch.inference_mode():
+            return renderer(light, intensity, camera)
+
+    metrics = _metrics(synth, capture, heldout, result, render_fn, size=size, shots=shots, held=held[0])
+    times["metrics"] = time.perf_counter() - t
+
+    # ---- files
+    t = time.perf_counter()
+    _write_material(out, renderer, material, times, t)
+
+    t = time.perf_counter()
+    report_figure(capture, result, out / "report.png", truth=synth.truth, heldout=heldout, heldout_name=f"held-out shot {held[0]}",
+                  render_fn=render_fn,
+                  title=f"torchmetal demo — synthetic {size}×{size} sample, {shots} shots fitted, shot {held[0]} held out")
+    times["figure"] = time.perf_counter() - t
+    times["total"] = time.perf_counter() - t_start
+    metrics["demo_times"] = times
+    metrics["files"] = {"figure": "report.png", "material": "material", "onnx": "material/renderer.onnx"}
+    (out / "metrics.json").write_text(json.dumps(_finite(metrics), indent=2, allow_nan=False) + "\n")
+    if verbose:
+        print(summary(metrics, out))
+    return metrics
+
+
+def _metrics(synth: SynthResult, capture: Capture, heldout: Capture, result: PipelineResult, render_fn, *, size: int,
+             shots: int, held: int) -> dict:
+    """The demo's numbers: PSNR of the fit and of the held-out shot, the specular and flake errors against
+    the truth, MD of the held-out shot with and without flakes, the fit's status."""
+    material, fit, truth, full = result.material, result.fit, synth.truth, synth.capture
     field = truth["flake_field"]
     no_flake = (field.weight == 0) if field is not None else torch.ones(1, full.height, full.width, dtype=torch.bool)
     ok_fit = no_flake.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)  # (N, 1, H, W)
@@ -164,17 +201,11 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
     phong_h = pipeline.render_shots(fit, heldout)
     heldout_psnr = psnr(phong_h, photo_h, mask=ok_h)
     heldout_truth_psnr = psnr(_truth_phong(synth, heldout), photo_h, mask=ok_h)
-    renderer = MaterialRenderer(material).eval()
-
-    def render_fn(light, intensity, camera):
-        with torch.inference_mode():
-            return renderer(light, intensity, camera)
-
     full_h = render_fn(heldout.lights, heldout.intensities, heldout.cameras)
     md = float(metallic_difference(full_h, photo_h))
     md_no = float(metallic_difference(phong_h, photo_h))
-    metrics = {
-        "sample": {"size": size, "shots_fitted": shots, "heldout_shot": held[0], "params": synth.params},
+    return {
+        "sample": {"size": size, "shots_fitted": shots, "heldout_shot": held, "params": synth.params},
         "phong_psnr_db": phong_psnr,
         "heldout_psnr_db": heldout_psnr,
         "heldout_truth_psnr_db": heldout_truth_psnr,
@@ -193,10 +224,10 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
         "stage_times": dict(result.report.get("stage_times", {})),
         "skipped": list(result.report.get("skipped", [])),
     }
-    times["metrics"] = time.perf_counter() - t
 
-    # ---- files
-    t = time.perf_counter()
+
+def _write_material(out: Path, renderer: MaterialRenderer, material: Material, times: dict, t: float) -> None:
+    """Export the renderer to ONNX (timed into ``times`` from ``t``) and save the material with it."""
     onnx_tmp = out / ".renderer.onnx.tmp"
     export_onnx(renderer, onnx_tmp)
     times["export_onnx"] = time.perf_counter() - t
@@ -204,19 +235,6 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
         save_material(material, out / "material", extra_files={"renderer.onnx": onnx_tmp})
     finally:
         onnx_tmp.unlink(missing_ok=True)
-
-    t = time.perf_counter()
-    report_figure(capture, result, out / "report.png", truth=truth, heldout=heldout, heldout_name=f"held-out shot {held[0]}",
-                  render_fn=render_fn,
-                  title=f"torchmetal demo — synthetic {size}×{size} sample, {shots} shots fitted, shot {held[0]} held out")
-    times["figure"] = time.perf_counter() - t
-    times["total"] = time.perf_counter() - t_start
-    metrics["demo_times"] = times
-    metrics["files"] = {"figure": "report.png", "material": "material", "onnx": "material/renderer.onnx"}
-    (out / "metrics.json").write_text(json.dumps(_finite(metrics), indent=2, allow_nan=False) + "\n")
-    if verbose:
-        print(summary(metrics, out))
-    return metrics
 
 
 def _truth_phong(synth, cap) -> torch.Tensor:

@@ -26,6 +26,7 @@ import tempfile
 import time
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -34,6 +35,9 @@ import torchmetal
 from torchmetal.errors import ExportError, MaterialError
 from torchmetal.material import Material, load_material
 from torchmetal.renderer import MaterialRenderer
+
+if TYPE_CHECKING:
+    import onnxruntime
 
 __all__ = ["export_onnx", "verify_onnx", "parity_inputs", "time_renderer", "session_options", "scaled_error", "INPUT_NAMES", "OUTPUT_NAME", "PARITY_TOL"]
 
@@ -137,7 +141,7 @@ def scaled_error(got: np.ndarray, ref: np.ndarray) -> float:
     return float((diff / np.where(scale > 0, scale, 1.0)).max())
 
 
-def session_options(threads: int | None = None, *, profile_prefix: str | None = None):
+def session_options(threads: int | None = None, *, profile_prefix: str | None = None) -> onnxruntime.SessionOptions:
     """onnxruntime CPU session options for the renderer: all graph optimisations, no spinning.
 
     Worker threads that spin-wait between ops steal the cores they share with other processes:
@@ -227,13 +231,7 @@ def export_onnx(
     """
     import onnx
 
-    if isinstance(model, Material):
-        renderer = MaterialRenderer(model, flakes=flakes)
-    else:
-        try:
-            renderer = _as_renderer(model)
-        except MaterialError as e:
-            raise ExportError(f"model: {e}") from None
+    renderer = _export_renderer(model, flakes)
     if not isinstance(opset, int) or opset < 18:
         raise ExportError(f"opset: expected an integer >= 18 (dynamo exporter), found {opset!r}")
     path = Path(path)
@@ -247,18 +245,7 @@ def export_onnx(
     os.close(fd)
     tmp = Path(tmp_name)
     try:
-        with _quiet() as log:
-            try:
-                program = torch.onnx.export(
-                    renderer, (light, intensity, camera), dynamo=True, opset_version=opset,
-                    input_names=list(INPUT_NAMES), output_names=[OUTPUT_NAME], dynamic_shapes=dyn,
-                    external_data=False, verbose=False, report=False, optimize=True,
-                )
-            except Exception as e:  # the exporter raises many types; report one line
-                first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-                tail = " | ".join(x for x in log.getvalue().strip().splitlines()[-2:])
-                raise ExportError(f"torch.onnx.export: expected a successful dynamo export, found {type(e).__name__}: {first[:300]}" + (f" ({tail[:200]})" if tail else "")) from None
-        proto = program.model_proto
+        proto = _dynamo_export(renderer, (light, intensity, camera), dyn, opset).model_proto
         _annotate(proto, renderer, opset)
         try:
             onnx.checker.check_model(proto, full_check=True)
@@ -273,6 +260,33 @@ def export_onnx(
         tmp.unlink(missing_ok=True)
         renderer.train(was_training)
     return path
+
+
+def _export_renderer(model: Material | MaterialRenderer | str | os.PathLike, flakes: bool) -> MaterialRenderer:
+    """The renderer :func:`export_onnx` exports (:class:`ExportError` when ``model`` names none)."""
+    if isinstance(model, Material):
+        return MaterialRenderer(model, flakes=flakes)
+    try:
+        return _as_renderer(model)
+    except MaterialError as e:
+        raise ExportError(f"model: {e}") from None
+
+
+def _dynamo_export(renderer: MaterialRenderer, inputs: tuple[torch.Tensor, ...], dyn: dict, opset: int):
+    """The ONNX program of ``renderer`` traced on ``inputs`` by the dynamo exporter (its log kept quiet;
+    a failure raises :class:`ExportError` in one line)."""
+    with _quiet() as log:
+        try:
+            program = torch.onnx.export(
+                renderer, inputs, dynamo=True, opset_version=opset,
+                input_names=list(INPUT_NAMES), output_names=[OUTPUT_NAME], dynamic_shapes=dyn,
+                external_data=False, verbose=False, report=False, optimize=True,
+            )
+        except Exception as e:  # the exporter raises many types; report one line
+            first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            tail = " | ".join(x for x in log.getvalue().strip().splitlines()[-2:])
+            raise ExportError(f"torch.onnx.export: expected a successful dynamo export, found {type(e).__name__}: {first[:300]}" + (f" ({tail[:200]})" if tail else "")) from None
+    return program
 
 
 def _annotate(proto, renderer: MaterialRenderer, opset: int) -> None:
@@ -323,7 +337,7 @@ def _check_interface(proto) -> None:
 
 
 def time_renderer(
-    renderer,
+    renderer: str | os.PathLike | onnxruntime.InferenceSession | MaterialRenderer | Material,
     *,
     batch: int = 1,
     repeats: int = 20,
@@ -351,52 +365,9 @@ def time_renderer(
     if isinstance(renderer, Material):
         renderer = MaterialRenderer(renderer)
     if isinstance(renderer, torch.nn.Module):
-        size = getattr(renderer, "size", (1.0, 1.0))
-        light, intensity, camera = parity_inputs(size, batch=max(batch, 8), seed=seed)
-        sl = slice(1, 1 + batch) if batch <= 7 else slice(0, batch)  # a near point light first
-        args = (light[sl], intensity[sl], camera[sl])
-        old = torch.get_num_threads()
-        if threads:
-            torch.set_num_threads(int(threads))
-        try:
-            with torch.inference_mode():
-                for _ in range(warmup):
-                    out = renderer(*args)
-                times = []
-                cpu0 = time.process_time()
-                for _ in range(repeats):
-                    t0 = time.perf_counter()
-                    out = renderer(*args)
-                    times.append(time.perf_counter() - t0)
-                cpu = time.process_time() - cpu0
-        finally:
-            torch.set_num_threads(old)
-        backend, used_threads, shape = "torch-eager", threads or old, tuple(out.shape)
+        backend, used_threads, shape, times, cpu = _time_torch(renderer, batch, repeats, warmup, threads, seed)
     else:
-        import onnxruntime as ort
-
-        sess = renderer if isinstance(renderer, ort.InferenceSession) else _session(Path(renderer), threads)
-        shape_out = sess.get_outputs()[0].shape
-        size = (1.0, 1.0)
-        meta = sess.get_modelmeta().custom_metadata_map
-        if "surface_width" in meta:
-            size = (float(meta["surface_width"]), float(meta["surface_height"]))
-        light, intensity, camera = parity_inputs(size, batch=max(batch, 8), seed=seed)
-        sl = slice(1, 1 + batch) if batch <= 7 else slice(0, batch)
-        feeds = {"light": light[sl].numpy(), "light_intensity": intensity[sl].numpy(), "camera": camera[sl].numpy()}
-        for _ in range(warmup):
-            out = sess.run(None, feeds)[0]
-        times = []
-        cpu0 = time.process_time()
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            out = sess.run(None, feeds)[0]
-            times.append(time.perf_counter() - t0)
-        cpu = time.process_time() - cpu0
-        backend = "onnxruntime-cpu"
-        opts = sess.get_session_options()
-        used_threads = threads or opts.intra_op_num_threads or os.cpu_count()
-        shape = tuple(out.shape) if shape_out else ()
+        backend, used_threads, shape, times, cpu = _time_onnxruntime(renderer, batch, repeats, warmup, threads, seed)
     med = statistics.median(times) * 1e3
     return {
         "backend": backend,
@@ -413,3 +384,56 @@ def time_renderer(
         "ms_per_shot": med / batch,
         "fps": 1e3 * batch / med,
     }
+
+
+def _timed_calls(call, warmup: int, repeats: int) -> tuple[list[float], float, object]:
+    """``warmup`` untimed calls, then ``repeats`` timed ones: their wall times (s), the process's CPU time
+    over them (s) and the last output."""
+    for _ in range(warmup):
+        out = call()
+    times = []
+    cpu0 = time.process_time()
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = call()
+        times.append(time.perf_counter() - t0)
+    cpu = time.process_time() - cpu0
+    return times, cpu, out
+
+
+def _time_torch(renderer: torch.nn.Module, batch: int, repeats: int, warmup: int, threads: int | None,
+                seed: int) -> tuple[str, int, tuple, list[float], float]:
+    """:func:`time_renderer` of a torch module in eager mode: backend, threads, output shape, times, CPU time."""
+    size = getattr(renderer, "size", (1.0, 1.0))
+    light, intensity, camera = parity_inputs(size, batch=max(batch, 8), seed=seed)
+    sl = slice(1, 1 + batch) if batch <= 7 else slice(0, batch)  # a near point light first
+    args = (light[sl], intensity[sl], camera[sl])
+    old = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(int(threads))
+    try:
+        with torch.inference_mode():
+            times, cpu, out = _timed_calls(lambda: renderer(*args), warmup, repeats)
+    finally:
+        torch.set_num_threads(old)
+    return "torch-eager", threads or old, tuple(out.shape), times, cpu
+
+
+def _time_onnxruntime(renderer, batch: int, repeats: int, warmup: int, threads: int | None,
+                      seed: int) -> tuple[str, int, tuple, list[float], float]:
+    """:func:`time_renderer` of an ONNX file or session: backend, threads, output shape, times, CPU time."""
+    import onnxruntime as ort
+
+    sess = renderer if isinstance(renderer, ort.InferenceSession) else _session(Path(renderer), threads)
+    shape_out = sess.get_outputs()[0].shape
+    size = (1.0, 1.0)
+    meta = sess.get_modelmeta().custom_metadata_map
+    if "surface_width" in meta:
+        size = (float(meta["surface_width"]), float(meta["surface_height"]))
+    light, intensity, camera = parity_inputs(size, batch=max(batch, 8), seed=seed)
+    sl = slice(1, 1 + batch) if batch <= 7 else slice(0, batch)
+    feeds = {"light": light[sl].numpy(), "light_intensity": intensity[sl].numpy(), "camera": camera[sl].numpy()}
+    times, cpu, out = _timed_calls(lambda: sess.run(None, feeds)[0], warmup, repeats)
+    opts = sess.get_session_options()
+    used_threads = threads or opts.intra_op_num_threads or os.cpu_count()
+    return "onnxruntime-cpu", used_threads, tuple(out.shape) if shape_out else (), times, cpu

@@ -179,6 +179,32 @@ class MaterialRenderer(nn.Module):
     def forward(self, light: Tensor, light_intensity: Tensor, camera: Tensor) -> Tensor:
         dtype = self.texture.dtype
         light, light_intensity, camera = light.to(dtype), light_intensity.to(dtype), camera.to(dtype)
+        (ux, uy, uz), (wx, wy, wz), lz, inv_d2 = self._unit_vectors(light, camera)
+        n_dot_l, (ex, ey, ez), lit, weight = self._reflection(ux, uy, uz, wx, wy, wz, lz, inv_d2)
+
+        shade = light_intensity.reshape(-1, 3, 1, 1)  # (B,3,1,1)
+        q_spec = (shade if lit is None else shade * lit)
+        # outer products (B,3,H,W); flat: max(n·l, 0) = l_z/|l|·[l_z > 0], the factor is in q_spec
+        q_diffuse = shade * (n_dot_l.clamp_min(0.0) * inv_d2) if lit is None else q_spec * (n_dot_l * inv_d2)
+        if self.lobe == "ggx":
+            spec = self._ggx_spec(*self._half_terms(ux, uy, uz, wx, wy, wz), n_dot_l, weight, q_spec)
+        else:
+            if self.lobe == "phong":
+                yq = -0.5 * (ex * ex + ey * ey + ez * ez)
+            else:  # blinn: the same log-lobe of n·h
+                yq = -self._half_terms(ux, uy, uz, wx, wy, wz)[0]
+            spec = self._log1p_lobe_spec(yq, weight, q_spec)
+        if self.has_flakes:
+            # sparkles are added into the specular term, so the last op writes the output
+            # directly (onnxruntime copies a reshape that produces a graph output)
+            spec = self._add_sparkle(spec, light, light_intensity, camera)
+        return self.texture * q_diffuse + spec
+
+    def _unit_vectors(self, light: Tensor, camera: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor],
+                                                                    tuple[Tensor, Tensor, Tensor], Tensor, Tensor]:
+        """Unit l and v components at every pixel (separable broadcasting pieces), the light's z and the
+        light's falloff 1/dist² (1 for directional lights)."""
+        dtype = self.texture.dtype
         x = self.xs.view(1, 1, 1, -1)
         y = self.ys.view(1, 1, -1, 1)
         lx, ly, lz, lw = _split(light)
@@ -196,7 +222,12 @@ class MaterialRenderer(nn.Module):
         # dist² = p·|d|² + (1 − p) with p = [w > 0.5] folded into the separable parts.
         point = (lw > 0.5).to(dtype)
         inv_d2 = 1.0 / (point * lx2 + (point * lyz2 + (1.0 - point)))
+        return (ux, uy, uz), (wx, wy, wz), lz, inv_d2
 
+    def _reflection(self, ux: Tensor, uy: Tensor, uz: Tensor, wx: Tensor, wy: Tensor, wz: Tensor, lz: Tensor,
+                    inv_d2: Tensor) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor], Tensor | None, Tensor]:
+        """n·l, r − v, the flat surface's lit factor (None with normals) and the specular weight."""
+        dtype = self.texture.dtype
         if self.flat:
             # n = (0,0,1): n·l = l_z, r − v = (−l_x − v_x, −l_y − v_y, l_z − v_z), lit ⇔ light z > 0
             n_dot_l = uz
@@ -212,32 +243,19 @@ class MaterialRenderer(nn.Module):
             # ~20 Muls on a 1024² map
             lit = None
             weight = inv_d2 * (n_dot_l > 0).to(dtype)
+        return n_dot_l, (ex, ey, ez), lit, weight
 
-        shade = light_intensity.reshape(-1, 3, 1, 1)  # (B,3,1,1)
-        q_spec = (shade if lit is None else shade * lit)
-        # outer products (B,3,H,W); flat: max(n·l, 0) = l_z/|l|·[l_z > 0], the factor is in q_spec
-        q_diffuse = shade * (n_dot_l.clamp_min(0.0) * inv_d2) if lit is None else q_spec * (n_dot_l * inv_d2)
-        if self.lobe == "ggx":
-            spec = self._ggx_spec(*self._half_terms(ux, uy, uz, wx, wy, wz), n_dot_l, weight, q_spec)
-        else:
-            if self.lobe == "phong":
-                yq = -0.5 * (ex * ex + ey * ey + ez * ez)
-            else:  # blinn: the same log-lobe of n·h
-                yq = -self._half_terms(ux, uy, uz, wx, wy, wz)[0]
-            # log of the lobe max(r·v, 0) with y = −q = −|r − v|²/2: log1p(y) in the Kahan form
-            # y·log(u)/(u − 1), u = fl(1 + y). u is clipped to [tiny, 1 − 2⁻²⁴]: the upper clip only
-            # touches u == 1 (then the ratio is 1 to 1 ulp), the lower one gives a log-lobe ≤ −87·|y|
-            # past the horizon (r·v ≤ 0), i.e. a lobe ≤ 1e-38 for α ≥ 1 instead of selects.
-            u = (1.0 + yq).clamp(_TINY, _BELOW_ONE)
-            t = torch.log(u) * (yq / (u - 1.0))
-            if self.exact_horizon:
-                weight = weight * (yq > -1.0).to(dtype)
-            spec = self._log_lobe_spec(t, weight, q_spec)
-        if self.has_flakes:
-            # sparkles are added into the specular term, so the last op writes the output
-            # directly (onnxruntime copies a reshape that produces a graph output)
-            spec = self._add_sparkle(spec, light, light_intensity, camera)
-        return self.texture * q_diffuse + spec
+    def _log1p_lobe_spec(self, yq: Tensor, weight: Tensor, q_spec: Tensor) -> Tensor:
+        """The Phong/Blinn specular term (B,3,H,W) of y = −q (phong: −|r − v|²/2)."""
+        # log of the lobe max(r·v, 0) with y = −q = −|r − v|²/2: log1p(y) in the Kahan form
+        # y·log(u)/(u − 1), u = fl(1 + y). u is clipped to [tiny, 1 − 2⁻²⁴]: the upper clip only
+        # touches u == 1 (then the ratio is 1 to 1 ulp), the lower one gives a log-lobe ≤ −87·|y|
+        # past the horizon (r·v ≤ 0), i.e. a lobe ≤ 1e-38 for α ≥ 1 instead of selects.
+        u = (1.0 + yq).clamp(_TINY, _BELOW_ONE)
+        t = torch.log(u) * (yq / (u - 1.0))
+        if self.exact_horizon:
+            weight = weight * (yq > -1.0).to(self.texture.dtype)
+        return self._log_lobe_spec(t, weight, q_spec)
 
     def _spec_terms(self) -> tuple[Tensor, Tensor]:
         """s (1,3,1,1) or (1,3,H,W) and α of the same shape, with 1 channel when ``alpha_uniform``."""

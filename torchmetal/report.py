@@ -29,7 +29,9 @@ the same number the demo's metrics report.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -42,6 +44,13 @@ from torchmetal.io.images import linear_to_srgb
 from torchmetal.metrics import psnr  # re-exported: the notebooks import it from here
 from torchmetal.pipeline import PipelineResult, render_shots
 from torchmetal.renderer import MaterialRenderer
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+    from matplotlib.image import AxesImage
+
+    from torchmetal.flakes.estimate.results import Particles
 
 __all__ = [
     "psnr",
@@ -101,14 +110,15 @@ def _off(ax) -> None:
     ax.set_yticks([])
 
 
-def plot_image(ax, img: Tensor, title: str = "", *, exposure: float | None = None) -> None:
+def plot_image(ax: Axes, img: Tensor, title: str = "", *, exposure: float | None = None) -> None:
     """Show one linear image on ``ax`` (sRGB display, shared ``exposure`` when given)."""
     ax.imshow(to_display(img, exposure), interpolation="nearest")
     ax.set_title(title, fontsize=9)
     _off(ax)
 
 
-def plot_shots(axes, images: Tensor, *, indices=None, exposure: float | None = None, labels=None) -> float:
+def plot_shots(axes: Axes | Sequence[Axes] | np.ndarray, images: Tensor, *, indices: Sequence[int] | None = None,
+               exposure: float | None = None, labels: Sequence[str] | None = None) -> float:
     """Show photos ``images[indices]`` (N, 3, H, W) on ``axes`` with one shared exposure.
 
     Returns:
@@ -186,7 +196,7 @@ _RGB = ("#d62728", "#2ca02c", "#1f77b4")
 
 
 def plot_lobe(
-    ax,
+    ax: Axes,
     s: Tensor,
     alpha: Tensor,
     *,
@@ -233,7 +243,7 @@ def plot_lobe(
     ax.legend(fontsize=6, loc="upper right")
 
 
-def particle_ellipses(particles, shot: int | None = None) -> list[tuple[float, float, float, float, float]]:
+def particle_ellipses(particles: Particles | None, shot: int | None = None) -> list[tuple[float, float, float, float, float]]:
     """Detected particles as ellipses ``(x, y, width, height, angle_deg)``: x = column and
     y = row of the centroid (pixel centres at integers, as ``imshow`` draws them), full axis
     lengths, angle in degrees from +column towards up (counter-clockwise on screen).
@@ -252,7 +262,7 @@ def particle_ellipses(particles, shot: int | None = None) -> list[tuple[float, f
     return [(x, y, w, h, math.degrees(a)) for x, y, w, h, a in zip(*cols)]
 
 
-def plot_flakes(ax, residual: Tensor, particles=None, *, shot: int | None = None, title: str | None = None,
+def plot_flakes(ax: Axes, residual: Tensor, particles: Particles | None = None, *, shot: int | None = None, title: str | None = None,
                 window: tuple[int, int, int, int] | None = None, color: str = "#00e5ff",
                 max_ellipses: int = 5000) -> int:
     """Flake residual (photo − Phong render) of one shot with detected ellipses drawn on it.
@@ -284,8 +294,8 @@ def plot_flakes(ax, residual: Tensor, particles=None, *, shot: int | None = None
     return len(ells)
 
 
-def plot_error(ax, pred: Tensor, ref: Tensor, *, valid: Tensor | None = None, title: str | None = None,
-               vmax: float | None = None, fig=None):
+def plot_error(ax: Axes, pred: Tensor, ref: Tensor, *, valid: Tensor | None = None, title: str | None = None,
+               vmax: float | None = None, fig: Figure | None = None) -> AxesImage:
     """Per-pixel |pred − ref| (max over channels) in percent of the reference's peak, as a heat map.
 
     Args:
@@ -355,11 +365,11 @@ def report_figure(
     heldout: Capture | None = None,
     shot: int | None = None,
     flake_shot: int | None = None,
-    render_fn=None,
+    render_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None,
     heldout_name: str = "held-out shot",
     title: str | None = None,
     dpi: int = 130,
-):
+) -> Figure:
     """The demo's one-page figure.
 
     Args:
@@ -386,30 +396,15 @@ def report_figure(
         matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    material = result.material
-    n_shots = capture.images.shape[0]
     if render_fn is None:
-        render_fn = _material_render_fn(material)
+        render_fn = _material_render_fn(result.material)
 
     fig = plt.figure(figsize=(13.5, 8.4), dpi=dpi)
     gs = fig.add_gridspec(3, 6, height_ratios=[1, 1.25, 1.25], hspace=0.3, wspace=0.3, top=0.93, bottom=0.03)
-
-    # row 1: input shots
-    show = sorted({int(round(i)) for i in np.linspace(0, n_shots - 1, min(6, n_shots))})
-    shot_axes = [fig.add_subplot(gs[0, i]) for i in range(6)]
-    plot_shots(shot_axes, capture.images, indices=show, labels=[f"input shot {i}" for i in show])
-
-    # row 2: texture (fit | truth), lobe, flakes
-    _texture_panel(fig.add_subplot(gs[1, 0:2]), material.texture, truth)
-    _lobe_panel(fig.add_subplot(gs[1, 2:4]), capture, material, truth)
-    _flakes_panel(fig.add_subplot(gs[1, 4:6]), capture, result, flake_shot)
+    _input_and_fit_rows(fig, gs, capture, result, truth, flake_shot)
 
     # row 3: re-render beside the photo, error map
-    if heldout is not None:
-        src, k, what = heldout, 0, heldout_name
-    else:
-        src, k, what = capture, (n_shots // 2 if shot is None else shot), f"shot {shot if shot is not None else n_shots // 2}"
-    _rerender_row(fig, gs, src, k, what, result, render_fn)
+    _rerender_row(fig, gs, *_rerender_shot(capture, heldout, shot, heldout_name), result, render_fn)
 
     if title:
         fig.suptitle(title, fontsize=11, y=0.985)
@@ -419,6 +414,32 @@ def report_figure(
         fig.savefig(out_png, bbox_inches="tight")
         plt.close(fig)
     return fig
+
+
+def _rerender_shot(capture: Capture, heldout: Capture | None, shot: int | None,
+                   heldout_name: str) -> tuple[Capture, int, str]:
+    """The re-render row's capture, shot and name: the held-out shot when there is one, else ``shot`` of
+    ``capture`` (default its middle one)."""
+    n_shots = capture.images.shape[0]
+    if heldout is not None:
+        return heldout, 0, heldout_name
+    return capture, (n_shots // 2 if shot is None else shot), f"shot {shot if shot is not None else n_shots // 2}"
+
+
+def _input_and_fit_rows(fig, gs, capture: Capture, result: PipelineResult, truth: dict | None,
+                        flake_shot: int | None) -> None:
+    """The figure's first two rows: input shots; texture (fit | truth), lobe, flakes."""
+    material = result.material
+    n_shots = capture.images.shape[0]
+    # row 1: input shots
+    show = sorted({int(round(i)) for i in np.linspace(0, n_shots - 1, min(6, n_shots))})
+    shot_axes = [fig.add_subplot(gs[0, i]) for i in range(6)]
+    plot_shots(shot_axes, capture.images, indices=show, labels=[f"input shot {i}" for i in show])
+
+    # row 2: texture (fit | truth), lobe, flakes
+    _texture_panel(fig.add_subplot(gs[1, 0:2]), material.texture, truth)
+    _lobe_panel(fig.add_subplot(gs[1, 2:4]), capture, material, truth)
+    _flakes_panel(fig.add_subplot(gs[1, 4:6]), capture, result, flake_shot)
 
 
 def _material_render_fn(material):

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -29,11 +30,19 @@ from torchmetal.flakes.estimate.observed_flakes import observed_flakes
 from torchmetal.metrics import md, psnr
 from torchmetal.renderer import MaterialRenderer
 
+if TYPE_CHECKING:
+    from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
+    from torchmetal.flakes.model import FlakeModel
+    from torchmetal.flakes.model.observed import ObservedFlakes
+    from torchmetal.io.capture import Capture
+    from torchmetal.material import Material
+
+
 HELD = 2  # left-out shots (the ones with the most associated detections)
 MD_WINDOW = 16  # MD's block (px) in the left-out scores: smaller images cannot be scored
 
 
-def held_shots(particles, flake_id: torch.Tensor, num_shots: int, count: int) -> list[int]:
+def held_shots(particles: Particles, flake_id: torch.Tensor, num_shots: int, count: int) -> list[int]:
     """Up to ``count`` shots with the most associated detections (ties: the lower index)."""
     shots = particles.shot[flake_id >= 0]
     per = torch.bincount(shots, minlength=num_shots)
@@ -41,7 +50,8 @@ def held_shots(particles, flake_id: torch.Tensor, num_shots: int, count: int) ->
     return [k for k in order[:count] if int(per[k]) > 0]
 
 
-def observed_without(capture, particles, flake_id: torch.Tensor, model, k: int):
+def observed_without(capture: Capture, particles: Particles, flake_id: torch.Tensor, model: FlakeModel,
+                     k: int) -> ObservedFlakes | None:
     """Observed flakes measured from every shot but ``k`` (shot indices renumbered; the probe shots
     exclude ``k``). The photos themselves are not read again: only the shots' geometry."""
     keep = torch.tensor([i for i in range(capture.num_shots) if i != k], dtype=torch.long)
@@ -69,7 +79,7 @@ def mean_score(rows: list[dict], key: str) -> float:
     return sum(r[key] for r in rows) / len(rows)
 
 
-def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tuple[object, dict]:
+def choose_observed(capture: Capture, material: Material, flake_result: FlakeStageResult | None, *, held: int = HELD) -> tuple[object, dict]:
     """The observed flakes of ``flake_result`` if left-out shots prefer them, else None.
 
     Args:
@@ -117,7 +127,8 @@ def choose_observed(capture, material, flake_result, *, held: int = HELD) -> tup
     return (observed_flakes(capture, parts, fid, model) if better else None), report
 
 
-def keep_flakes(capture, material, plain, flake_result, observed_report: dict | None = None, *,
+def keep_flakes(capture: Capture, material: Material, plain: Material, flake_result: FlakeStageResult | None,
+                observed_report: dict | None = None, *,
                 held: int = HELD) -> tuple[bool, dict]:
     """Flakes or none? The flake material is kept when the left-out shots' sparkle statistics are no
     further from the photos with it than with the flake-free material (mean MD, the paper's metric).

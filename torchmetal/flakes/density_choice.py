@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
@@ -33,6 +34,12 @@ from torchmetal.flakes.model.field import map_blocks
 from torchmetal.flakes.model.filters import box_mean
 from torchmetal.metrics import md
 from torchmetal.renderer import MaterialRenderer
+
+if TYPE_CHECKING:
+    from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
+    from torchmetal.flakes.model import FlakeModel
+    from torchmetal.io.capture import Capture
+    from torchmetal.material import Material
 
 SPARKLE_K = 5.0  # sparkle threshold in robust σ of the high-pass (MD's)
 
@@ -65,19 +72,19 @@ def block_error(pred: Tensor, obs: Tensor) -> float:
     return float(torch.log((pred + 1.0) / (obs + 1.0)).abs().mean())
 
 
-def render_shot(material, capture, k: int) -> Tensor:
+def render_shot(material: Material, capture: Capture, k: int) -> Tensor:
     """The material's render of shot ``k``, (3, H, W)."""
     with torch.no_grad():
         return MaterialRenderer(material)(capture.lights[k : k + 1].float(), capture.intensities[k : k + 1].float(),
                                           capture.cameras[k : k + 1].float())[0]
 
 
-def shot_valid(capture, k: int) -> Tensor:
+def shot_valid(capture: Capture, k: int) -> Tensor:
     """(H, W) bool: shot ``k``'s unsaturated pixels in the mask."""
     return (capture.mask & ~capture.saturated[k].any(0, keepdim=True)).reshape(capture.images.shape[-2:])
 
 
-def score_shot(material, capture, k: int, grid: tuple[int, int]) -> dict:
+def score_shot(material: Material, capture: Capture, k: int, grid: tuple[int, int]) -> dict:
     """MD, block sparkle error and the per-block sparkle counts of shot ``k``'s render against its photo."""
     pred = render_shot(material, capture, k)
     photo = capture.images[k].float()
@@ -86,7 +93,8 @@ def score_shot(material, capture, k: int, grid: tuple[int, int]) -> dict:
             "predicted": p.tolist(), "observed": o.tolist()}
 
 
-def choose_density_map(capture, material, flake_result, *, held: int = HELD):
+def choose_density_map(capture: Capture, material: Material, flake_result: FlakeStageResult | None, *,
+                       held: int = HELD) -> tuple[FlakeModel | None, dict]:
     """``material.flakes`` with a density map when left-out shots prefer it, else unchanged.
 
     The candidates are the uniform model and a map per detectability mode
@@ -107,19 +115,47 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
     cands = ["uniform"] + [f"map:{m}" for m in DETECT_MODES]
     rep = {"candidates": cands, "held": [], "per_shot": {c: [] for c in cands}, "winner": "uniform", "kept": False}
     fid = None if flake_result is None else flake_result.flake_id
-    if model is None:
-        rep["reason"] = "no flake model"
-        return model, rep
-    if min(capture.images.shape[-2:]) < MD_WINDOW:
-        rep["reason"] = f"images under {MD_WINDOW} px a side: too small for MD's blocks"
-        return model, rep
-    if fid is None or not bool((fid >= 0).any()):
-        rep["reason"] = "no associated detections"
-        return model, rep
-    if capture.num_shots < 3:
-        rep["reason"] = f"{capture.num_shots} shots: none to leave out of the map's estimate"
+    reason = _not_applicable(capture, model, fid)
+    if reason is not None:
+        rep["reason"] = reason
         return model, rep
     parts = flake_result.particles
+    _score_folds(rep, capture, material, parts, fid, held)
+    if not rep["held"]:
+        rep["reason"] = "no left-out shot gave a non-uniform map (too few flakes, one block, or Poisson-like counts)"
+        return model, rep
+    rep["scores"] = {c: {"md": mean_score(rep["per_shot"][c], "md"), "block_error": mean_score(rep["per_shot"][c], "block_error")}
+                     for c in cands}
+    winner, reason = _best_candidate(rep, cands)
+    final = estimate_map(capture, model, parts, fid, mode=winner.split(":")[1]) if winner != "uniform" else None
+    if winner != "uniform" and (final is None or final.uniform):
+        winner, reason = "uniform", reason + "; the map from every shot is uniform"
+    rep.update({"kept": winner != "uniform", "winner": winner, "reason": reason})
+    rep["decision"] = Decision("density map", tuple(cands), winner, reference="uniform", holds=list(rep["held"]),
+                               pixels=int(capture.mask.sum()), reason=reason,
+                               scores={c: dict(v) for c, v in rep["scores"].items()}).to_dict()
+    if winner == "uniform":
+        return model, rep
+    rep["map_estimate"] = final.report
+    return with_map(model, final), rep
+
+
+def _not_applicable(capture: Capture, model: FlakeModel | None, fid: Tensor | None) -> str | None:
+    """Why no density map can be chosen on this capture (None when one can)."""
+    if model is None:
+        return "no flake model"
+    if min(capture.images.shape[-2:]) < MD_WINDOW:
+        return f"images under {MD_WINDOW} px a side: too small for MD's blocks"
+    if fid is None or not bool((fid >= 0).any()):
+        return "no associated detections"
+    if capture.num_shots < 3:
+        return f"{capture.num_shots} shots: none to leave out of the map's estimate"
+    return None
+
+
+def _score_folds(rep: dict, capture: Capture, material: Material, parts: Particles, fid: Tensor, held: int) -> None:
+    """Score every candidate on each left-out shot (its maps estimated from the other shots) into ``rep``."""
+    model = material.flakes
     rep["folds"] = []
     for k in held_shots(parts, fid, capture.num_shots, held):
         others = [i for i in range(capture.num_shots) if i != k]
@@ -136,11 +172,10 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
         for name, dm in maps.items():
             rep["per_shot"][name].append(score_shot(replace(base, flakes=with_map(model, dm)), capture, k, grid))
         rep["folds"].append({"shot": k, **{name: dm.report["density_map"] for name, dm in maps.items()}})
-    if not rep["held"]:
-        rep["reason"] = "no left-out shot gave a non-uniform map (too few flakes, one block, or Poisson-like counts)"
-        return model, rep
-    rep["scores"] = {c: {"md": mean_score(rep["per_shot"][c], "md"), "block_error": mean_score(rep["per_shot"][c], "block_error")}
-                     for c in cands}
+
+
+def _best_candidate(rep: dict, cands: list[str]) -> tuple[str, str]:
+    """The winning candidate on the left-out scores and why."""
     uni = rep["scores"]["uniform"]
     def beats(v: dict) -> bool:  # no worse on both scores, better on one (a tie keeps the simpler model)
         return (v["md"] <= uni["md"] and v["block_error"] <= uni["block_error"]
@@ -151,17 +186,7 @@ def choose_density_map(capture, material, flake_result, *, held: int = HELD):
     summary = "; ".join(f"{c} MD {v['md']:.2f}, block sparkle error {v['block_error']:.3f}" for c, v in rep["scores"].items())
     reason = (f"left-out shots {rep['held']}: {summary} (a map wins when neither score is above the uniform "
               "model's and one is below; the lowest MD among those)")
-    final = estimate_map(capture, model, parts, fid, mode=winner.split(":")[1]) if winner != "uniform" else None
-    if winner != "uniform" and (final is None or final.uniform):
-        winner, reason = "uniform", reason + "; the map from every shot is uniform"
-    rep.update({"kept": winner != "uniform", "winner": winner, "reason": reason})
-    rep["decision"] = Decision("density map", tuple(cands), winner, reference="uniform", holds=list(rep["held"]),
-                               pixels=int(capture.mask.sum()), reason=reason,
-                               scores={c: dict(v) for c, v in rep["scores"].items()}).to_dict()
-    if winner == "uniform":
-        return model, rep
-    rep["map_estimate"] = final.report
-    return with_map(model, final), rep
+    return winner, reason
 
 
 def region_report(scores: dict) -> dict:

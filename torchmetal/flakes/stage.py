@@ -10,6 +10,7 @@ sub-step, the counts, the fitted values with their standard errors, and the skip
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -21,8 +22,12 @@ from torchmetal.flakes.estimate.shot_geometry import Geometry
 from torchmetal.flakes.estimate.stats import flake_statistics
 from torchmetal.geometry import grid_distance2, pixel_axes
 
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
-def irradiance_maps(capture, *, dtype: torch.dtype = torch.float32) -> Tensor:
+
+
+def irradiance_maps(capture: Capture, *, dtype: torch.dtype = torch.float32) -> Tensor:
     """Irradiance E of every shot, (N, 3, H, W): intensity/dist² (point) or intensity."""
     n, _, h, w = capture.images.shape
     x, y = pixel_axes(h, w, capture.size, dtype=dtype, device=capture.images.device)
@@ -30,7 +35,7 @@ def irradiance_maps(capture, *, dtype: torch.dtype = torch.float32) -> Tensor:
     return capture.intensities.to(dtype)[:, :, None, None] / dist2.unsqueeze(1)
 
 
-def detect_capture(capture, phong_images: Tensor, *, mirrored: bool = False, **detect) -> Detection:
+def detect_capture(capture: Capture, phong_images: Tensor, *, mirrored: bool = False, **detect) -> Detection:
     """:func:`~torchmetal.flakes.estimate.detect.detect_flakes` on every shot of ``capture``: residual
     against ``phong_images`` (N, 3, H, W), irradiance from the shots' lights, and only mask pixels
     that are not saturated in any channel.
@@ -50,7 +55,7 @@ def detect_capture(capture, phong_images: Tensor, *, mirrored: bool = False, **d
 
 
 def flake_stage(
-    capture,
+    capture: Capture,
     phong_images: Tensor,
     *,
     seed: int = 0,

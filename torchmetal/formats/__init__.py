@@ -11,8 +11,13 @@ from __future__ import annotations
 import importlib
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from torchmetal.errors import ExportError
+
+if TYPE_CHECKING:
+    from torchmetal.material import Material
+
 
 FORMATS: dict[str, str] = {
     "onnx": "torchmetal.formats.onnx:write",
@@ -39,6 +44,6 @@ def writer(fmt: str):
     return getattr(importlib.import_module(module), func)
 
 
-def export_material(material, fmt: str, path: str | os.PathLike, **options) -> Path:
+def export_material(material: Material, fmt: str, path: str | os.PathLike, **options) -> Path:
     """Write ``material`` (a :class:`Material`) as ``fmt`` at ``path``; returns the written path."""
     return writer(fmt)(material, path, **options)

@@ -24,7 +24,9 @@ k = 1 reproduces torchmetal's own flakes texel for pixel.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from dataclasses import field as dc_field
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -39,8 +41,11 @@ from torchmetal.formats.engine_brdf import (
     reference_render,
     render_error,
 )
-from torchmetal.formats.lobe_fit import fit_glint
+from torchmetal.formats.lobe_fit import LobeFit, fit_glint
 from torchmetal.geometry import normalize
+
+if TYPE_CHECKING:
+    from torchmetal.material import Material
 
 MODES = ("auto", "base", "clearcoat", "flake_clearcoat")
 
@@ -49,7 +54,7 @@ def _up(x: torch.Tensor, k: int) -> torch.Tensor:
     return x if k == 1 else x.repeat_interleave(k, 1).repeat_interleave(k, 2)
 
 
-def bake_flakes(em: EngineMaterial, material, *, mode: str = "auto", texels_per_pixel: int = 1,
+def bake_flakes(em: EngineMaterial, material: Material, *, mode: str = "auto", texels_per_pixel: int = 1,
                 views: torch.Tensor | None = None, coat_normals: bool = True) -> EngineMaterial:
     """``em`` with ``material.flakes`` baked in (see the module docstring); ``coat_normals`` False
     leaves "flake_clearcoat" out of "auto" (targets whose coat has no normal map of its own)."""
@@ -73,35 +78,8 @@ def bake_flakes(em: EngineMaterial, material, *, mode: str = "auto", texels_per_
     f0_flake, f90_flake = f0_flake * scale, f90_flake * scale
 
     up = {name: _up(getattr(em, name), k) for name in ("base_color", "roughness", "f0", "f90")}
-    normal = torch.where(flake, field.normal.float(), normals)
-    texture = up["base_color"]
-
-    def layout(which: str) -> EngineMaterial:
-        if which == "base":
-            f0 = torch.where(flake, f0_flake, up["f0"])
-            f90 = torch.where(flake, f90_flake, up["f90"])
-            rough = torch.where(flake, torch.full_like(up["roughness"], glint.roughness), up["roughness"])
-            coat = None
-        elif which == "flake_clearcoat":
-            f0, f90, rough = up["f0"], up["f90"], up["roughness"]
-            weight = torch.where(flake, f0_flake.mean(0, keepdim=True) / COAT_F0, torch.zeros_like(up["roughness"]))
-            coat = Coat(weight=weight.clamp(0.0, 1.0), roughness=torch.full_like(rough, glint.roughness),
-                        normal=normal.clone())
-            clip["flake_clearcoat"] = float(((weight > 1.0) & flake).float().sum() / flake.float().sum().clamp_min(1.0))
-            return finish_base_color(EngineMaterial(base_color=texture.clone(), roughness=rough.clone(), f0=f0.clone(),
-                                                    f90=f90.clone(), normal=normals.clone(), size=em.size, coat=coat,
-                                                    extras=dict(em.extras)), texture)
-        else:
-            f0 = torch.where(flake, f0_flake, torch.zeros_like(up["f0"]))
-            f90 = torch.where(flake, f90_flake, torch.zeros_like(up["f90"]))
-            rough = torch.full_like(up["roughness"], glint.roughness)
-            weight = (up["f0"].mean(0, keepdim=True) / COAT_F0).clamp(0.0, 1.0)
-            coat = Coat(weight=weight, roughness=up["roughness"].clone(), normal=normals.clone())
-        out = EngineMaterial(base_color=texture.clone(), roughness=rough, f0=f0, f90=f90, normal=normal.clone(),
-                             size=em.size, coat=coat, extras=dict(em.extras))
-        return finish_base_color(out, texture)
-
-    clip: dict[str, float] = {}
+    bake = _Layouts(em=em, up=up, flake=flake, f0_flake=f0_flake, f90_flake=f90_flake,
+                    normal=torch.where(flake, field.normal.float(), normals), normals=normals, glint=glint)
     auto = ("base", "clearcoat", "flake_clearcoat") if coat_normals else ("base", "clearcoat")
     candidates = auto if mode == "auto" else (mode,)
     light, inten, cam = check_lights(em.size)
@@ -109,7 +87,7 @@ def bake_flakes(em: EngineMaterial, material, *, mode: str = "auto", texels_per_
     errors = {}
     built = {}
     for which in candidates:
-        built[which] = layout(which)
+        built[which] = bake.layout(which)
         errors[which] = render_error(built[which], material, light, inten, cam, reference=ref)
     chosen = min(errors, key=errors.get)
     out = built[chosen]
@@ -117,6 +95,50 @@ def bake_flakes(em: EngineMaterial, material, *, mode: str = "auto", texels_per_
     out.extras["flake_bake"] = {
         "mode": chosen, "render_error": errors, "texels_per_pixel": k,
         "flake_texels": float(flake.float().mean()), "flakes": int(field.count),
-        "glint_fit": glint.to_dict(), "clipped_flake_texels": clip.get(chosen, clipped),
+        "glint_fit": glint.to_dict(), "clipped_flake_texels": bake.clip.get(chosen, clipped),
     }
     return out
+
+
+@dataclass
+class _Layouts:
+    """The baked field's parts, each layer layout built from them (:meth:`layout`) and the clipped flake
+    texels' fraction of the layouts that clip their own (``clip``)."""
+
+    em: EngineMaterial
+    up: dict[str, torch.Tensor]  # em's maps at the baked resolution
+    flake: torch.Tensor  # (1, H, W) bool: flake texels
+    f0_flake: torch.Tensor
+    f90_flake: torch.Tensor
+    normal: torch.Tensor  # the flake normals on flake texels, the surface's elsewhere
+    normals: torch.Tensor  # the surface's
+    glint: LobeFit
+    clip: dict[str, float] = dc_field(default_factory=dict)
+
+    def layout(self, which: str) -> EngineMaterial:
+        """The engine material of layout ``which`` ("base", "clearcoat" or "flake_clearcoat")."""
+        em, up, flake, glint, normals = self.em, self.up, self.flake, self.glint, self.normals
+        texture = up["base_color"]
+        if which == "base":
+            f0 = torch.where(flake, self.f0_flake, up["f0"])
+            f90 = torch.where(flake, self.f90_flake, up["f90"])
+            rough = torch.where(flake, torch.full_like(up["roughness"], glint.roughness), up["roughness"])
+            coat = None
+        elif which == "flake_clearcoat":
+            f0, f90, rough = up["f0"], up["f90"], up["roughness"]
+            weight = torch.where(flake, self.f0_flake.mean(0, keepdim=True) / COAT_F0, torch.zeros_like(up["roughness"]))
+            coat = Coat(weight=weight.clamp(0.0, 1.0), roughness=torch.full_like(rough, glint.roughness),
+                        normal=self.normal.clone())
+            self.clip["flake_clearcoat"] = float(((weight > 1.0) & flake).float().sum() / flake.float().sum().clamp_min(1.0))
+            return finish_base_color(EngineMaterial(base_color=texture.clone(), roughness=rough.clone(), f0=f0.clone(),
+                                                    f90=f90.clone(), normal=normals.clone(), size=em.size, coat=coat,
+                                                    extras=dict(em.extras)), texture)
+        else:
+            f0 = torch.where(flake, self.f0_flake, torch.zeros_like(up["f0"]))
+            f90 = torch.where(flake, self.f90_flake, torch.zeros_like(up["f90"]))
+            rough = torch.full_like(up["roughness"], glint.roughness)
+            weight = (up["f0"].mean(0, keepdim=True) / COAT_F0).clamp(0.0, 1.0)
+            coat = Coat(weight=weight, roughness=up["roughness"].clone(), normal=normals.clone())
+        out = EngineMaterial(base_color=texture.clone(), roughness=rough, f0=f0, f90=f90, normal=self.normal.clone(),
+                             size=em.size, coat=coat, extras=dict(em.extras))
+        return finish_base_color(out, texture)

@@ -61,25 +61,33 @@ def minimize_bounded(f: Callable[[float], float], lo: float, hi: float, *, xatol
             rat = _GOLDEN * e
         x = xf + _sign(rat) * max(abs(rat), tol1)
         fu = float(f(x))
-        if fu <= fx:
-            if x >= xf:
-                a = xf
-            else:
-                b = xf
-            fulc, ffulc = nfc, fnfc
-            nfc, fnfc = xf, fx
-            xf, fx = x, fu
-        else:
-            if x < xf:
-                a = x
-            else:
-                b = x
-            if fu <= fnfc or nfc == xf:
-                fulc, ffulc = nfc, fnfc
-                nfc, fnfc = x, fu
-            elif fu <= ffulc or fulc == xf or fulc == nfc:
-                fulc, ffulc = x, fu
+        a, b, xf, fx, nfc, fnfc, fulc, ffulc = _bracket(x, fu, a, b, xf, fx, nfc, fnfc, fulc, ffulc)
         xm = 0.5 * (a + b)
         tol1 = _SQRT_EPS * abs(xf) + xatol / 3.0
         tol2 = 2.0 * tol1
     return xf, fx
+
+
+def _bracket(x: float, fu: float, a: float, b: float, xf: float, fx: float, nfc: float, fnfc: float, fulc: float,
+             ffulc: float) -> tuple[float, float, float, float, float, float, float, float]:
+    """The bracket [a, b] and the three best points (xf, nfc, fulc) with their values after evaluating
+    ``f(x) = fu``."""
+    if fu <= fx:
+        if x >= xf:
+            a = xf
+        else:
+            b = xf
+        fulc, ffulc = nfc, fnfc
+        nfc, fnfc = xf, fx
+        xf, fx = x, fu
+    else:
+        if x < xf:
+            a = x
+        else:
+            b = x
+        if fu <= fnfc or nfc == xf:
+            fulc, ffulc = nfc, fnfc
+            nfc, fnfc = x, fu
+        elif fu <= ffulc or fulc == xf or fulc == nfc:
+            fulc, ffulc = x, fu
+    return a, b, xf, fx, nfc, fnfc, fulc, ffulc

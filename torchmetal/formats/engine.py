@@ -22,6 +22,8 @@ Flakes are baked by :mod:`torchmetal.formats.bake` (see there for the two layer 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import Tensor
 
@@ -40,6 +42,10 @@ from torchmetal.formats.engine_brdf import (
 from torchmetal.formats.lobe_fit import LobeFit, fit_lobe
 from torchmetal.geometry import normalize
 
+if TYPE_CHECKING:
+    from torchmetal.material import Material
+
+
 # the maps' types and their BRDF live in engine_brdf (the flake bake needs them too); callers find them here as well
 __all__ = ["COAT_F0", "MAX_GROUPS", "Coat", "EngineMaterial", "check_lights", "engine_material", "engine_render",
            "finish_base_color", "reference_render", "render_error", "specular_fits"]
@@ -51,7 +57,7 @@ def _lobe_kind(material) -> str:
     return str(getattr(material, "lobe", None) or "phong")
 
 
-def specular_fits(material, views: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, list[dict]]:
+def specular_fits(material: Material, views: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, list[dict]]:
     """GGX maps of the material's specular lobe.
 
     Returns:
@@ -103,7 +109,7 @@ def specular_fits(material, views: Tensor | None = None) -> tuple[Tensor, Tensor
     return (rough.reshape(1, h, w).to(f32), f0.t().reshape(3, h, w).to(f32), f90.reshape(1, h, w).to(f32), report)
 
 
-def engine_material(material, *, views: Tensor | None = None, flakes: str = "auto",
+def engine_material(material: Material, *, views: Tensor | None = None, flakes: str = "auto",
                     texels_per_pixel: int = 1, coat_normals: bool = True) -> EngineMaterial:
     """The engine maps of ``material`` (see the module docstring).
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -21,6 +22,10 @@ from torch import Tensor
 from torchmetal.formats.lobe_fit import ggx_terms
 from torchmetal.geometry import is_flat, shading_geometry
 from torchmetal.renderer import MaterialRenderer
+
+if TYPE_CHECKING:
+    from torchmetal.material import Material
+
 
 COAT_F0 = 0.04  # glTF/OpenPBR clear coat at IOR 1.5
 
@@ -107,13 +112,13 @@ def engine_render(em: EngineMaterial, light: Tensor, intensity: Tensor, camera: 
     return geom.irradiance * base
 
 
-def reference_render(material, light: Tensor, intensity: Tensor, camera: Tensor) -> Tensor:
+def reference_render(material: Material, light: Tensor, intensity: Tensor, camera: Tensor) -> Tensor:
     """torchmetal's render (B, 3, H, W) of ``material`` (the reference of :func:`render_error`)."""
     with torch.inference_mode():
         return MaterialRenderer(material.to("cpu")).eval()(light, intensity, camera)
 
 
-def render_error(em: EngineMaterial, material, light: Tensor, intensity: Tensor, camera: Tensor,
+def render_error(em: EngineMaterial, material: Material, light: Tensor, intensity: Tensor, camera: Tensor,
                  reference: Tensor | None = None) -> float:
     """Relative L2 error ‖engine − torchmetal‖/‖torchmetal‖ of the two renders over the shots
     (``reference``: torchmetal's render when already computed)."""

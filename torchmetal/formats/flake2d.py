@@ -35,11 +35,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from torchmetal.errors import ExportError
 from torchmetal.formats.brent import minimize_bounded
+
+if TYPE_CHECKING:
+    from torchmetal.flakes.model import FlakeModel
+
 
 _U32 = np.uint32
 _DIAM = 1.5 / math.sqrt(3.0)  # flake_diameter of mx_flake.glsl (cube half-side, cell units)
@@ -234,7 +239,7 @@ class Flake2dInputs:
 MAX_COVERED = 0.95  # flake2d's Boolean model cannot cover more
 
 
-def drawn_coverage(model, side: int = 192) -> tuple[float, float]:
+def drawn_coverage(model: FlakeModel, side: int = 192) -> tuple[float, float]:
     """Covered fraction and flakes per texel of torchmetal's own flake field on a ``side``² patch (a
     uniform density: the map, if any, scales coverage per block elsewhere)."""
     from dataclasses import replace
@@ -246,7 +251,7 @@ def drawn_coverage(model, side: int = 192) -> tuple[float, float]:
     return float((f.weight >= 0.5).float().mean()), f.count / float(side * side)
 
 
-def flake2d_inputs(model, width_px: int) -> Flake2dInputs:
+def flake2d_inputs(model: FlakeModel, width_px: int) -> Flake2dInputs:
     """flake2d ``size``/``roughness``/``coverage`` for a FlakeModel on a texture ``width_px`` wide.
 
     The target is the model's covered fraction, density × mean area (torchmetal's flakes never overlap);
@@ -271,7 +276,7 @@ def flake2d_inputs(model, width_px: int) -> Flake2dInputs:
     return Flake2dInputs(size_px / width_px, rough, coverage, p, target, err, drawn)
 
 
-def glint_statistics(model, inputs: Flake2dInputs, width_px: int, tilts_deg=(0.0, 5.0, 10.0, 20.0),
+def glint_statistics(model: FlakeModel, inputs: Flake2dInputs, width_px: int, tilts_deg=(0.0, 5.0, 10.0, 20.0),
                      cone_deg: float | None = None, height_px: int = 192) -> dict:
     """Both models on a ``height_px``² texel patch: covered fraction, flakes per texel, mean area
     (texel²), and per half-vector tilt the fraction of flakes whose normal lies within ``cone_deg``

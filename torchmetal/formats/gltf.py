@@ -25,6 +25,7 @@ import math
 import os
 import struct
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -36,6 +37,9 @@ from torchmetal.formats.textures import decode_png, hwc, is_constant, png_bytes,
 from torchmetal.geometry import is_flat
 from torchmetal.io.capture import Capture
 from torchmetal.io.images import atomic_write_bytes
+
+if TYPE_CHECKING:
+    from torchmetal.material import Material
 
 GENERATOR = "torchmetal"
 
@@ -68,6 +72,33 @@ class _Builder:
 def gltf_document(em: EngineMaterial, extras: dict) -> tuple[dict, bytes]:
     """The glTF JSON (without the buffer's uri) and the binary buffer of ``em``."""
     b = _Builder()
+    accessors, tangents = _quad(b, em)
+    attributes = {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2, **({"TANGENT": 3} if tangents else {})}
+    mat = _material(b, em, extras)
+    doc = {
+        "asset": {"version": "2.0", "generator": GENERATOR},
+        "extensionsUsed": sorted(mat["extensions"]),
+        "scene": 0,
+        "scenes": [{"nodes": [0], "name": "torchmetal"}],
+        "nodes": [{"mesh": 0, "name": "sample"}],
+        "meshes": [{"name": "sample", "primitives": [{"attributes": attributes,
+                                                       "indices": len(accessors) - 1, "material": 0}]}],
+        "materials": [mat],
+        "accessors": accessors,
+        "samplers": [{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}],
+        "textures": b.textures,
+        "images": b.images,
+        "bufferViews": b.views,
+        "buffers": [{"byteLength": len(b.blob)}],
+    }
+    while len(b.blob) % 4:
+        b.blob.append(0)
+    return doc, bytes(b.blob)
+
+
+def _quad(b: _Builder, em: EngineMaterial) -> tuple[list[dict], bool]:
+    """The sample's quad (positions, normals, uvs, tangents with normal maps, indices) into ``b``: its
+    accessors and whether it has tangents."""
     w, h = em.size
     pos = np.array([[-w / 2, h / 2, 0], [w / 2, h / 2, 0], [w / 2, -h / 2, 0], [-w / 2, -h / 2, 0]], np.float32)
     nrm = np.tile(np.array([[0, 0, 1]], np.float32), (4, 1))
@@ -83,8 +114,11 @@ def gltf_document(em: EngineMaterial, extras: dict) -> tuple[dict, bytes]:
             acc["min"], acc["max"] = pos.min(0).tolist(), pos.max(0).tolist()
         accessors.append(acc)
     accessors.append({"bufferView": b.view(idx.tobytes(), 34963), "componentType": 5123, "count": 6, "type": "SCALAR"})
+    return accessors, tangents
 
-    attributes = {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2, **({"TANGENT": 3} if tangents else {})}
+
+def _material(b: _Builder, em: EngineMaterial, extras: dict) -> dict:
+    """The glTF material of ``em`` (metallic-roughness, specular, ior, clearcoat), its textures into ``b``."""
     pbr = {"baseColorTexture": b.texture(to_srgb(hwc(em.base_color)), "base_color"), "metallicFactor": 0.0}
     if is_constant(em.roughness):
         pbr["roughnessFactor"] = float(em.roughness.reshape(-1)[0])
@@ -109,26 +143,7 @@ def gltf_document(em: EngineMaterial, extras: dict) -> tuple[dict, bytes]:
     if em.coat is not None:
         mat["extensions"]["KHR_materials_clearcoat"] = _clearcoat(b, em.coat)
     mat["extras"] = {"torchmetal": extras}
-
-    doc = {
-        "asset": {"version": "2.0", "generator": GENERATOR},
-        "extensionsUsed": sorted(mat["extensions"]),
-        "scene": 0,
-        "scenes": [{"nodes": [0], "name": "torchmetal"}],
-        "nodes": [{"mesh": 0, "name": "sample"}],
-        "meshes": [{"name": "sample", "primitives": [{"attributes": attributes,
-                                                       "indices": len(accessors) - 1, "material": 0}]}],
-        "materials": [mat],
-        "accessors": accessors,
-        "samplers": [{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}],
-        "textures": b.textures,
-        "images": b.images,
-        "bufferViews": b.views,
-        "buffers": [{"byteLength": len(b.blob)}],
-    }
-    while len(b.blob) % 4:
-        b.blob.append(0)
-    return doc, bytes(b.blob)
+    return mat
 
 
 def _clearcoat(b: _Builder, coat: Coat) -> dict:
@@ -167,7 +182,7 @@ def _json_safe(x):
     return x
 
 
-def write(material, path: str | os.PathLike, *, binary: bool | None = None, views=None,
+def write(material: Material, path: str | os.PathLike, *, binary: bool | None = None, views: torch.Tensor | None = None,
           capture: Capture | str | os.PathLike | None = None,
           flakes: str = "auto", texels_per_pixel: int = 1) -> Path:
     """Write ``material`` as glTF 2.0 (``.gltf``, data-URI buffer) or GLB (``.glb``), atomically.
@@ -195,12 +210,12 @@ def write_engine(em: EngineMaterial, path: str | os.PathLike, *, binary: bool | 
     return path
 
 
-def write_glb(material, path: str | os.PathLike, **options) -> Path:
+def write_glb(material: Material, path: str | os.PathLike, **options) -> Path:
     """GLB writer (``export --format glb``)."""
     return write(material, path, binary=True, **options)
 
 
-def write_gltf(material, path: str | os.PathLike, **options) -> Path:
+def write_gltf(material: Material, path: str | os.PathLike, **options) -> Path:
     """glTF JSON writer (``export --format gltf``)."""
     return write(material, path, binary=False, **options)
 

@@ -32,9 +32,11 @@ import os
 from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from torchmetal.errors import ExportError
 from torchmetal.flakes.estimate.density_map import block_pixels
@@ -56,6 +58,13 @@ from torchmetal.geometry import is_flat
 from torchmetal.io.capture import Capture
 from torchmetal.io.images import atomic_write_bytes
 
+if TYPE_CHECKING:
+    import MaterialX
+
+    from torchmetal.flakes.model import FlakeModel
+    from torchmetal.formats.flake2d import Flake2dInputs
+    from torchmetal.material import Material
+
 TARGETS = ("glsl", "osl", "mdl")
 
 
@@ -68,7 +77,7 @@ def _mx():
 
 
 @lru_cache(maxsize=1)
-def stdlib():
+def stdlib() -> MaterialX.Document:
     """The MaterialX standard data libraries, loaded once (used as a read-only data library)."""
     mx = _mx()
     lib = mx.createDocument()
@@ -76,7 +85,7 @@ def stdlib():
     return lib
 
 
-def mtlx_plan(material, views=None) -> tuple[EngineMaterial, dict, dict[str, np.ndarray]]:
+def mtlx_plan(material: Material, views: Tensor | None = None) -> tuple[EngineMaterial, dict, dict[str, np.ndarray]]:
     """What the document holds: the engine maps (no flake bake), the shader/flake2d input values
     (floats, lists, or ``("texture", name)``) and the textures to write (name → (H, W, 3) planes)."""
     em = engine_material(replace(material, flakes=None), views=views)
@@ -85,59 +94,11 @@ def mtlx_plan(material, views=None) -> tuple[EngineMaterial, dict, dict[str, np.
     normal = None if is_flat(em.normal) else "normal"
     if normal:
         textures["normal"] = 0.5 * (hwc(em.normal) + 1.0)
-
-    def scalar_or_map(name: str, x: torch.Tensor, scale: float = 1.0):
-        if is_constant(x):
-            return float(x.reshape(-1)[0]) * scale
-        textures[name] = gray(hwc(x))
-        return ("texture", name, scale)
-
     flake = None
     if material.flakes is None:
-        enc = specular_encoding(em)
-        ins["specular_roughness"] = scalar_or_map("roughness", em.roughness)
-        ins["specular_ior"] = enc["ior"]
-        ins["specular_weight"] = scalar_or_map("specular_weight", enc["f90_map"], enc["specular_factor"])
-        if is_constant(enc["color_map"]):
-            ins["specular_color"] = [enc["color_factor"] * float(c) for c in enc["color_map"][:, 0, 0]]
-        else:
-            textures["specular_color"] = to_srgb(hwc(enc["color_map"]))
-            ins["specular_color"] = ("texture", "specular_color", enc["color_factor"])
-        ins["coat_weight"] = 0.0
+        _specular_inputs(em, ins, textures)
     else:
-        model = material.flakes
-        coat_f0 = em.f0.mean(0, keepdim=True)
-        top = float(coat_f0.max())
-        ins["coat_ior"] = f0_to_ior(top)
-        f0_ior = ((ins["coat_ior"] - 1) / (ins["coat_ior"] + 1)) ** 2
-        ins["coat_weight"] = scalar_or_map("coat_weight", (coat_f0 / f0_ior).clamp(0.0, 1.0))
-        ins["coat_roughness"] = scalar_or_map("roughness", em.roughness)
-        ins["coat_color"] = [1.0, 1.0, 1.0]
-        glint = fit_glint(model.color_mean, model.glint_sigma, views=views)
-        f0 = np.array(glint.f0)
-        ins["specular_ior"] = f0_to_ior(float(f0.max()))
-        f0_spec = ((ins["specular_ior"] - 1) / (ins["specular_ior"] + 1)) ** 2
-        ins["specular_color"] = [float(min(c / f0_spec, 1.0)) if f0_spec > 0 else 0.0 for c in f0]
-        ins["specular_roughness"] = glint.roughness
-        ins["specular_weight"] = ("flake_presence",)
-        ins["geometry_normal"] = ("flake_normal",)
-        fi = flake2d_inputs(model, em.width)
-        flake = {"size": fi.size, "roughness": fi.roughness, "coverage": fi.coverage,
-                 "aspect": em.height / em.width, "mapping": vars(fi), "glint_fit": glint.to_dict(),
-                 "statistics": model.to_dict(), "not_carried": []}
-        if model.density_map is not None:
-            planes, flake["coverage_scale"], flake["density_map"] = coverage_map(model, fi, em.height, em.width)
-            textures["flake_coverage"] = gray(planes[:, :, None])
-        if model.area_map is not None:
-            ratio = torch.exp(model.area_map)
-            flake["not_carried"].append({
-                "what": "area_map", "why": "flake2d has one flake size",
-                "block_median_area_ratio": [float(ratio.min()), float(ratio.max())]})
-        if model.color_map is not None:
-            cm = model.color_map.mean(-1) / max(sum(model.color_mean) / 3.0, 1e-12)
-            flake["not_carried"].append({
-                "what": "color_map", "why": "the glint colour (specular_color) is the mean colour everywhere",
-                "block_brightness_ratio": [float(cm.min()), float(cm.max())]})
+        flake = _flake_inputs(material.flakes, em, ins, textures, views)
     if normal:
         ins["geometry_coat_normal" if flake else "geometry_normal"] = ("normal_map",)
         if flake:
@@ -147,7 +108,69 @@ def mtlx_plan(material, views=None) -> tuple[EngineMaterial, dict, dict[str, np.
     return em, plan, textures
 
 
-def coverage_map(model, fi, height: int, width: int) -> tuple[np.ndarray, float, dict]:
+def _scalar_or_map(textures: dict[str, np.ndarray], name: str, x: torch.Tensor, scale: float = 1.0):
+    """``x``'s one value × ``scale`` when it is constant, else ``("texture", name, scale)`` with the map added
+    to ``textures``."""
+    if is_constant(x):
+        return float(x.reshape(-1)[0]) * scale
+    textures[name] = gray(hwc(x))
+    return ("texture", name, scale)
+
+
+def _specular_inputs(em: EngineMaterial, ins: dict, textures: dict[str, np.ndarray]) -> None:
+    """The shader's specular inputs of a flake-free material (no coat), into ``ins`` and ``textures``."""
+    enc = specular_encoding(em)
+    ins["specular_roughness"] = _scalar_or_map(textures, "roughness", em.roughness)
+    ins["specular_ior"] = enc["ior"]
+    ins["specular_weight"] = _scalar_or_map(textures, "specular_weight", enc["f90_map"], enc["specular_factor"])
+    if is_constant(enc["color_map"]):
+        ins["specular_color"] = [enc["color_factor"] * float(c) for c in enc["color_map"][:, 0, 0]]
+    else:
+        textures["specular_color"] = to_srgb(hwc(enc["color_map"]))
+        ins["specular_color"] = ("texture", "specular_color", enc["color_factor"])
+    ins["coat_weight"] = 0.0
+
+
+def _flake_inputs(model: FlakeModel, em: EngineMaterial, ins: dict, textures: dict[str, np.ndarray],
+                  views: Tensor | None) -> dict:
+    """The coat (the Phong specular) and the flake2d glints' shader inputs, into ``ins`` and ``textures``;
+    returns the plan's flake2d entry."""
+    coat_f0 = em.f0.mean(0, keepdim=True)
+    top = float(coat_f0.max())
+    ins["coat_ior"] = f0_to_ior(top)
+    f0_ior = ((ins["coat_ior"] - 1) / (ins["coat_ior"] + 1)) ** 2
+    ins["coat_weight"] = _scalar_or_map(textures, "coat_weight", (coat_f0 / f0_ior).clamp(0.0, 1.0))
+    ins["coat_roughness"] = _scalar_or_map(textures, "roughness", em.roughness)
+    ins["coat_color"] = [1.0, 1.0, 1.0]
+    glint = fit_glint(model.color_mean, model.glint_sigma, views=views)
+    f0 = np.array(glint.f0)
+    ins["specular_ior"] = f0_to_ior(float(f0.max()))
+    f0_spec = ((ins["specular_ior"] - 1) / (ins["specular_ior"] + 1)) ** 2
+    ins["specular_color"] = [float(min(c / f0_spec, 1.0)) if f0_spec > 0 else 0.0 for c in f0]
+    ins["specular_roughness"] = glint.roughness
+    ins["specular_weight"] = ("flake_presence",)
+    ins["geometry_normal"] = ("flake_normal",)
+    fi = flake2d_inputs(model, em.width)
+    flake = {"size": fi.size, "roughness": fi.roughness, "coverage": fi.coverage,
+             "aspect": em.height / em.width, "mapping": vars(fi), "glint_fit": glint.to_dict(),
+             "statistics": model.to_dict(), "not_carried": []}
+    if model.density_map is not None:
+        planes, flake["coverage_scale"], flake["density_map"] = coverage_map(model, fi, em.height, em.width)
+        textures["flake_coverage"] = gray(planes[:, :, None])
+    if model.area_map is not None:
+        ratio = torch.exp(model.area_map)
+        flake["not_carried"].append({
+            "what": "area_map", "why": "flake2d has one flake size",
+            "block_median_area_ratio": [float(ratio.min()), float(ratio.max())]})
+    if model.color_map is not None:
+        cm = model.color_map.mean(-1) / max(sum(model.color_mean) / 3.0, 1e-12)
+        flake["not_carried"].append({
+            "what": "color_map", "why": "the glint colour (specular_color) is the mean colour everywhere",
+            "block_brightness_ratio": [float(cm.min()), float(cm.max())]})
+    return flake
+
+
+def coverage_map(model: FlakeModel, fi: Flake2dInputs, height: int, width: int) -> tuple[np.ndarray, float, dict]:
     """flake2d ``coverage`` per block of ``model.density_map`` (module docstring): the (gh, gw) texture
     planes in [0, 1] (8-bit values), their scale (the largest coverage), and the report: the model's
     relative density per block, the one flake2d gets from the 8-bit coverage, and their pixel-weighted
@@ -173,71 +196,89 @@ _TYPES = {"base_color": "color3", "specular_color": "color3", "coat_color": "col
           "geometry_normal": "vector3", "geometry_coat_normal": "vector3"}
 
 
-def build_document(plan: dict, files: dict[str, str]):
+def build_document(plan: dict, files: dict[str, str]) -> MaterialX.Document:
     """The MaterialX document of a plan; ``files`` maps texture names to (relative) file names."""
     mx = _mx()
     doc = mx.createDocument()
     ng = doc.addNodeGraph("NG_torchmetal")
     shader = doc.addNode("open_pbr_surface", "SR_torchmetal", "surfaceshader")
-    uv = ng.addNode("texcoord", "uv", "vector2")
+    g = _Graph(ng, ng.addNode("texcoord", "uv", "vector2"), files)
     outputs: dict[str, object] = {}
+    normal_node = None
+    if "normal" in files:
+        img = g.image("normal", "vector3", False)
+        normal_node = ng.addNode("normalmap", "normal_map", "vector3")
+        normal_node.addInput("in", "vector3").setConnectedNode(img)
+    flake = plan.get("flake2d")
+    if flake:
+        _flake_nodes(mx, g, flake, normal_node, outputs)
+    if normal_node is not None:
+        outputs["normal_map"] = g.out("normal_map", normal_node, "vector3")
+    _shader_inputs(mx, g, shader, plan["inputs"], outputs)
+    material = doc.addMaterialNode("M_torchmetal", shader)
+    material.setDocString(json.dumps({"torchmetal": {k: v for k, v in plan.items() if k != "inputs"}}, allow_nan=False))
+    return doc
 
-    def out(name: str, node, typ: str, output: str | None = None):
-        o = ng.addOutput(f"{name}_out", typ)
+
+class _Graph:
+    """The document's node graph, its texture coordinates and the texture files, with the two ways nodes
+    are added: a graph output and an image node."""
+
+    def __init__(self, ng, uv, files: dict[str, str]) -> None:
+        self.ng, self.uv, self.files = ng, uv, files
+
+    def out(self, name: str, node, typ: str, output: str | None = None):
+        o = self.ng.addOutput(f"{name}_out", typ)
         o.setConnectedNode(node)
         if output:
             o.setOutputString(output)
         return o
 
-    def image(name: str, typ: str, srgb: bool, closest: bool = False):
-        node = ng.addNode("image", f"{name}_image", typ)
-        node.setInputValue("file", files[name], "filename")
+    def image(self, name: str, typ: str, srgb: bool, closest: bool = False):
+        node = self.ng.addNode("image", f"{name}_image", typ)
+        node.setInputValue("file", self.files[name], "filename")
         if srgb:
             node.getInput("file").setColorSpace("srgb_texture")
-        node.addInput("texcoord", "vector2").setConnectedNode(uv)
+        node.addInput("texcoord", "vector2").setConnectedNode(self.uv)
         node.setInputValue("uaddressmode", "clamp", "string")
         node.setInputValue("vaddressmode", "clamp", "string")
         if closest:
             node.setInputValue("filtertype", "closest", "string")
         return node
 
-    ins = plan["inputs"]
-    normal_node = None
-    if "normal" in files:
-        img = image("normal", "vector3", False)
-        normal_node = ng.addNode("normalmap", "normal_map", "vector3")
-        normal_node.addInput("in", "vector3").setConnectedNode(img)
-    flake = plan.get("flake2d")
-    flake_node = None
-    if flake:
-        coords = uv
-        if abs(flake["aspect"] - 1.0) > 1e-9:  # one texcoord unit = the texture width on both axes
-            coords = ng.addNode("multiply", "flake_uv", "vector2")
-            coords.addInput("in1", "vector2").setConnectedNode(uv)
-            coords.setInputValue("in2", mx.Vector2(1.0, float(flake["aspect"])), "vector2")
-        flake_node = ng.addNode("flake2d", "flakes", "multioutput")
-        for k in ("size", "roughness", "coverage"):
-            if k == "coverage" and "coverage_scale" in flake:  # the density map: coverage per block
-                cov = ng.addNode("multiply", "flake_coverage_scaled", "float")
-                cov.addInput("in1", "float").setConnectedNode(image("flake_coverage", "float", False, closest=True))
-                cov.setInputValue("in2", float(flake["coverage_scale"]), "float")
-                flake_node.addInput("coverage", "float").setConnectedNode(cov)
-                continue
-            flake_node.setInputValue(k, float(flake[k]), "float")
-        flake_node.addInput("texcoord", "vector2").setConnectedNode(coords)
-        if normal_node is not None:
-            flake_node.addInput("normal", "vector3").setConnectedNode(normal_node)
-        presence = ng.addNode("ifgreater", "flake_presence", "float")
-        presence.addInput("value1", "float").setConnectedNode(flake_node)
-        presence.getInput("value1").setOutputString("presence")
-        presence.setInputValue("value2", 0.0, "float")
-        presence.setInputValue("in1", 1.0, "float")
-        presence.setInputValue("in2", 0.0, "float")
-        outputs["flake_presence"] = out("flake_presence", presence, "float")
-        outputs["flake_normal"] = out("flake_normal", flake_node, "vector3", "flakenormal")
-    if normal_node is not None:
-        outputs["normal_map"] = out("normal_map", normal_node, "vector3")
 
+def _flake_nodes(mx, g: _Graph, flake: dict, normal_node, outputs: dict) -> None:
+    """The flake2d node, its presence switch and their graph outputs ("flake_presence", "flake_normal")."""
+    ng, uv = g.ng, g.uv
+    coords = uv
+    if abs(flake["aspect"] - 1.0) > 1e-9:  # one texcoord unit = the texture width on both axes
+        coords = ng.addNode("multiply", "flake_uv", "vector2")
+        coords.addInput("in1", "vector2").setConnectedNode(uv)
+        coords.setInputValue("in2", mx.Vector2(1.0, float(flake["aspect"])), "vector2")
+    flake_node = ng.addNode("flake2d", "flakes", "multioutput")
+    for k in ("size", "roughness", "coverage"):
+        if k == "coverage" and "coverage_scale" in flake:  # the density map: coverage per block
+            cov = ng.addNode("multiply", "flake_coverage_scaled", "float")
+            cov.addInput("in1", "float").setConnectedNode(g.image("flake_coverage", "float", False, closest=True))
+            cov.setInputValue("in2", float(flake["coverage_scale"]), "float")
+            flake_node.addInput("coverage", "float").setConnectedNode(cov)
+            continue
+        flake_node.setInputValue(k, float(flake[k]), "float")
+    flake_node.addInput("texcoord", "vector2").setConnectedNode(coords)
+    if normal_node is not None:
+        flake_node.addInput("normal", "vector3").setConnectedNode(normal_node)
+    presence = ng.addNode("ifgreater", "flake_presence", "float")
+    presence.addInput("value1", "float").setConnectedNode(flake_node)
+    presence.getInput("value1").setOutputString("presence")
+    presence.setInputValue("value2", 0.0, "float")
+    presence.setInputValue("in1", 1.0, "float")
+    presence.setInputValue("in2", 0.0, "float")
+    outputs["flake_presence"] = g.out("flake_presence", presence, "float")
+    outputs["flake_normal"] = g.out("flake_normal", flake_node, "vector3", "flakenormal")
+
+
+def _shader_inputs(mx, g: _Graph, shader, ins: dict, outputs: dict) -> None:
+    """The shader's inputs: values, textures (scaled where the plan says) or graph outputs."""
     for name, value in ins.items():
         if name.startswith("flake_"):
             continue
@@ -245,14 +286,14 @@ def build_document(plan: dict, files: dict[str, str]):
         inp = shader.addInput(name, typ)
         if isinstance(value, tuple):
             if value[0] == "texture":
-                node = image(value[1], typ, typ == "color3")
+                node = g.image(value[1], typ, typ == "color3")
                 if len(value) > 2 and value[2] != 1.0:
-                    scaled = ng.addNode("multiply", f"{value[1]}_scaled", typ)
+                    scaled = g.ng.addNode("multiply", f"{value[1]}_scaled", typ)
                     scaled.addInput("in1", typ).setConnectedNode(node)
                     scaled.setInputValue("in2", float(value[2]), "float")
                     node = scaled
                 key = f"{name}_map"
-                outputs[key] = out(key, node, typ)
+                outputs[key] = g.out(key, node, typ)
                 inp.setConnectedOutput(outputs[key])
             else:
                 inp.setConnectedOutput(outputs[value[0]])
@@ -260,18 +301,15 @@ def build_document(plan: dict, files: dict[str, str]):
             inp.setValue(mx.Color3(*[float(c) for c in value]))
         else:
             inp.setValue(float(value))
-    material = doc.addMaterialNode("M_torchmetal", shader)
-    material.setDocString(json.dumps({"torchmetal": {k: v for k, v in plan.items() if k != "inputs"}}, allow_nan=False))
-    return doc
 
 
-def validate(doc, lib=None) -> tuple[bool, str]:
+def validate(doc: MaterialX.Document, lib: MaterialX.Document | None = None) -> tuple[bool, str]:
     """``Document.validate()`` against the standard libraries."""
     doc.setDataLibrary(lib if lib is not None else stdlib())
     return doc.validate()
 
 
-def generate(doc, target: str, lib=None) -> str:
+def generate(doc: MaterialX.Document, target: str, lib: MaterialX.Document | None = None) -> str:
     """Shader source for ``target`` ("glsl", "osl", "mdl") of the document's material; raises
     :class:`ExportError` when generation fails."""
     mx = _mx()
@@ -304,7 +342,7 @@ def generate(doc, target: str, lib=None) -> str:
     return shader.getSourceCode(stage)
 
 
-def write(material, path: str | os.PathLike, *, views=None, capture: Capture | str | os.PathLike | None = None) -> Path:
+def write(material: Material, path: str | os.PathLike, *, views: Tensor | None = None, capture: Capture | str | os.PathLike | None = None) -> Path:
     """Write ``material`` as ``path`` (.mtlx) plus ``<stem>.textures/``; validated before it is
     written (an invalid document raises :class:`ExportError` and writes nothing). ``views`` /
     ``capture``: the views of the lobe fit (see :func:`torchmetal.formats.lobe_fit.resolve_views`)."""

@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from torchmetal.material import Material
 
 
-def write(material, path: str | os.PathLike, *, opset: int = 20) -> Path:
+
+def write(material: Material, path: str | os.PathLike, *, opset: int = 20) -> Path:
     """Export ``material``'s renderer to one self-contained ONNX file (docs/design.md §2.4)."""
     # on use: loads torch (this module imports nothing heavy)
     from torchmetal.onnx_export import export_onnx

@@ -310,7 +310,7 @@ class ParityResult:
                 "per_shot": {n: round(p, 2) for n, p in zip(self.names, self.psnr)}}
 
 
-def parity(material, client: ThreeClient, *, shots=None, views=None, flakes: str = "auto") -> ParityResult:
+def parity(material: Material, client: ThreeClient, *, shots=None, views=None, flakes: str = "auto") -> ParityResult:
     """Export ``material`` as GLB, render it with three.js (``client``) and compare with torchmetal.
 
     Args:

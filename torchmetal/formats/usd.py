@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -30,6 +31,12 @@ from torchmetal.formats.textures import gray, hwc, is_constant, to_srgb, write_t
 from torchmetal.geometry import is_flat
 from torchmetal.io.capture import Capture
 from torchmetal.io.images import atomic_write_bytes
+
+if TYPE_CHECKING:
+    from torch import Tensor
+
+    from torchmetal.material import Material
+
 
 ROOT = "/torchmetal"
 MATERIAL = f"{ROOT}/Looks/M_torchmetal"
@@ -205,7 +212,7 @@ def _mtlx_network(stage, material, doc, lib):
     return surf.CreateOutput("out", Sdf.ValueTypeNames.Token)
 
 
-def build_stage(material, tex_dir_name: str, *, views=None, flakes: str = "auto", texels_per_pixel: int = 1):
+def build_stage(material: Material, tex_dir_name: str, *, views: Tensor | None = None, flakes: str = "auto", texels_per_pixel: int = 1):
     """The stage (in memory) and the textures it reads (file name → planes)."""
     Gf, Sdf, Usd, UsdGeom, UsdShade, Vt = _pxr()
     # the preview surface has one normal for both layers: no flake_clearcoat layout
@@ -235,7 +242,7 @@ def build_stage(material, tex_dir_name: str, *, views=None, flakes: str = "auto"
     return stage, textures
 
 
-def write(material, path: str | os.PathLike, *, views=None, capture: Capture | str | os.PathLike | None = None,
+def write(material: Material, path: str | os.PathLike, *, views: Tensor | None = None, capture: Capture | str | os.PathLike | None = None,
           flakes: str = "auto",
           texels_per_pixel: int = 1) -> Path:
     """Write ``material`` as ``path`` (.usda) plus ``<stem>.textures/`` (see the module docstring);

@@ -26,10 +26,15 @@ import json
 import os
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from torchmetal.errors import ExportError
 from torchmetal.viewer import site
 from torchmetal.viewer.three import copy_three
+
+if TYPE_CHECKING:
+    from torchmetal.material import Material
+
 
 ORT_ENV = "TORCHMETAL_ORT_WEB"
 ORT_VERSION = "1.30."
@@ -101,7 +106,7 @@ def _check_target(path: Path) -> None:
             raise ExportError(f"{path}: expected an empty folder or an earlier web export, found other files (not overwritten)")
 
 
-def write(material, path: str | os.PathLike, *, capture: str | os.PathLike | None = None, webgpu: bool = False,
+def write(material: Material, path: str | os.PathLike, *, capture: str | os.PathLike | None = None, webgpu: bool = False,
           ort_dir: str | os.PathLike | None = None, threads: int = 1, opset: int = 20, title: str | None = None) -> Path:
     """Write the static viewer of ``material`` to the folder ``path`` (atomically); returns it.
 

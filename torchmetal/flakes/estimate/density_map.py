@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
@@ -63,6 +64,11 @@ from torchmetal.flakes.estimate.regions import segment_argmax
 from torchmetal.flakes.model import MAX_AREA_OFFSET, MAX_COLOR, MAX_DENSITY, FlakeModel
 from torchmetal.flakes.model.field import map_blocks
 from torchmetal.geometry import normalize, shading_geometry
+
+if TYPE_CHECKING:
+    from torchmetal.flakes.estimate.results import Particles
+    from torchmetal.io.capture import Capture
+
 
 MIN_COUNT = 8  # flakes per block expected under the uniform model (the grid's resolution)
 MAX_SIDE = 16  # blocks per side at most
@@ -102,7 +108,7 @@ def map_grid(height: int, width: int, flakes: int) -> tuple[int, int]:
     return max(1, min(g, height // MIN_BLOCK)), max(1, min(g, width // MIN_BLOCK))
 
 
-def flake_positions(particles, flake_id: Tensor, shots: list[int] | None = None) -> tuple[Tensor, Tensor]:
+def flake_positions(particles: Particles, flake_id: Tensor, shots: list[int] | None = None) -> tuple[Tensor, Tensor]:
     """Mean centroid (J, 2) (row, col px) and mean colour (J, 3) of each associated flake, from the
     particles of ``shots`` only (None: all)."""
     keep = flake_id >= 0
@@ -122,7 +128,7 @@ def flake_positions(particles, flake_id: Tensor, shots: list[int] | None = None)
     return mean[:, :2], mean[:, 2:]
 
 
-def flake_areas(particles, flake_id: Tensor, shots: list[int] | None = None) -> tuple[Tensor, Tensor, Tensor]:
+def flake_areas(particles: Particles, flake_id: Tensor, shots: list[int] | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Log flux/peak area (J,), its measurement noise variance ν (J,) (:func:`~torchmetal.flakes.
     shape_colour.fit_shapes`'s model) and SNR (J,) of each associated flake on its brightest
     detection among ``shots`` (None: all), float64, in :func:`flake_positions`'s order."""
@@ -203,7 +209,7 @@ def block_pixels(height: int, width: int, grid: tuple[int, int]) -> Tensor:
 DETECT_MODES = ("glint", "area")
 
 
-def detectability(capture, model: FlakeModel, shots: list[int], grid: tuple[int, int], mode: str = "glint") -> Tensor:
+def detectability(capture: Capture, model: FlakeModel, shots: list[int], grid: tuple[int, int], mode: str = "glint") -> Tensor:
     """(gh, gw) float64 detectable area D_r of each block (px): Σ of P_any over its pixels, ``mode``
     "glint" or "area" (module docstring)."""
     if mode not in DETECT_MODES:
@@ -285,7 +291,7 @@ def _colour_map(model: FlakeModel, block: Tensor, colours: Tensor, grid: tuple[i
     return cmap.view(*grid, 3).float(), rep
 
 
-def estimate_map(capture, model: FlakeModel, particles, flake_id: Tensor, shots: list[int] | None = None,
+def estimate_map(capture: Capture, model: FlakeModel, particles: Particles, flake_id: Tensor, shots: list[int] | None = None,
                  grid: tuple[int, int] | None = None, mode: str = "glint") -> DensityMap | None:
     """The density map of ``model`` from the detections of ``shots`` (None: all), detectability
     ``mode`` ("glint" or "area"), or None when there are fewer than ``MIN_FLAKES`` associated flakes or

@@ -252,14 +252,8 @@ def detect_flakes(
         :class:`Detection` (particle table, signal, σ and label maps).
     """
     _check_inputs(photos, phong, irradiance, valid)
-    if not (0 < k_lo <= k_hi):
-        raise InputError(f"k_lo, k_hi: expected 0 < k_lo <= k_hi, found k_lo={k_lo}, k_hi={k_hi}")
-    for name, k in (("close", close), ("open", open)):
-        if k > 1 and k % 2 == 0:
-            raise InputError(f"{name}: expected an odd kernel size, found {k}")
-    for name, k, lo in (("tile", tile, 2), ("background", background, 1), ("min_area", min_area, 0), ("chunk", chunk, 1)):
-        if not isinstance(k, int) or isinstance(k, bool) or k < lo:
-            raise InputError(f"{name}: expected an integer >= {lo}, found {k!r}")
+    _check_options(k_hi=k_hi, k_lo=k_lo, close=close, open_=open, tile=tile, background=background,
+                   min_area=min_area, chunk=chunk)
     n, _, h, w = photos.shape
     if valid is None:
         valid = torch.ones(1, 1, h, w, dtype=torch.bool, device=photos.device)
@@ -269,12 +263,7 @@ def detect_flakes(
     with torch.no_grad():
         for k0 in range(0, n, max(1, chunk)):
             k1 = min(n, k0 + max(1, chunk))
-            e = irradiance[k0:k1]
-            v = valid[k0:k1] if valid.shape[0] == n else valid.expand(k1 - k0, -1, -1, -1)
-            res = (photos[k0:k1] - phong[k0:k1]) / e
-            all_valid = bool(v.all())
-            if not all_valid:
-                res = torch.where(v, res, torch.zeros_like(res))
+            res, v, all_valid = _chunk_residual(photos, phong, irradiance, valid, k0, k1)
             tab, sig, sgm, lab = _detect_chunk(
                 res, v, all_valid, k_hi=k_hi, k_lo=k_lo, tile=tile, background=background, close=close, open_=open,
                 min_area=min_area, backend=cc_backend, times=times,
@@ -289,3 +278,29 @@ def detect_flakes(
         particles=Particles.cat(tables), signal=torch.cat(signals), sigma=torch.cat(sigmas),
         labels=torch.cat(label_maps), valid=valid, k_hi=float(k_hi), k_lo=float(k_lo), times=times,
     )
+
+
+def _check_options(*, k_hi: float, k_lo: float, close: int, open_: int, tile: int, background: int, min_area: int,
+                   chunk: int) -> None:
+    """Raise :class:`InputError` on thresholds, kernel sizes or work sizes :func:`detect_flakes` cannot use."""
+    if not (0 < k_lo <= k_hi):
+        raise InputError(f"k_lo, k_hi: expected 0 < k_lo <= k_hi, found k_lo={k_lo}, k_hi={k_hi}")
+    for name, k in (("close", close), ("open", open_)):
+        if k > 1 and k % 2 == 0:
+            raise InputError(f"{name}: expected an odd kernel size, found {k}")
+    for name, k, lo in (("tile", tile, 2), ("background", background, 1), ("min_area", min_area, 0), ("chunk", chunk, 1)):
+        if not isinstance(k, int) or isinstance(k, bool) or k < lo:
+            raise InputError(f"{name}: expected an integer >= {lo}, found {k!r}")
+
+
+def _chunk_residual(photos: Tensor, phong: Tensor, irradiance: Tensor, valid: Tensor, k0: int,
+                    k1: int) -> tuple[Tensor, Tensor, bool]:
+    """Shots k0..k1's residual over irradiance (0 where not valid), their valid mask, and whether all of it is."""
+    n = photos.shape[0]
+    e = irradiance[k0:k1]
+    v = valid[k0:k1] if valid.shape[0] == n else valid.expand(k1 - k0, -1, -1, -1)
+    res = (photos[k0:k1] - phong[k0:k1]) / e
+    all_valid = bool(v.all())
+    if not all_valid:
+        res = torch.where(v, res, torch.zeros_like(res))
+    return res, v, all_valid

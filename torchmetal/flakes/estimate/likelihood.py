@@ -51,18 +51,7 @@ def log_numerator(
     dt, dev = d.half.dtype, d.half.device
     j = d.amp.shape[0]
     qa, phi = memo(d, ("nodes", n_a, n_phi), lambda: ring_nodes(n_a, n_phi, dt, dev))
-
-    def geometry() -> tuple[Tensor, Tensor, Tensor]:
-        h_star = d.half[torch.arange(j, device=dev), d.anchor]  # (J, 3)
-        e1, e2 = orthonormal_pair(h_star)
-        t1, t2 = orthonormal_pair(d.normal)
-        basis = torch.stack([h_star, e1, e2], 1)  # (J, 3: h*, e1, e2, 3)
-        proj = torch.einsum("jac,jbc->jab", basis, torch.stack([d.normal, t1, t2], 1))  # onto n, t1, t2
-        to_shots = torch.einsum("jac,jkc->jak", basis, d.half)  # (J, 3, N) onto every shot's h
-        order = nearest_shots(d.half, d.anchor, d.half.shape[1], prefer=d.detected)  # (J, N)
-        return h_star, proj, to_shots, order
-
-    h_star, proj, to_shots, order = memo(d, ("numerator",), geometry)
+    h_star, proj, to_shots, order = memo(d, ("numerator",), lambda: _numerator_geometry(d))
     # only shots whose caps can reach the ring matter: keep those (detected first), anchor first
     beta = cap_radius(sg, float((la + 3 * va).detach()), float(d.sigma.min()), max(0.5, d.k_hi - 3.0))
     kk = overlap_count(h_star.unsqueeze(1), d.half, 2.2 * beta + 1e-3)
@@ -106,6 +95,20 @@ def log_numerator(
     total = torch.where(inside.view(j, n_a, 1), total, torch.full_like(total, -1e4))
     lse = torch.logsumexp(total.flatten(1), dim=1)
     return lse + 2 * torch.log(sg) - log_amp
+
+
+def _numerator_geometry(d: GlintData) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Each flake's h* (J, 3), its ring frame projected onto the flake's normal frame (J, 3, 3) and onto every
+    shot's h (J, 3, N), and the shots nearest its anchor (J, N), detected first."""
+    j, dev = d.amp.shape[0], d.half.device
+    h_star = d.half[torch.arange(j, device=dev), d.anchor]  # (J, 3)
+    e1, e2 = orthonormal_pair(h_star)
+    t1, t2 = orthonormal_pair(d.normal)
+    basis = torch.stack([h_star, e1, e2], 1)  # (J, 3: h*, e1, e2, 3)
+    proj = torch.einsum("jac,jbc->jab", basis, torch.stack([d.normal, t1, t2], 1))  # onto n, t1, t2
+    to_shots = torch.einsum("jac,jkc->jak", basis, d.half)  # (J, 3, N) onto every shot's h
+    order = nearest_shots(d.half, d.anchor, d.half.shape[1], prefer=d.detected)  # (J, N)
+    return h_star, proj, to_shots, order
 
 
 def objective(d: GlintData, sub: GlintData, theta: Tensor, prior: tuple[Tensor, Tensor], nodes: dict) -> tuple[Tensor, Tensor]:

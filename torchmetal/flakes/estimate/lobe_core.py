@@ -17,6 +17,7 @@ highlights all fall near the centre, where its flakes glint) and failed it.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -24,11 +25,17 @@ from torch import Tensor
 from torchmetal.geometry import shading_geometry
 from torchmetal.lobes import lobe_value
 
+if TYPE_CHECKING:
+    from torchmetal.fit.result import FitResult
+    from torchmetal.flakes.estimate.results import Particles
+    from torchmetal.io.capture import Capture
+
+
 CORE_LEVEL = 0.9  # fraction of the lobe's peak above which a pixel-shot is in the highlight's core
 LOG_CORE = math.log(CORE_LEVEL)
 
 
-def lobe_core_at(fit, capture, shot: Tensor, row: Tensor, col: Tensor) -> Tensor:
+def lobe_core_at(fit: FitResult, capture: Capture, shot: Tensor, row: Tensor, col: Tensor) -> Tensor:
     """Whether each pixel-shot (shot, row, col) (P,) lies in the core of the fit's highlight: (P,) bool.
 
     The lobe (:func:`~torchmetal.lobes.lobe_value`, the fit's own lobe and α, per pixel where the fit has
@@ -62,7 +69,7 @@ def lobe_core_at(fit, capture, shot: Tensor, row: Tensor, col: Tensor) -> Tensor
     return out
 
 
-def drop_core(fit, capture, particles):
+def drop_core(fit: FitResult, capture: Capture, particles: Particles) -> Particles:
     """``particles`` without those whose centre lies in the core of the fit's highlight in their shot."""
     core = lobe_core_at(fit, capture, particles.shot, particles.cy.floor().long(), particles.cx.floor().long())
     return particles.select(torch.nonzero(~core, as_tuple=True)[0]), int(core.sum())

@@ -20,6 +20,7 @@ How they are rendered (the statistical field filling what no fit shot observed):
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -28,6 +29,10 @@ from torchmetal.flakes.estimate.placement import MIN_AMP_STD, place_normals
 from torchmetal.flakes.model.observed import ObservedFlakes, footprints
 from torchmetal.flakes.model.params import MAX_COLOR, FlakeModel
 from torchmetal.geometry import normalize, shading_geometry
+
+if TYPE_CHECKING:
+    from torchmetal.flakes.estimate.results import Particles
+    from torchmetal.io.capture import Capture
 
 __all__ = ["observed_flakes"]
 
@@ -103,7 +108,7 @@ def _refine_normals(m0: Tensor, hk: Tensor, fid: Tensor, amp: Tensor, snr: Tenso
 
 
 
-def observed_flakes(capture, particles, flake_id: Tensor, model: FlakeModel) -> ObservedFlakes | None:
+def observed_flakes(capture: Capture, particles: Particles, flake_id: Tensor, model: FlakeModel) -> ObservedFlakes | None:
     """Measure and keep every associated flake of the flake stage.
 
     Args:
@@ -127,7 +132,30 @@ def observed_flakes(capture, particles, flake_id: Tensor, model: FlakeModel) -> 
     wsum = torch.zeros(j, dtype=dt).index_add_(0, fid, amp)
     cy = torch.zeros(j, dtype=dt).index_add_(0, fid, amp * p.cy.to(dt)) / wsum
     cx = torch.zeros(j, dtype=dt).index_add_(0, fid, amp * p.cx.to(dt)) / wsum
-    # the brightest detection's shape (the least noisy)
+    b, axes = _brightest_footprint(p, fid, j)
+    row, col, half = _half_vectors(capture, cy, cx)
+    hk = half[p.shot, :, fid]  # (P, 3)
+    normal = normalize(torch.zeros(j, 3, dtype=dt).index_add_(0, fid, amp.unsqueeze(1) * hk), dim=1)
+    sig = float(model.glint_sigma)
+    normal = _refine_normals(normal, hk, fid, amp, p.snr.to(dt), sig)
+    detect_amp = _detect_amp(particles)
+    prior = (model.extra.get("log_amp_mean"), model.extra.get("log_amp_std"))
+    if detect_amp is not None and None not in prior:  # the flakes' brightness places tail-seen ones
+        normal = _place_by_brightness(capture, p, fid, amp, normal, half, row, col, sig, prior, detect_amp)
+    color = _colours(p, fid, amp, normal, hk, sig, torch.stack([cy, cx], 1), axes, b, (h, w),
+                     prior if detect_amp is not None and None not in prior else None)
+    f32 = torch.float32
+    position = torch.stack([cy, cx], 1)
+    return ObservedFlakes(
+        position=position.to(f32), axes=axes.to(f32), angle=b.angle.to(f32), normal=normal.to(f32),
+        color=color.to(f32), probe_lights=capture.lights.to(f32).cpu(), probe_cameras=capture.cameras.to(f32).cpu(),
+        shape=(h, w), density=_density_map(position, h, w), detect_amp=detect_amp,
+    )
+
+
+def _brightest_footprint(p: Particles, fid: Tensor, j: int) -> tuple[Particles, Tensor]:
+    """Each flake's brightest detection (the least noisy shape) and its footprint's semi-axes (J, 2)."""
+    dt = torch.float64
     best = torch.full((j,), -1.0, dtype=dt).scatter_reduce(0, fid, p.snr.to(dt), "amax")
     is_best = p.snr.to(dt) == best[fid]
     first = torch.full((j,), len(p), dtype=torch.int64).scatter_reduce(
@@ -138,8 +166,13 @@ def observed_flakes(capture, particles, flake_id: Tensor, model: FlakeModel) -> 
     lam2 = (b.minor.to(dt) / 4) ** 2 - 1.0 / 12.0
     aspect = torch.sqrt(lam2.clamp_min(1e-3) / lam1.clamp_min(1e-3)).clamp(0.2, 1.0)
     a_ax, b_ax = _ellipse_axes(area, aspect)
-    axes = torch.stack([a_ax, b_ax], 1)
-    # half vectors of every detection's shot at its flake's centre pixel
+    return b, torch.stack([a_ax, b_ax], 1)
+
+
+def _half_vectors(capture: Capture, cy: Tensor, cx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The flakes' centre pixels (row, col) and every shot's half vector there (N, 3, J)."""
+    dt = torch.float64
+    h, w = capture.images.shape[-2:]
     row = cy.floor().long().clamp(0, h - 1)
     col = cx.floor().long().clamp(0, w - 1)
     y = (0.5 - cy / h) * capture.size[1]
@@ -148,24 +181,34 @@ def observed_flakes(capture, particles, flake_id: Tensor, model: FlakeModel) -> 
     nrm = capture.normals.to(dt)[:, row, col].unsqueeze(1)
     one = torch.ones_like(capture.intensities, dtype=dt)
     half = shading_geometry(nrm, capture.lights.to(dt), one, capture.cameras.to(dt), points=pts).half[:, :, 0]  # (N, 3, J)
-    hk = half[p.shot, :, fid]  # (P, 3)
-    normal = normalize(torch.zeros(j, 3, dtype=dt).index_add_(0, fid, amp.unsqueeze(1) * hk), dim=1)
-    sig = float(model.glint_sigma)
-    normal = _refine_normals(normal, hk, fid, amp, p.snr.to(dt), sig)
-    detect_amp = _detect_amp(particles)
-    prior = (model.extra.get("log_amp_mean"), model.extra.get("log_amp_std"))
-    if detect_amp is not None and None not in prior:  # the flakes' brightness places tail-seen ones
-        n_shot = half.shape[0]
-        flat = p.shot * j + fid  # a flake detected twice in a shot: its brightest detection
-        det = torch.zeros(n_shot * j, dtype=torch.bool).index_fill_(0, flat, True).view(n_shot, j)
-        log_a = torch.full((n_shot * j,), -50.0, dtype=dt).scatter_reduce(0, flat, torch.log(amp), "amax").view(n_shot, j)
-        wt = torch.zeros(n_shot * j, dtype=dt).scatter_reduce(0, flat, p.snr.to(dt).clamp(1.0, 100.0) ** 2, "amax")
-        valid = capture.mask[0, row, col].cpu().unsqueeze(0) & ~capture.saturated[:, :, row, col].any(1).cpu()
-        normal = place_normals(normal, half, det, valid, log_a, wt.view(n_shot, j), sig, float(prior[0]),
-                               float(prior[1]), detect_amp)
+    return row, col, half
+
+
+def _place_by_brightness(capture: Capture, p: Particles, fid: Tensor, amp: Tensor, normal: Tensor, half: Tensor,
+                         row: Tensor, col: Tensor, sig: float, prior: tuple, detect_amp: float) -> Tensor:
+    """The normals placed by the flakes' known brightness and the shots that missed them
+    (:func:`~torchmetal.flakes.estimate.placement.place_normals`)."""
+    dt = torch.float64
+    j = normal.shape[0]
+    n_shot = half.shape[0]
+    flat = p.shot * j + fid  # a flake detected twice in a shot: its brightest detection
+    det = torch.zeros(n_shot * j, dtype=torch.bool).index_fill_(0, flat, True).view(n_shot, j)
+    log_a = torch.full((n_shot * j,), -50.0, dtype=dt).scatter_reduce(0, flat, torch.log(amp), "amax").view(n_shot, j)
+    wt = torch.zeros(n_shot * j, dtype=dt).scatter_reduce(0, flat, p.snr.to(dt).clamp(1.0, 100.0) ** 2, "amax")
+    valid = capture.mask[0, row, col].cpu().unsqueeze(0) & ~capture.saturated[:, :, row, col].any(1).cpu()
+    return place_normals(normal, half, det, valid, log_a, wt.view(n_shot, j), sig, float(prior[0]),
+                         float(prior[1]), detect_amp)
+
+
+def _colours(p: Particles, fid: Tensor, amp: Tensor, normal: Tensor, hk: Tensor, sig: float, position: Tensor,
+             axes: Tensor, b: Particles, shape: tuple[int, int], prior: tuple | None) -> Tensor:
+    """The flakes' glint reflectances (J, 3), bounded (``prior``: the flakes' log-amplitude mean and spread
+    when their brightness is known, else None)."""
+    dt = torch.float64
+    j = normal.shape[0]
     # colour: peak colour = c · w_peak · g_k  →  least squares over the detections
     g = torch.exp(-((normal[fid] - hk) ** 2).sum(1) / (2.0 * sig * sig))  # (P,)
-    flake, _, wt = footprints(torch.stack([cy, cx], 1), axes, b.angle.to(dt), h, w)
+    flake, _, wt = footprints(position, axes, b.angle.to(dt), *shape)
     w_peak = torch.zeros(j, dtype=dt).scatter_reduce(0, flake, wt, "amax").clamp_min(0.05)
     num = torch.zeros(j, 3, dtype=dt).index_add_(0, fid, g.unsqueeze(1) * p.peak.to(dt).clamp_min(0.0))
     den = torch.zeros(j, dtype=dt).index_add_(0, fid, g * g).clamp_min(1e-12)
@@ -175,22 +218,15 @@ def observed_flakes(capture, particles, flake_id: Tensor, model: FlakeModel) -> 
     # flakes' brightness known, up to its mean + 2 spreads (a flake placed by it)
     top = torch.zeros(j, 3, dtype=dt).scatter_reduce_(0, fid.view(-1, 1).expand(-1, 3), p.peak.to(dt).clamp_min(0.0), "amax")
     scale = torch.full((j,), 2.0, dtype=dt)
-    if detect_amp is not None and None not in prior:
+    if prior is not None:
         a_top = torch.zeros(j, dtype=dt).scatter_reduce(0, fid, amp, "amax")
         bright = math.exp(float(prior[0]) + 2.0 * max(float(prior[1]), MIN_AMP_STD))
         scale = torch.maximum(scale, bright / a_top)
-    color = torch.minimum(color, scale.unsqueeze(1) * top / w_peak.unsqueeze(1)).clamp(0.0, MAX_COLOR)
-    f32 = torch.float32
-    position = torch.stack([cy, cx], 1)
-    return ObservedFlakes(
-        position=position.to(f32), axes=axes.to(f32), angle=b.angle.to(f32), normal=normal.to(f32),
-        color=color.to(f32), probe_lights=capture.lights.to(f32).cpu(), probe_cameras=capture.cameras.to(f32).cpu(),
-        shape=(h, w), density=_density_map(position, h, w), detect_amp=detect_amp,
-    )
+    return torch.minimum(color, scale.unsqueeze(1) * top / w_peak.unsqueeze(1)).clamp(0.0, MAX_COLOR)
 
 
 
-def _detect_amp(particles) -> float | None:
+def _detect_amp(particles: Particles) -> float | None:
     """The peak glint amplitude the detector fires at: the least SNR of all the stage's detections
     (its threshold k_hi) × their median local σ; None when there is none to measure."""
     sigma, snr = particles.sigma.double(), particles.snr.double()

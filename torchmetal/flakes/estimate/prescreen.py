@@ -32,6 +32,7 @@ module with itself).
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -43,6 +44,11 @@ from torchmetal.flakes.model.filters import box_mean
 from torchmetal.geometry import grid_shading_terms, is_flat, pixel_axes
 from torchmetal.lobes import ggx_lobe, grid_half_terms
 from torchmetal.phong import exp_normal
+
+if TYPE_CHECKING:
+    from torchmetal.fit.result import FitResult
+    from torchmetal.io.capture import Capture
+
 
 SCREEN_STRIDE = 2  # the pipeline renders and screens every 2nd row and column
 TILE = 32
@@ -120,7 +126,7 @@ def _high_pass(r: Tensor, ok: Tensor | None, med: Tensor, sigma: Tensor, radius:
     return r - box_mean(clipped.unsqueeze(1), radius, None if ok is None else ok.unsqueeze(1))[:, 0]
 
 
-def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | None = None) -> Tensor:
+def sampled_residual(fit: FitResult, capture: Capture, stride: int = SCREEN_STRIDE, *, chunk: int | None = None) -> Tensor:
     """Channel-summed residual Σ_c (photo − render) of every shot on the pixels (i·stride, j·stride):
     (N, ⌈H/stride⌉, ⌈W/stride⌉) float32 (a noise-level decision needs no more; the fit's float64
     would cost 8× in the exponentials).
@@ -136,7 +142,7 @@ def sampled_residual(fit, capture, stride: int = SCREEN_STRIDE, *, chunk: int | 
     return parts[0] if len(parts) == 1 else torch.cat(parts)
 
 
-def residual_groups(fit, capture, stride: int = SCREEN_STRIDE, chunk: int | None = None):
+def residual_groups(fit: FitResult, capture: Capture, stride: int = SCREEN_STRIDE, chunk: int | None = None):
     """:func:`sampled_residual` ``chunk`` shots at a time: yields (shot range, (B, h, w) residual,
     (B, h, w) bool core of the fit's highlight or None without a specular) — the core as
     :func:`~torchmetal.flakes.estimate.lobe_core.lobe_core_at` defines it, from the lobe the render forms anyway."""
@@ -182,7 +188,7 @@ def residual_groups(fit, capture, stride: int = SCREEN_STRIDE, chunk: int | None
         yield range(k, k1), photo.sub_(shade), core
 
 
-def sampled_valid(capture, stride: int = SCREEN_STRIDE) -> Tensor:
+def sampled_valid(capture: Capture, stride: int = SCREEN_STRIDE) -> Tensor:
     """(N, ⌈H/stride⌉, ⌈W/stride⌉) bool: inside the sample's mask, off its rim
     (:func:`~torchmetal.flakes.estimate.rim.interior`), and saturated in no channel."""
     mask = interior(capture.mask)[..., ::stride, ::stride]
@@ -243,7 +249,7 @@ def ring_radius(stride: int) -> int:
     return max(1, math.ceil(EXTENT / 2 / stride))
 
 
-def screen_fit(fit, capture, stride: int = SCREEN_STRIDE, *, shots_per_pass: int | None = None) -> tuple[bool, dict]:
+def screen_fit(fit: FitResult, capture: Capture, stride: int = SCREEN_STRIDE, *, shots_per_pass: int | None = None) -> tuple[bool, dict]:
     """:func:`glint_screen` of the fit's :func:`sampled_residual` on the pixels (i·stride, j·stride),
     a few shots at a time (``shots_per_pass``, default ~:data:`CHUNK_ELEMENTS` sampled pixel-shots):
     its memory is a few sampled planes, not the capture's. The same result as in one pass."""

@@ -13,9 +13,16 @@ sample's glints elsewhere are counted as before; a full mask has no rim.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+if TYPE_CHECKING:
+    from torchmetal.flakes.estimate.results import Particles
+    from torchmetal.io.capture import Capture
+
 
 RIM = 2  # px: the band along the mask's edge left out of the screen and the null test
 
@@ -30,7 +37,7 @@ def interior(mask: Tensor, rim: int = RIM) -> Tensor:
     return m & ~near
 
 
-def drop_rim(capture, particles):
+def drop_rim(capture: Capture, particles: Particles) -> tuple[Particles, int]:
     """``particles`` without those whose centre lies on the mask's rim; returns (particles, number dropped)."""
     inner = interior(capture.mask)[0]
     h, w = inner.shape

@@ -133,11 +133,35 @@ def fit_glints(
     j = d.amp.shape[0]
     if j == 0:
         raise InputError("fit_glints: expected at least one associated flake, found 0")
-    wd = work_dtype
     d = replace(d, log_floor=log_amp_floor(d))  # one floor for the numerator and the float32 grid
-    sub = _recast(d, _even_subsample(j, max_flakes, dev), wd, flakes=True, grid=False)
-    grid = _recast(d, None, wd, flakes=False, grid=True)
-    init = dict(init or {})
+    sub = _recast(d, _even_subsample(j, max_flakes, dev), work_dtype, flakes=True, grid=False)
+    grid = _recast(d, None, work_dtype, flakes=False, grid=True)
+    tau0, sg0, la0, va0, log_ceiling = _start_values(d, dict(init or {}), j, dev)
+    prior_sd = torch.tensor([2.0, 2.0, 5.0, 0.5], dtype=torch.float64, device=dev)
+    prior = (_prior_mean(la0, dev), prior_sd)
+    run = _Run(grid, sub, prior, nodes, d, _free_parameters(d, dev))
+    lo, hi = _box(d, log_ceiling, dev)
+    th0 = torch.tensor([math.log(tau0), math.log(sg0), la0, math.log(va0)], dtype=torch.float64, device=dev)
+    th0 = torch.minimum(torch.maximum(th0, lo), hi)
+    best, iters, degenerate = _minimize(run, lo, hi, th0, restarts=restarts, max_iter=max_iter, tol=tol)
+    loss, th, expected, grad = best
+    prior_h = torch.diag(1.0 / prior_sd**2)
+    se, data_h = _curvature(run, th, grad, prior_h, uncertainty and degenerate is None)
+    total_area = float(d.grid_area.sum())
+    names = ("log_tilt_sigma", "log_glint_sigma", "log_amp_mean", "log_amp_std")
+    # a parameter is identified when the data, not the prior, sets its curvature
+    ident = {nm: bool(data_h[i] > 4.0 * prior_h[i, i]) and bool(se[i] < 0.15) for i, nm in enumerate(names)}
+    return GlintFit(
+        tilt_sigma=float(torch.exp(th[0])), glint_sigma=float(torch.exp(th[1])), log_amp_mean=float(th[2]),
+        log_amp_std=float(torch.exp(th[3])), density=d.count / expected if expected > 0 else math.inf,
+        expected_fraction=expected / max(total_area, 1.0), loglik=-loss,
+        std_err={nm: float(se[i]) for i, nm in enumerate(names)}, identified=ident, iterations=iters,
+        evaluations=run.evals, log_amp_floor=log_amp_floor(d), log_amp_ceiling=log_ceiling, degenerate=degenerate,
+    )
+
+
+def _start_values(d: GlintData, init: dict, j: int, dev) -> tuple[float, float, float, float, float]:
+    """The L-BFGS start (τ, σ_g, log-A mean, log-A spread; ``init``'s where given) and the log-A ceiling."""
     if "tau" not in init:  # detected flakes have m ≈ h*: the RMS slope of h* is a fair start
         h_star = d.half[torch.arange(j, device=dev), d.anchor]
         t1, t2 = orthonormal_pair(d.normal)
@@ -152,33 +176,29 @@ def fit_glints(
     log_ceiling = float(log_amp.max()) + CEILING_MARGIN
     la0 = init.get("log_amp", float(torch.quantile(log_amp, 0.98)) + 0.1)
     va0 = init.get("log_amp_std", 0.1)
+    return tau0, sg0, la0, va0, log_ceiling
+
+
+def _prior_mean(la0: float, dev) -> Tensor:
+    """The log-normal priors' means of (log τ, log σ_g, ℓ, log v)."""
     # the amplitude spread's prior is the one that matters: with ~100 flakes the likelihood is flat
     # in it within 0.3 nats from 0.1 to 0.6 (demo), and E[A] = exp(ℓ + v²/2), hence the colour,
     # followed it up by 20 %; flakes of one paint are alike, so v ~ LogNormal(log 0.15, 0.5²)
-    prior_mean = torch.tensor([math.log(0.15), math.log(0.03), la0, math.log(0.15)], dtype=torch.float64, device=dev)
-    prior_sd = torch.tensor([2.0, 2.0, 5.0, 0.5], dtype=torch.float64, device=dev)
-    prior = (prior_mean, prior_sd)
-    evals = [0]
+    return torch.tensor([math.log(0.15), math.log(0.03), la0, math.log(0.15)], dtype=torch.float64, device=dev)
 
-    def value_grad(t: Tensor, data_sub: GlintData) -> tuple[Tensor, Tensor, Tensor]:
-        t = t.detach().clone().requires_grad_(True)
-        loss, expected = objective(grid, data_sub, t, prior, nodes)
-        evals[0] += 1
-        return loss.detach(), expected.detach(), torch.autograd.grad(loss, t)[0]
 
+def _free_parameters(d: GlintData, dev) -> Tensor:
+    """(4,) bool: the parameters the data can move."""
     # no flake seen in two shots (one shot, or shots far apart): nothing in the data sets the
     # glint width, so it stays at its start (the prior's mean unless ``init`` says otherwise)
     # instead of wandering along a flat valley (one 1024² shot: 10 of 23 evaluations)
     free = torch.ones(4, dtype=torch.bool, device=dev)
     free[1] = bool((d.detected.sum(1) > 1).any())
-    idx = torch.nonzero(free, as_tuple=True)[0]
+    return free
 
-    def hessian(t: Tensor, g0: Tensor) -> Tensor:  # forward differences of the gradient (g0 at t), free block
-        eps = 1e-2
-        eye = torch.eye(4, dtype=t.dtype, device=dev)
-        hess = torch.stack([(value_grad(t + eps * eye[i], sub)[2] - g0)[idx] / eps for i in idx.tolist()])
-        return 0.5 * (hess + hess.t())
 
+def _box(d: GlintData, log_ceiling: float, dev) -> tuple[Tensor, Tensor]:
+    """Lower and upper bounds of the log-parameters."""
     # every parameter stays in a box the data can speak to (a collapsing glint width or tilt, an amplitude
     # distribution running off above the brightest detection: the estimates that made colours of 1e20)
     lo = torch.tensor([math.log(TILT_RANGE[0]), math.log(GLINT_RANGE[0]), log_amp_floor(d), math.log(SPREAD_RANGE[0])],
@@ -186,8 +206,38 @@ def fit_glints(
     hi = torch.tensor([math.log(TILT_RANGE[1]), math.log(GLINT_RANGE[1]), log_ceiling, math.log(SPREAD_RANGE[1])],
                       dtype=torch.float64, device=dev)
     hi = torch.maximum(hi, lo)
-    th0 = torch.tensor([math.log(tau0), math.log(sg0), la0, math.log(va0)], dtype=torch.float64, device=dev)
-    th0 = torch.minimum(torch.maximum(th0, lo), hi)
+    return lo, hi
+
+
+class _Run:
+    """One likelihood fit's data and its count of objective evaluations."""
+
+    def __init__(self, grid: GlintData, sub: GlintData, prior: tuple[Tensor, Tensor], nodes: dict, d: GlintData,
+                 free: Tensor) -> None:
+        self.grid, self.sub, self.prior, self.nodes, self.d, self.free = grid, sub, prior, nodes, d, free
+        self.idx = torch.nonzero(free, as_tuple=True)[0]
+        self.evals = 0
+
+    def value_grad(self, t: Tensor, data_sub: GlintData) -> tuple[Tensor, Tensor, Tensor]:
+        t = t.detach().clone().requires_grad_(True)
+        loss, expected = objective(self.grid, data_sub, t, self.prior, self.nodes)
+        self.evals += 1
+        return loss.detach(), expected.detach(), torch.autograd.grad(loss, t)[0]
+
+    def hessian(self, t: Tensor, g0: Tensor) -> Tensor:
+        """Forward differences of the gradient (g0 at t), free block."""
+        eps = 1e-2
+        eye = torch.eye(4, dtype=t.dtype, device=self.free.device)
+        idx = self.idx
+        hess = torch.stack([(self.value_grad(t + eps * eye[i], self.sub)[2] - g0)[idx] / eps for i in idx.tolist()])
+        return 0.5 * (hess + hess.t())
+
+
+def _minimize(run: _Run, lo: Tensor, hi: Tensor, th0: Tensor, *, restarts: int, max_iter: int,
+              tol: float) -> tuple[list, int, str | None]:
+    """L-BFGS in the box from ``th0``, restarted: the best point [loss, θ, expected count, gradient], the
+    iterations, and why the likelihood stopped as degenerate (None when it did not)."""
+    d, free, dev = run.d, run.free, th0.device
     best = [float("inf"), th0.clone(), None, None]  # loss, θ, expected count, gradient
     iters = 0
     degenerate = None
@@ -200,15 +250,15 @@ def fit_glints(
             z = z.detach().requires_grad_(True)
             with torch.enable_grad():  # θ projected onto the box: no gradient pushes past a bound
                 theta = torch.minimum(torch.maximum(start + z, lo), hi)
-                loss, expected = objective(grid, sub, theta, prior, nodes)
+                loss, expected = objective(run.grid, run.sub, theta, run.prior, run.nodes)
                 g = torch.autograd.grad(loss, z)[0].masked_fill(~free, 0.0)
-            evals[0] += 1
+            run.evals += 1
             value = float(loss.detach())
             if value < best[0]:  # keep the best point visited (line searches may end off it)
                 best[:] = [value, theta.detach().clone(), float(expected.detach()), g.clone()]
-            if evals[0] >= DEGENERATE_AFTER and d.count > DEGENERATE_DENSITY * best[2]:
+            if run.evals >= DEGENERATE_AFTER and d.count > DEGENERATE_DENSITY * best[2]:
                 raise _Degenerate("needs")  # the best point needs more flakes than pixels: stop, no model
-            if evals[0] >= DEGENERATE_AFTER and float(best[1][0]) >= float(hi[0]) - 1e-9:
+            if run.evals >= DEGENERATE_AFTER and float(best[1][0]) >= float(hi[0]) - 1e-9:
                 raise _Degenerate("tilt")  # flake normals at random: no layer of flakes (TILT_RANGE)
             return value, g
 
@@ -216,40 +266,36 @@ def fit_glints(
             _, n = lbfgs.minimize(loss_grad, torch.zeros(4, dtype=torch.float64, device=dev), max_iter=max_iter,
                                   tolerance_grad=1e-5, tolerance_change=tol)
         except _Degenerate as why:
-            if str(why) == "tilt":
-                degenerate = (f"stopped after {evals[0]} evaluations: the best point has the flake normals' tilt σ "
-                              f"at its bound {TILT_RANGE[1]:g} rad, normals at random: no layer of flakes (a sheen "
-                              "or rim the coating misfits)")
-            else:
-                degenerate = (f"stopped after {evals[0]} evaluations: the best point explains the detections with "
-                              f"{d.count / best[2]:.3g} flakes per pixel (> {DEGENERATE_DENSITY:g})")
+            degenerate = _degenerate_reason(str(why), run.evals, d.count, best[2])
             break
         iters += n
         if start_loss - best[0] < 0.05:
             break
-    loss, th, expected, grad = best
-    if degenerate is not None:
-        uncertainty = False
-    prior_h = torch.diag(1.0 / prior_sd**2)
+    return best, iters, degenerate
+
+
+def _degenerate_reason(why: str, evals: int, count: int, expected: float) -> str:
+    """Why the likelihood stopped early (``why``: "tilt" or "needs")."""
+    if why == "tilt":
+        return (f"stopped after {evals} evaluations: the best point has the flake normals' tilt σ "
+                f"at its bound {TILT_RANGE[1]:g} rad, normals at random: no layer of flakes (a sheen "
+                "or rim the coating misfits)")
+    return (f"stopped after {evals} evaluations: the best point explains the detections with "
+            f"{count / expected:.3g} flakes per pixel (> {DEGENERATE_DENSITY:g})")
+
+
+def _curvature(run: _Run, th: Tensor, grad: Tensor, prior_h: Tensor, uncertainty: bool) -> tuple[Tensor, Tensor]:
+    """Standard errors of (log τ, log σ_g, ℓ, log v) and the data's share of the curvature (NaN where not computed)."""
+    idx, dev = run.idx, th.device
     se = torch.full((4,), float("nan"), dtype=th.dtype, device=dev)
     data_h = torch.full((4,), float("nan"), dtype=th.dtype, device=dev)
     if uncertainty:  # curvature → standard errors of log τ, log σ_g, ℓ, log v (free ones)
-        hess = hessian(th, grad)
+        hess = run.hessian(th, grad)
         cov, info = torch.linalg.inv_ex(hess)
         if int(info) == 0 and bool(torch.isfinite(cov).all()):
             se[idx] = torch.sqrt(torch.diagonal(cov).clamp_min(0.0))
         data_h[idx] = torch.diagonal(hess - prior_h[idx][:, idx])
-    total_area = float(d.grid_area.sum())
-    names = ("log_tilt_sigma", "log_glint_sigma", "log_amp_mean", "log_amp_std")
-    # a parameter is identified when the data, not the prior, sets its curvature
-    ident = {nm: bool(data_h[i] > 4.0 * prior_h[i, i]) and bool(se[i] < 0.15) for i, nm in enumerate(names)}
-    return GlintFit(
-        tilt_sigma=float(torch.exp(th[0])), glint_sigma=float(torch.exp(th[1])), log_amp_mean=float(th[2]),
-        log_amp_std=float(torch.exp(th[3])), density=d.count / expected if expected > 0 else math.inf,
-        expected_fraction=expected / max(total_area, 1.0), loglik=-loss,
-        std_err={nm: float(se[i]) for i, nm in enumerate(names)}, identified=ident, iterations=iters,
-        evaluations=evals[0], log_amp_floor=log_amp_floor(d), log_amp_ceiling=log_ceiling, degenerate=degenerate,
-    )
+    return se, data_h
 
 
 @dataclass
@@ -309,26 +355,44 @@ def flake_statistics(
     obs = observe(det, flake_id, count, geometry, ok)
     times["measure"] = time.perf_counter() - t1
     t2 = time.perf_counter()
+    gfit = fit_glints(_glint_data(det, geometry, obs, count, max_cells, ok), max_flakes=max_flakes)
+    times["likelihood"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    if gfit.degenerate is not None or not (math.isfinite(gfit.density) and gfit.density <= DEGENERATE_DENSITY):
+        _report_degenerate(report, gfit, times)
+        return StatsResult(None, obs, flake_id, report)
+    model = _fitted_model(report, obs, gfit, times, t3, count=count, valid_px=valid_px, n=n, seed=seed)
+    return StatsResult(model, obs, flake_id, report)
+
+
+def _glint_data(det: Detection, geometry: Geometry, obs: FlakeObservations, count: int, max_cells: int,
+                ok: Tensor) -> GlintData:
+    """The likelihood's data: the observed flakes (float64) and the shots' grid of cells."""
     g_half, g_normal, g_sigma, g_area, g_valid = cell_grid(det, geometry, max_cells, ok)
-    data = GlintData(
+    return GlintData(
         half=obs.half.double(), normal=obs.normal.double(), anchor=obs.anchor, amp=obs.amp.double(),
         detected=obs.detected, sigma=obs.sigma.double(), grid_half=g_half, grid_normal=g_normal,
         grid_sigma=g_sigma, grid_area=g_area, k_hi=det.k_hi, count=count, observed=obs.observed,
         grid_valid=g_valid,
     )
-    gfit = fit_glints(data, max_flakes=max_flakes)
-    times["likelihood"] = time.perf_counter() - t2
-    t3 = time.perf_counter()
-    if gfit.degenerate is not None or not (math.isfinite(gfit.density) and gfit.density <= DEGENERATE_DENSITY):
-        # the likelihood ran off to a spike or tail that explains the detections with almost no
-        # flakes expected anywhere (more flakes than pixels): no trustworthy model (reported, not rendered)
-        report["skipped"] = (f"glint likelihood degenerate (density {gfit.density:.3g}/px, tilt σ {gfit.tilt_sigma:.3g}, "
-                             f"glint σ {gfit.glint_sigma:.3g}; "
-                             f"{gfit.degenerate or f'more flakes than pixels (> {DEGENERATE_DENSITY:g}/px)'}): no flake model")
-        report["degenerate"] = {"density": gfit.density, "tilt_sigma": gfit.tilt_sigma,
-                                "glint_sigma": gfit.glint_sigma, "evaluations": gfit.evaluations}
-        report["times"] = times
-        return StatsResult(None, obs, flake_id, report)
+
+
+def _report_degenerate(report: dict, gfit: GlintFit, times: dict) -> None:
+    """Say in ``report`` why a degenerate likelihood gives no model."""
+    # the likelihood ran off to a spike or tail that explains the detections with almost no
+    # flakes expected anywhere (more flakes than pixels): no trustworthy model (reported, not rendered)
+    report["skipped"] = (f"glint likelihood degenerate (density {gfit.density:.3g}/px, tilt σ {gfit.tilt_sigma:.3g}, "
+                         f"glint σ {gfit.glint_sigma:.3g}; "
+                         f"{gfit.degenerate or f'more flakes than pixels (> {DEGENERATE_DENSITY:g}/px)'}): no flake model")
+    report["degenerate"] = {"density": gfit.density, "tilt_sigma": gfit.tilt_sigma,
+                            "glint_sigma": gfit.glint_sigma, "evaluations": gfit.evaluations}
+    report["times"] = times
+
+
+def _fitted_model(report: dict, obs: FlakeObservations, gfit: GlintFit, times: dict, t3: float, *, count: int,
+                  valid_px: float, n: int, seed: int) -> FlakeModel | None:
+    """Shapes and colours on top of the glint fit: the :class:`FlakeModel` (None when it refuses a value),
+    its numbers in ``report``."""
     shapes = fit_shapes(obs)
     cmean, ccov = fit_colour(obs, gfit)
     times["shape_colour"] = time.perf_counter() - t3
@@ -342,7 +406,7 @@ def flake_statistics(
         "std_err": gfit.std_err, "identified": gfit.identified, "iterations": gfit.iterations,
         "multi_shot_flakes": int((obs.detected.sum(1) > 1).sum()), "times": times,
     })
-    model = _model_or_reason(
+    return _model_or_reason(
         report, density=density, area_log_mean=shapes["area_log_mean"], area_log_std=min(shapes["area_log_std"], 5.0),
         aspect_mean=shapes["aspect_mean"], aspect_std=shapes["aspect_std"], color_mean=cmean, color_cov=ccov,
         tilt_sigma=min(gfit.tilt_sigma, 1.5), glint_sigma=min(max(gfit.glint_sigma, 1e-4), 1.5),
@@ -351,7 +415,6 @@ def flake_statistics(
                "log_amp_floor": gfit.log_amp_floor,
                "std_err": gfit.std_err, "identified": gfit.identified},
     )
-    return StatsResult(model, obs, flake_id, report)
 
 
 def _model_or_reason(report: dict, **values) -> FlakeModel | None:

@@ -19,6 +19,8 @@ its texture, so a flake-free capture is unchanged wherever nothing was detected.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -26,6 +28,9 @@ from torch import Tensor
 from torchmetal.checks import check_shape
 from torchmetal.flakes.model.filters import box_mean
 from torchmetal.geometry import direction_to, dot, surface_points
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 _FILL_RADII = (2, 4, 8, 16)  # neighbourhoods tried for pixels with no undetected shot
 
@@ -36,7 +41,7 @@ def grown_detections(labels: Tensor) -> Tensor:
 
 
 def texture_without_glints(
-    capture, texture: Tensor, phong_images: Tensor, labels: Tensor, *, chunk: int = 4, guard: bool = True
+    capture: Capture, texture: Tensor, phong_images: Tensor, labels: Tensor, *, chunk: int = 4, guard: bool = True
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Re-solve the texture under detected flakes and update the Phong renders to match.
 
@@ -65,18 +70,9 @@ def texture_without_glints(
     if not bool(changed.any()):
         return texture, phong_images, changed
     dt = texture.dtype
-    valid = capture.mask.unsqueeze(0) & ~capture.saturated
     idx = torch.nonzero(changed[0].flatten(), as_tuple=True)[0]  # (M,) pixels to re-solve
-    est = torch.empty(n, 3, idx.numel(), dtype=dt, device=texture.device)
-    gain = torch.empty_like(est)
     shots = [slice(k0, min(n, k0 + chunk)) for k0 in range(0, n, chunk)]
-    for sl in shots:
-        a = _diffuse_gain(capture, sl, dt)
-        spec = phong_images[sl] - texture * a
-        ok = valid[sl] & ~flagged[sl] & (a > 0)
-        e = (capture.images[sl].to(dt) - spec) / a.clamp_min(1e-12)
-        est[sl] = torch.where(ok, e, torch.full_like(e, float("nan"))).flatten(2)[:, :, idx]
-        gain[sl] = torch.where(ok, a, torch.zeros_like(a)).flatten(2)[:, :, idx]
+    est, gain = _clean_estimates(capture, texture, phong_images, flagged, idx, shots)
     # a glint below the detection threshold in a few clean shots (those next to the detected
     # ones) would raise the mean, and with it lower every detected glint's amplitude: shots
     # more than 2.5 robust σ above the median are left out of the weighted mean
@@ -94,9 +90,36 @@ def texture_without_glints(
     # glints only add light: the clean solve never exceeds the all-shot one (noise of few shots)
     d = d.view(3, h, w)
     d = torch.where(solved, torch.minimum(d, texture) if guard else d, torch.zeros_like(texture))
-    # pixels detected in every shot: mean of the solved/untouched neighbours
-    known = (~changed | solved.all(0, keepdim=True)).to(dt)  # (1, H, W)
-    base = torch.where(changed, d, texture)
+    filled = _fill_unsolved(torch.where(changed, d, texture), changed, solved)
+    new = torch.where(changed, filled.clamp_min(0.0), texture)
+    delta = new - texture
+    phong = torch.cat([phong_images[sl] + delta * _diffuse_gain(capture, sl, dt) for sl in shots])
+    return new, phong, changed
+
+
+def _clean_estimates(capture: Capture, texture: Tensor, phong_images: Tensor, flagged: Tensor, idx: Tensor,
+                     shots: list[slice]) -> tuple[Tensor, Tensor]:
+    """Per shot, the texture each pixel ``idx`` (M,) implies (N, 3, M) (NaN where the shot is not usable
+    there: masked, saturated, shadowed or detected) and its diffuse gain a (N, 3, M) (0 there)."""
+    n = capture.images.shape[0]
+    dt = texture.dtype
+    valid = capture.mask.unsqueeze(0) & ~capture.saturated
+    est = torch.empty(n, 3, idx.numel(), dtype=dt, device=texture.device)
+    gain = torch.empty_like(est)
+    for sl in shots:
+        a = _diffuse_gain(capture, sl, dt)
+        spec = phong_images[sl] - texture * a
+        ok = valid[sl] & ~flagged[sl] & (a > 0)
+        e = (capture.images[sl].to(dt) - spec) / a.clamp_min(1e-12)
+        est[sl] = torch.where(ok, e, torch.full_like(e, float("nan"))).flatten(2)[:, :, idx]
+        gain[sl] = torch.where(ok, a, torch.zeros_like(a)).flatten(2)[:, :, idx]
+    return est, gain
+
+
+def _fill_unsolved(base: Tensor, changed: Tensor, solved: Tensor) -> Tensor:
+    """``base`` (3, H, W) with the pixels detected in every shot (changed, not solved) filled by the mean of
+    their solved/untouched neighbours (widening neighbourhoods, :data:`_FILL_RADII`)."""
+    known = (~changed | solved.all(0, keepdim=True)).to(base.dtype)  # (1, H, W)
     filled = base
     for r in _FILL_RADII:
         missing = known == 0
@@ -107,13 +130,10 @@ def texture_without_glints(
         filled = torch.where(missing & got, mean, filled)
         known = torch.where(missing & got, torch.ones_like(known), known)
         base = filled
-    new = torch.where(changed, filled.clamp_min(0.0), texture)
-    delta = new - texture
-    phong = torch.cat([phong_images[sl] + delta * _diffuse_gain(capture, sl, dt) for sl in shots])
-    return new, phong, changed
+    return filled
 
 
-def _diffuse_gain(capture, shots: slice, dtype: torch.dtype) -> Tensor:
+def _diffuse_gain(capture: Capture, shots: slice, dtype: torch.dtype) -> Tensor:
     """a = E·max(n·l, 0) of the shots ``shots``, (B, 3, H, W): the diffuse term per unit texture (the
     light's direction and distance only: the same values as :func:`~torchmetal.geometry.shading_geometry`'s
     ``irradiance · n_dot_l``, at half its cost)."""

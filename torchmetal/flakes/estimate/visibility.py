@@ -68,42 +68,14 @@ def log_p_any(
     P_k / Σ_j P_j, so the union is counted once. P_k is scaled by the cell's measurable
     fraction in shot k (``grid_valid``): no detection can come from a saturated region.
     """
-    dt, dev = d.grid_half.dtype, d.grid_half.device
     g, n = d.grid_sigma.shape
-
-    def constants():
-        qa, phi = ring_nodes(n_a, n_phi, dt, dev)
-        e1, e2 = orthonormal_pair(d.grid_half)  # (G, N, 3)
-        t1, t2 = orthonormal_pair(d.grid_normal)
-        basis = torch.stack([d.grid_half, e1, e2], 2)  # (G, N, 3: h_k, e1_k, e2_k, 3)
-        proj = torch.einsum("gnac,gbc->gnab", basis, torch.stack([d.grid_normal, t1, t2], 1))  # onto n, t1, t2
-        first = torch.arange(n, device=dev).expand(g, n)
-        order = nearest_shots(d.grid_half.unsqueeze(1).expand(g, n, n, 3), first, n)  # (G, N, N) own shot first
-        h_near = d.grid_half.gather(1, order.flatten(1)[..., None].expand(-1, -1, 3)).view(g, n, n, 3)
-        to_near = torch.einsum("gnac,gnkc->gnak", basis, h_near)  # (G, N, 3, N) onto the nearest shots' h
-        s_near = d.grid_sigma.gather(1, order.flatten(1)).view(g, n, n)
-        v_near = None if d.grid_valid is None else d.grid_valid.to(dt).gather(1, order.flatten(1)).view(g, n, n)
-        return (qa, phi, _gauss_legendre(n_in, dt, dev), _gauss_legendre(n_band, dt, dev),
-                torch.log(d.grid_sigma).view(g, 1, n), proj, to_near, s_near, v_near)
-
     qa, phi, (x_in, w_in), (x_bd, w_bd), lsig, proj, to_near, s_near, v_near = memo(
-        d, ("p_any", n_a, n_in, n_band, n_phi), constants)
+        d, ("p_any", n_a, n_in, n_band, n_phi), lambda: _p_any_constants(d, n_a, n_in, n_band, n_phi))
     level_lo = max(0.5, d.k_hi - margin)
     log_floor = log_amp_floor(d)
-
-    def band():  # log-A band nodes (G, nAb), log of their width × Gauss–Legendre weight, band top (G,)
-        lo = (lsig.amin(-1)[:, 0] + math.log(level_lo)).double().clamp_min(log_floor)
-        hi = lsig.amax(-1)[:, 0].double() + math.log(d.k_hi + margin)
-        x_ab, w_ab = _gauss_legendre(n_a_band, torch.float64, dev)
-        return lo.unsqueeze(1) + (hi - lo).unsqueeze(1) * x_ab, torch.log((hi - lo).unsqueeze(1) * w_ab), hi
-
-    lab, log_width, hi = memo(d, ("band", n_a_band, margin), band)
-    la64, va64 = la.double(), va.double()
-    log_wb = (log_width - 0.5 * ((lab - la64) / va64) ** 2 - 0.5 * LOG2PI
-              - torch.log(va64) - torch.special.log_ndtr((la64 - log_floor) / va64))
-    lat, log_tail = tail_nodes(la, va, hi, qa, log_floor)  # (G, nA) above the band
-    log_a = torch.cat([lab.to(dt), lat], 1)  # (G, nAb + nA)
-    log_wa = torch.cat([log_wb, (log_tail - math.log(n_a)).unsqueeze(1).expand(-1, n_a)], 1)
+    lab, log_width, hi = memo(d, ("band", n_a_band, margin),
+                              lambda: _amplitude_band(d, lsig, level_lo, log_floor, n_a_band, margin))
+    log_a, log_wa = _amplitude_nodes(d, la, va, lab, log_width, hi, qa, log_floor, n_a)
 
     def ucap(level: float) -> Tensor:  # 1 − m·h where A·g = level·σ, (G, nA, N)
         return (sg * sg * (log_a.unsqueeze(-1) - lsig - math.log(level))).clamp(0.0, 1.9)
@@ -124,6 +96,58 @@ def log_p_any(
         return cosb * proj[:, :, 0, b].view(g, 1, n, 1, 1) + sinb * rv.view(g, 1, n, 1, -1)
 
     logp = log_slope_from(dot_m(0), dot_m(1), dot_m(2), tau)
+    share = _union_share(d, sg, log_a, level_lo, cosb, sinb, cphi, sphi, to_near, s_near, v_near)
+    wts = (wu * (2 * math.pi / n_phi)).unsqueeze(-1)
+    val = (torch.exp(logp) * share * wts).sum((2, 3, 4))  # (G, nA)
+    return torch.logsumexp(torch.log(val.double().clamp_min(1e-300)) + log_wa, 1)
+
+
+def _p_any_constants(d: GlintData, n_a: int, n_in: int, n_band: int, n_phi: int) -> tuple:
+    """The parameter-free part of :func:`log_p_any`: ring and Gauss–Legendre nodes, log σ, each cap's frame
+    projected onto the cell's normal frame and onto the nearest shots' half vectors (own shot first)."""
+    dt, dev = d.grid_half.dtype, d.grid_half.device
+    g, n = d.grid_sigma.shape
+    qa, phi = ring_nodes(n_a, n_phi, dt, dev)
+    e1, e2 = orthonormal_pair(d.grid_half)  # (G, N, 3)
+    t1, t2 = orthonormal_pair(d.grid_normal)
+    basis = torch.stack([d.grid_half, e1, e2], 2)  # (G, N, 3: h_k, e1_k, e2_k, 3)
+    proj = torch.einsum("gnac,gbc->gnab", basis, torch.stack([d.grid_normal, t1, t2], 1))  # onto n, t1, t2
+    first = torch.arange(n, device=dev).expand(g, n)
+    order = nearest_shots(d.grid_half.unsqueeze(1).expand(g, n, n, 3), first, n)  # (G, N, N) own shot first
+    h_near = d.grid_half.gather(1, order.flatten(1)[..., None].expand(-1, -1, 3)).view(g, n, n, 3)
+    to_near = torch.einsum("gnac,gnkc->gnak", basis, h_near)  # (G, N, 3, N) onto the nearest shots' h
+    s_near = d.grid_sigma.gather(1, order.flatten(1)).view(g, n, n)
+    v_near = None if d.grid_valid is None else d.grid_valid.to(dt).gather(1, order.flatten(1)).view(g, n, n)
+    return (qa, phi, _gauss_legendre(n_in, dt, dev), _gauss_legendre(n_band, dt, dev),
+            torch.log(d.grid_sigma).view(g, 1, n), proj, to_near, s_near, v_near)
+
+
+def _amplitude_band(d: GlintData, lsig: Tensor, level_lo: float, log_floor: float, n_a_band: int,
+                    margin: float) -> tuple[Tensor, Tensor, Tensor]:
+    """log-A band nodes (G, nAb), log of their width × Gauss–Legendre weight, band top (G,)."""
+    lo = (lsig.amin(-1)[:, 0] + math.log(level_lo)).double().clamp_min(log_floor)
+    hi = lsig.amax(-1)[:, 0].double() + math.log(d.k_hi + margin)
+    x_ab, w_ab = _gauss_legendre(n_a_band, torch.float64, d.grid_half.device)
+    return lo.unsqueeze(1) + (hi - lo).unsqueeze(1) * x_ab, torch.log((hi - lo).unsqueeze(1) * w_ab), hi
+
+
+def _amplitude_nodes(d: GlintData, la: Tensor, va: Tensor, lab: Tensor, log_width: Tensor, hi: Tensor, qa: Tensor,
+                     log_floor: float, n_a: int) -> tuple[Tensor, Tensor]:
+    """log A at the band's and the tail's nodes (G, nAb + nA) and the log of their weights."""
+    la64, va64 = la.double(), va.double()
+    log_wb = (log_width - 0.5 * ((lab - la64) / va64) ** 2 - 0.5 * LOG2PI
+              - torch.log(va64) - torch.special.log_ndtr((la64 - log_floor) / va64))
+    lat, log_tail = tail_nodes(la, va, hi, qa, log_floor)  # (G, nA) above the band
+    log_a = torch.cat([lab.to(d.grid_half.dtype), lat], 1)  # (G, nAb + nA)
+    log_wa = torch.cat([log_wb, (log_tail - math.log(n_a)).unsqueeze(1).expand(-1, n_a)], 1)
+    return log_a, log_wa
+
+
+def _union_share(d: GlintData, sg: Tensor, log_a: Tensor, level_lo: float, cosb: Tensor, sinb: Tensor, cphi: Tensor,
+                 sphi: Tensor, to_near: Tensor, s_near: Tensor, v_near: Tensor | None) -> Tensor:
+    """Cap k's share P_k · P_any / Σ_j P_j of the union at its nodes (G, nA, N, nR, nφ) (partition of unity
+    over the shots whose caps may overlap it)."""
+    g, n = d.grid_sigma.shape
     # shots whose caps may overlap cap k (own shot first): caps farther apart never meet
     beta = cap_radius(sg, float(log_a.max().detach()), float(d.grid_sigma.min()), level_lo)
     kk = min(overlap_count(d.grid_half, d.grid_half, 2.2 * beta + 1e-3), MAX_OVERLAP)
@@ -138,10 +162,7 @@ def log_p_any(
         pk = pk * v_near[..., :kk].view(g, 1, n, 1, 1, kk)
     any_ = 1.0 - (1.0 - pk).prod(-1)
     own = pk[..., 0]  # (G, nA, N, nR, nφ): P_k at the nodes of cap k
-    share = own * any_ / pk.sum(-1).clamp_min(1e-30)
-    wts = (wu * (2 * math.pi / n_phi)).unsqueeze(-1)
-    val = (torch.exp(logp) * share * wts).sum((2, 3, 4))  # (G, nA)
-    return torch.logsumexp(torch.log(val.double().clamp_min(1e-300)) + log_wa, 1)
+    return own * any_ / pk.sum(-1).clamp_min(1e-30)
 
 
 def cell_grid(det: Detection, geometry: Geometry, max_cells: int, ok: Tensor) -> tuple[Tensor, ...]:

@@ -26,6 +26,7 @@ moves h smoothly, so glints fade in and out instead of flickering.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -180,6 +181,22 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
     def u(k: int) -> Tensor:
         return hash_uniform(gi, gj, model.seed, k, dtype)[ci, cj]
 
+    presence, present, cell_mean, cell_log_area = _presence(model, c, gi, gj, ci, cj, u, height, width, dtype)
+    weight = _footprint(model, c, ii, jj, ci, cj, u, cell_log_area, dtype) * present.to(dtype)
+
+    sx, sy = _normal_pair(u(6), u(7))
+    t1, t2 = _tangent_frame(normals)
+    m = normalize(normals + model.tilt_sigma * (sx * t1 + sy * t2), dim=0)
+    color = _colour(model, ci, cj, u, cell_mean, dtype, device)
+
+    count = int((present & (ci * c < height) & (cj * c < width))[::c, ::c].sum()) if presence > 0 else 0
+    return FlakeField(weight.unsqueeze(0), m, color, float(model.glint_sigma), count)
+
+
+def _presence(model: FlakeModel, c: int, gi: Tensor, gj: Tensor, ci: Tensor, cj: Tensor, u, height: int, width: int,
+              dtype: torch.dtype) -> tuple[float, Tensor, Tensor | None, Tensor | None]:
+    """The (largest) probability that a cell holds a flake, the pixels' cells that do (H, W) bool, and with a
+    density map the cells' colour means and area log-means (None without one)."""
     if model.density_map is None:
         presence = min(1.0, model.density * c * c)
         cell_mean = cell_log_area = None
@@ -188,6 +205,12 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
         cell_presence, cell_mean, cell_log_area = _cell_maps(model, c, gi, gj, height, width, dtype)
         presence = float(cell_presence.max())
         present = hash_uniform(gi, gj, model.seed, 0, dtype)[ci, cj] < cell_presence[ci, cj]
+    return presence, present, cell_mean, cell_log_area
+
+
+def _footprint(model: FlakeModel, c: int, ii: Tensor, jj: Tensor, ci: Tensor, cj: Tensor, u,
+               cell_log_area: Tensor | None, dtype: torch.dtype) -> Tensor:
+    """(H, W) anti-aliased ellipse weight of each pixel's cell's flake (whether or not the cell holds one)."""
     z_area, z_aspect = _normal_pair(u(3), u(4))
     if cell_log_area is None:
         area = torch.exp(model.area_log_mean + model.area_log_std * z_area)
@@ -213,12 +236,13 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
     along = dx * torch.cos(theta) - dy * torch.sin(theta)
     across = dx * torch.sin(theta) + dy * torch.cos(theta)
     rho = torch.sqrt((along / a) ** 2 + (across / b) ** 2)
-    weight = ((1.0 - rho) * b + 0.5).clamp(0.0, 1.0) * present.to(dtype)
+    return ((1.0 - rho) * b + 0.5).clamp(0.0, 1.0)
 
-    sx, sy = _normal_pair(u(6), u(7))
-    t1, t2 = _tangent_frame(normals)
-    m = normalize(normals + model.tilt_sigma * (sx * t1 + sy * t2), dim=0)
 
+def _colour(model: FlakeModel, ci: Tensor, cj: Tensor, u, cell_mean: Tensor | None, dtype: torch.dtype,
+            device) -> Tensor:
+    """(3, H, W) colour of each pixel's cell's flake: the mean (the block's with a density map) plus the
+    colour covariance's factor times normal draws, clamped at 0."""
     z1, z2 = _normal_pair(u(8), u(9))
     z3, _ = _normal_pair(u(10), u(11))
     chol = colour_factor(model.color_cov).to(dtype=dtype, device=device)
@@ -226,13 +250,10 @@ def flake_field(model: FlakeModel, height: int, width: int, normals: Tensor | No
     if cell_mean is not None:
         mean = cell_mean[:, ci, cj]
     z = torch.stack([z1, z2, z3])
-    color = (mean + torch.einsum("ij,jhw->ihw", chol, z)).clamp_min(0.0)
-
-    count = int((present & (ci * c < height) & (cj * c < width))[::c, ::c].sum()) if presence > 0 else 0
-    return FlakeField(weight.unsqueeze(0), m, color, float(model.glint_sigma), count)
+    return (mean + torch.einsum("ij,jhw->ihw", chol, z)).clamp_min(0.0)
 
 
-def colour_factor(cov) -> Tensor:
+def colour_factor(cov: Sequence[Sequence[float]] | Tensor) -> Tensor:
     """L (3, 3) float64 with L·Lᵀ = cov: the symmetric square root of cov's PSD part.
 
     An eigen-decomposition with negative eigenvalues clipped to 0, so a covariance that is PSD
