@@ -113,3 +113,14 @@ def test_console_entry_exits_fast_with_complete_outputs(tmp_path):
     tiled = run_cli("fit", cap, "-o", tmp_path / "out" / "bad", "--tile", "8", "--normals", "estimate")
     assert_one_line_error(tiled, "--normals estimate")
     assert sorted(p.name for p in mat.parent.iterdir()) == ["mat"]
+
+
+def test_fit_light_option(tmp_path):
+    cap, mat = tmp_path / "cap", tmp_path / "mat"
+    assert main(["synth", "-o", str(cap), "--size", "32", "--shots", "5"]) == 0
+    assert main(["fit", str(cap), "-o", str(mat), "-q", "--light", "off", "--flakes", "off"]) == 0
+    meta = json.loads((mat / "material.json").read_text())
+    assert meta["fit"]["light"]["mode"] == "off" and meta["fit"]["light"]["falloff"] == 0.0
+    assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m2", "--light", "falloff", "--tile", "16"), "--light")
+    proc = run_cli("fit", cap, "-o", tmp_path / "m3", "--light", "flash")
+    assert proc.returncode == 2 and "--light" in proc.stderr and "Traceback" not in proc.stderr

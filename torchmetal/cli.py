@@ -87,6 +87,9 @@ def _fit_tiled(args: argparse.Namespace, scratch: list) -> tuple[PipelineResult,
     if args.lobe not in ("phong", "auto"):
         raise InputError(f"--lobe {args.lobe}: expected 'phong' or 'auto' with --tile (tiled fits use the paper's "
                          "lobe)")
+    if args.light not in ("off", "auto"):
+        raise InputError(f"--light {args.light}: expected 'off' or 'auto' with --tile (tiled fits use no light "
+                         "calibration)")
     # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.scale.tiled import fit_tiled_material
 
@@ -113,7 +116,7 @@ def _fit_whole(args: argparse.Namespace) -> tuple[PipelineResult, Capture]:
         capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
         tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
         progress=not args.quiet, normals=args.normals, lobe=args.lobe, observed_flakes=args.observed_flakes,
-        weights=args.weights,
+        weights=args.weights, light=args.light,
     )
     return result, capture
 
@@ -266,6 +269,10 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
                         "where left-out shots prefer them to a flat plane; given: the capture's normals.npy (flat "
                         "without one); flat: (0, 0, 1); estimate: from the photos (photometric stereo with the Phong "
                         "terms); tiled fits use the capture's")
+    f.add_argument("--light", choices=["auto", "off", "falloff", "gains"], default="auto",
+                   help="light calibration, nuisances of the capture (not the material): auto (default): the flash's "
+                        "falloff from its axis, or that and a gain per shot, where left-out shots prefer them; off; "
+                        "falloff; gains (falloff and per-shot gains); tiled fits use none")
     f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
     f.add_argument("--tile", type=int, default=None, metavar="N",
                    help="fit tile by tile (N x N pixels; memory bounded by the tile, not the capture; docs/scale.md)")
