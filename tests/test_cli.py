@@ -118,7 +118,7 @@ def test_console_entry_exits_fast_with_complete_outputs(tmp_path):
 def test_fit_light_option(tmp_path):
     cap, mat = tmp_path / "cap", tmp_path / "mat"
     assert main(["synth", "-o", str(cap), "--size", "32", "--shots", "5"]) == 0
-    assert main(["fit", str(cap), "-o", str(mat), "-q", "--light", "off", "--flakes", "off"]) == 0
+    assert main(["fit", str(cap), "-o", str(mat), "-q", "--flakes", "off"]) == 0  # --light off: the default
     meta = json.loads((mat / "material.json").read_text())
     assert meta["fit"]["light"]["mode"] == "off" and meta["fit"]["light"]["falloff"] == 0.0
     assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m2", "--light", "falloff", "--tile", "16"), "--light")

@@ -161,12 +161,12 @@ def test_light_calibration_stage_records_its_decision():
 
     cap = synth_capture(size=40, shots=8, layout="near", texture="procedural", seed=5, noise=0.01).capture
     cap = replace(cap, images=cap.images * LightCalibration(falloff=-6.0).factor(cap))
-    res = fit_material(cap, flakes="off", normals="given", lobe="phong")
+    res = fit_material(cap, flakes="off", normals="given", lobe="phong", light="auto")
     names = [d["name"] for d in res.report["decisions"]]
     assert names[:1] == ["light"] and res.report["decisions"][0]["chosen"] == res.report["light"]["chosen"]
     assert res.report["light"]["chosen"] != "off" and res.light.falloff < -3.0
     assert res.report["stage_times"]["light"] > 0
-    off = fit_material(cap, flakes="off", normals="given", lobe="phong", light="off")
+    off = fit_material(cap, flakes="off", normals="given", lobe="phong")  # the default
     assert off.light.identity and "light" not in [d["name"] for d in off.report["decisions"]]
     # the calibrated material predicts the photos better once the renders carry the falloff
     err = lambda r: float(((render_shots(r.fit, cap) * r.light.factor(cap) - cap.images) ** 2).mean())  # noqa: E731

@@ -176,7 +176,7 @@ def fit_material(
     lobe: str = "auto",
     normals: str = "auto",
     weights: str = "uniform",
-    light: str = "auto",
+    light: str = "off",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -207,9 +207,9 @@ def fit_material(
         weights: "uniform" (the default: plain least squares) or "noise" (each observation weighted by the
             inverse of its expected noise variance, ``fit_phong(noise_weights=True)``).
         light: the light calibration (:mod:`torchmetal.lightcal`: the flash's falloff from its axis and
-            per-shot gains, nuisances of the capture, not the material): "auto" (the default: chosen on
-            left-out shots, none unless it predicts them better), "off", "falloff" or "gains" (falloff and
-            per-shot gains). ``result.light`` holds it: a render compared with the capture's photos is
+            per-shot gains, nuisances of the capture, not the material): "off" (the default: on the shared
+            real captures left-out shots did not prefer a falloff, docs/design.md §4), "auto" (the falloff
+            where left-out shots prefer it), "falloff" or "gains" (falloff and per-shot gains). ``result.light`` holds it: a render compared with the capture's photos is
             multiplied by ``result.light.factor(capture)``.
 
     Returns:
@@ -262,7 +262,7 @@ class Options:
     lobe: str
     normals: str
     weights: str
-    light: str = "auto"
+    light: str = "off"
 
     def fit_kwargs(self) -> dict:
         """:func:`~torchmetal.fit.fit_phong` arguments every fit of the run shares (``robust`` aside)."""

@@ -109,7 +109,7 @@ def _gallery_png(path: Path, photo, render) -> Path:
 
 #: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe and the
 #: normals were chosen on left-out shots, and the richest options
-REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong"}, "no_light": {"light": "off"},
+REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong"}, "light_auto": {"light": "auto"},
                  "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}
 
 
