@@ -23,8 +23,17 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from torchmetal.bench.np_phong import _lobe, _np, capture_arrays, np_geometry, np_render
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike, DTypeLike
+    from torch import Tensor
+
+    from torchmetal.io.capture import Capture
 
 __all__ = ["BaselineResult", "capture_arrays", "np_geometry", "np_render", "paper_scheme_numpy", "adam_fit"]
 
@@ -45,126 +54,10 @@ class BaselineResult:
     stage_times: dict[str, float] = field(default_factory=dict)
     status: str = "converged"
 
-    def render(self, light, intensity, camera, normals, size) -> np.ndarray:
+    def render(self, light: ArrayLike, intensity: ArrayLike, camera: ArrayLike, normals: ArrayLike,
+               size: tuple[float, float]) -> np.ndarray:
         """Render shots (B, 3, H, W) of the fitted parameters (numpy, no torch)."""
         return np_render(self.texture, self.s, self.alpha, _np(normals), _np(light), _np(intensity), _np(camera), size)
-
-
-# --------------------------------------------------------------------------- input handling
-
-
-def _np(x, dtype=None) -> np.ndarray | None:
-    """Array from a numpy array or a torch tensor (duck-typed, so this module never imports torch)."""
-    if x is None:
-        return None
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().numpy()
-    a = np.asarray(x)
-    return a.astype(dtype, copy=False) if dtype is not None else a
-
-
-def _normals_chw(normals, h: int, w: int) -> np.ndarray:
-    if normals is None:
-        n = np.zeros((3, h, w), np.float64)
-        n[2] = 1.0
-        return n
-    n = _np(normals, np.float64)
-    if n.ndim == 4:
-        n = n[0]
-    if n.shape == (h, w, 3):
-        n = np.moveaxis(n, -1, 0)
-    if n.shape != (3, h, w):
-        raise ValueError(f"normals: expected shape (3, {h}, {w}), found {n.shape}")
-    return n
-
-
-def capture_arrays(capture, dtype=np.float32) -> dict:
-    """numpy view of a capture: images, normals, lights, intensities, cameras, size, valid.
-
-    ``valid`` (N, 3, H, W) bool is True for observations that are finite, inside the mask and not
-    saturated.
-    """
-    images = _np(capture.images, dtype)
-    if images.ndim != 4 or images.shape[1] != 3:
-        raise ValueError(f"images: expected shape (N, 3, H, W), found {images.shape}")
-    n_shots, _, h, w = images.shape
-    valid = np.isfinite(images)
-    mask = _np(getattr(capture, "mask", None))
-    if mask is not None:
-        valid &= np.asarray(mask, bool).reshape(1, 1, h, w)
-    sat = _np(getattr(capture, "saturated", None))
-    if sat is not None:
-        sat = np.asarray(sat, bool)
-        if sat.ndim == 3:
-            sat = sat[:, None]
-        valid &= ~np.broadcast_to(sat, images.shape)
-    size = capture.size
-    return {
-        "images": np.where(valid, images, 0).astype(dtype, copy=False),
-        "normals": _normals_chw(getattr(capture, "normals", None), h, w),
-        "lights": _np(capture.lights, np.float64).reshape(n_shots, 4),
-        "intensities": _np(capture.intensities, np.float64).reshape(n_shots, 3),
-        "cameras": _np(capture.cameras, np.float64).reshape(n_shots, 4),
-        "size": (float(size[0]), float(size[1])),
-        "valid": valid,
-    }
-
-
-# --------------------------------------------------------------------------- numpy geometry
-
-
-def _surface_points(h: int, w: int, size) -> np.ndarray:
-    y = (0.5 - (np.arange(h) + 0.5) / h) * size[1]
-    x = ((np.arange(w) + 0.5) / w - 0.5) * size[0]
-    yy, xx = np.meshgrid(y, x, indexing="ij")
-    return np.stack([xx, yy, np.zeros_like(xx)])
-
-
-def _direction_to(points: np.ndarray, target: np.ndarray):
-    """Unit directions (B,3,H,W) from points to homogeneous targets, and squared distance (B,1,H,W)."""
-    xyz = target[:, :3, None, None]
-    wgt = target[:, 3:4, None, None]
-    d = xyz - wgt * points[None]
-    d2 = np.sum(d * d, axis=1, keepdims=True)
-    unit = d / np.sqrt(np.maximum(d2, 1e-24))
-    dist2 = np.where(wgt > 0.5, d2, 1.0)
-    return unit, dist2
-
-
-def np_geometry(normals: np.ndarray, lights: np.ndarray, intensities: np.ndarray, cameras: np.ndarray, size, dtype=np.float32):
-    """n·l, q = 1 − r·v (from |r − v|²/2) and irradiance E, each (B, 1|3, H, W), in ``dtype``."""
-    _, h, w = normals.shape
-    pts = _surface_points(h, w, size)
-    n = normals[None]
-    out_nl, out_q, out_e = [], [], []
-    for k in range(lights.shape[0]):  # one shot at a time keeps float64 temporaries small
-        l, dist2 = _direction_to(pts, lights[k : k + 1])
-        v, _ = _direction_to(pts, cameras[k : k + 1])
-        nl = np.sum(n * l, axis=1, keepdims=True)
-        r = 2.0 * nl * n - l
-        rv = r - v
-        out_nl.append(nl.astype(dtype))
-        out_q.append((0.5 * np.sum(rv * rv, axis=1, keepdims=True)).astype(dtype))
-        out_e.append((intensities[k][None, :, None, None] / dist2).astype(dtype))
-    return np.concatenate(out_nl), np.concatenate(out_q), np.concatenate(out_e)
-
-
-def _lobe(q: np.ndarray, alpha) -> np.ndarray:
-    """max(r·v, 0)^α = exp(α·log1p(−q)) for q < 1, else 0; α broadcast per channel."""
-    inside = q < 1.0
-    lg = np.log1p(-np.where(inside, q, 0.5))
-    return np.where(inside, np.exp(np.asarray(alpha) * lg), 0.0)
-
-
-def np_render(texture, s, alpha, normals, light, intensity, camera, size) -> np.ndarray:
-    """numpy Phong render of B shots (docs/design.md §2.2), (B, 3, H, W) float64."""
-    nl, q, e = np_geometry(np.asarray(normals, np.float64), np.asarray(light, np.float64).reshape(-1, 4),
-                           np.asarray(intensity, np.float64).reshape(-1, 3), np.asarray(camera, np.float64).reshape(-1, 4),
-                           size, dtype=np.float64)
-    s3 = np.asarray(s, np.float64).reshape(1, 3, 1, 1)
-    a3 = np.asarray(alpha, np.float64).reshape(1, 3, 1, 1)
-    spec = np.where(nl > 0, s3 * _lobe(q, a3), 0.0)
-    return e * (np.asarray(texture, np.float64)[None] * np.maximum(nl, 0.0) + spec)
 
 
 # --------------------------------------------------------------------------- the paper's scheme
@@ -248,14 +141,14 @@ def _lm_channel(rv_q: np.ndarray, c: np.ndarray, x0: np.ndarray, extra=None):
 
 
 def paper_scheme_numpy(
-    capture,
+    capture: Capture,
     *,
     tol: float = 1e-6,
     max_iters: int = 100,
     n_bins: int = 256,
     q_min: float = 1e-6,
     alpha0: float = 20.0,
-    dtype=np.float32,
+    dtype: DTypeLike = np.float32,
 ) -> BaselineResult:
     """The source paper's section 4.1, in plain numpy + ``scipy.optimize.least_squares``.
 
@@ -276,17 +169,78 @@ def paper_scheme_numpy(
         :class:`BaselineResult` with ``stage_times`` for geometry, init, specular, texture, error.
     """
     t_start = time.perf_counter()
-    times: dict[str, float] = {}
+    laps = _Laps()
+    t = time.perf_counter()
+    a = _paper_arrays(capture, dtype, n_bins, q_min)
+    t = laps("geometry", t)
+    texture, s, beta, nfev = _initial_approximation(a, alpha0, dtype)
+    t = laps("init", t)
+    history: list[float] = []
+    err_prev = math.inf
+    iters = 0
+    status = "max_iters"
+    for it in range(max_iters):
+        iters = it + 1
+        # 4.1.1 specular = image − diffuse(T^{i−1});  4.1.2 control points;  4.1.3 LM per channel
+        nfev += _specular_step(a, texture, s, beta)
+        t = laps("specular", t)
+        # 4.1.4 texture = mean_k (image − specular) / (n·l) over the shots that see the pixel lit
+        texture = _texture_step(a, s, beta, dtype)
+        t = laps("texture", t)
+        # 4.1.5 Err_i = Σ (Image − Image')², stop on |ΔErr| ≤ ε
+        err = _error(a, texture, s, beta, dtype)
+        history.append(err)
+        t = laps("error", t)
+        if abs(err_prev - err) <= tol * max(err_prev if math.isfinite(err_prev) else err, 1e-300):
+            status = "converged"
+            break
+        err_prev = err
+    return BaselineResult(
+        name="paper-numpy", texture=texture.astype(np.float64), s=s.copy(), alpha=np.exp(beta),
+        seconds=time.perf_counter() - t_start, iterations=iters, history=history,
+        stage_times={**laps.times, "lm_evaluations": float(nfev)}, status=status,
+    )
 
-    def lap(name: str, t0: float) -> float:
+
+class _Laps:
+    """Stage times: ``laps(name, t0)`` adds the time since t0 to the stage and returns now."""
+
+    def __init__(self) -> None:
+        self.times: dict[str, float] = {}
+
+    def __call__(self, name: str, t0: float) -> float:
         t1 = time.perf_counter()
-        times[name] = times.get(name, 0.0) + (t1 - t0)
+        self.times[name] = self.times.get(name, 0.0) + (t1 - t0)
         return t1
 
-    t = time.perf_counter()
+
+@dataclass
+class _PaperArrays:
+    """The per-observation arrays of :func:`paper_scheme_numpy`, built once (r·v never changes)."""
+
+    images: np.ndarray  # (N, 3, H, W), 0 where not valid
+    valid: np.ndarray  # (N, 3, H, W) bool
+    nl: np.ndarray  # (N, 1, H, W) n·l
+    q: np.ndarray  # (N, 1, H, W) 1 − r·v
+    e: np.ndarray  # (N, 3, H, W) irradiance
+    lit: np.ndarray  # (N, 1, H, W) n·l > _NL_MIN
+    obs: np.ndarray  # (N, 3, H, W) valid and lit
+    y: np.ndarray  # reflectance units: I / E
+    inv_nl: np.ndarray  # 1/(n·l), 0 where unlit
+    log_rv: np.ndarray  # log(r·v) where r·v > 0
+    rv_pos: np.ndarray  # r·v > 0
+    nl_pos: np.ndarray  # max(n·l, 0)
+    n_obs: np.ndarray  # (3, H, W) observations per texel, at least 1
+    bins: list[_Bins]  # per channel
+
+    @property
+    def n_shots(self) -> int:
+        return self.images.shape[0]
+
+
+def _paper_arrays(capture: Capture, dtype: DTypeLike, n_bins: int, q_min: float) -> _PaperArrays:
     a = capture_arrays(capture, dtype)
     images, valid = a["images"], a["valid"]
-    n_shots = images.shape[0]
     nl, q, e = np_geometry(a["normals"], a["lights"], a["intensities"], a["cameras"], a["size"], dtype=dtype)
     lit = nl > _NL_MIN  # (N,1,H,W)
     obs = valid & lit  # (N,3,H,W)
@@ -303,10 +257,15 @@ def paper_scheme_numpy(
             bins.append(bins[0])
         else:
             bins.append(_Bins(q[:, 0][obs[:, c]].astype(np.float64), n_bins, q_min))
-    t = lap("geometry", t)
+    return _PaperArrays(images=images, valid=valid, nl=nl, q=q, e=e, lit=lit, obs=obs, y=y, inv_nl=inv_nl, log_rv=log_rv,
+                        rv_pos=rv_pos, nl_pos=nl_pos, n_obs=n_obs, bins=bins)
 
-    # 4.1.6 initial approximation: T_min = min_k I_k / (n·l)_k, then fit s0, α0 to what T_min leaves.
-    ratio = np.where(obs, y * inv_nl, np.inf)
+
+def _initial_approximation(a: _PaperArrays, alpha0: float, dtype: DTypeLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """4.1.6: T_min = min_k I_k / (n·l)_k, then s0, α0 fitted to what T_min leaves. Returns (texture, s, β,
+    LM evaluations)."""
+    images, obs, y, q, nl = a.images, a.obs, a.y, a.q, a.nl
+    ratio = np.where(obs, y * a.inv_nl, np.inf)
     kstar = np.argmin(ratio, axis=0)  # (3,H,W)
     t_min = np.take_along_axis(ratio, kstar[None], 0)[0]
     del ratio
@@ -321,7 +280,7 @@ def paper_scheme_numpy(
         nl_star[c] = np.take_along_axis(nl[:, 0], kstar[c][None], 0)[0]
         oc = obs[:, c]
         resid = (y[:, c] - t_min[c][None] * nl[:, 0])[oc].astype(np.float64)
-        bc = bins[c]
+        bc = a.bins[c]
         mean = bc.mean(resid)
         m = bc.member  # one arbitrary observation per bin carries the geometry of X(p)
         qs = np.broadcast_to(q_star[c][None], oc.shape)[oc][m].astype(np.float64)
@@ -336,59 +295,52 @@ def paper_scheme_numpy(
         del resid
     lobe_star = _lobe(q_star.astype(np.float64), np.exp(beta)[:, None, None])
     texture = (t_min - s[:, None, None] * lobe_star / np.maximum(nl_star, _NL_MIN)).astype(dtype)
-    del lobe_star, q_star, nl_star, t_min, kstar
-    t = lap("init", t)
+    return texture, s, beta, nfev
 
-    def spec_shot(k: int) -> np.ndarray:
-        """s·max(r·v, 0)^α for shot k where n·l > 0, (3, H, W)."""
-        lobe = np.exp(np.exp(beta).astype(dtype).reshape(3, 1, 1) * log_rv[k])
-        return np.where(lit[k] & rv_pos[k], s.astype(dtype).reshape(3, 1, 1) * lobe, 0.0).astype(dtype, copy=False)
 
-    history: list[float] = []
-    err_prev = math.inf
-    iters = 0
-    status = "max_iters"
-    for it in range(max_iters):
-        iters = it + 1
-        # 4.1.1 specular = image − diffuse(T^{i−1});  4.1.2 control points;  4.1.3 LM per channel
-        for c in range(3):
-            oc = obs[:, c]
-            spec_obs = (y[:, c] - texture[c][None] * nl[:, 0])[oc]
-            mean = bins[c].mean(spec_obs.astype(np.float64))
-            x0 = np.array([max(s[c], 1e-6), beta[c]])
-            x, k = _lm_channel(bins[c].q, mean, x0)
-            nfev += k
-            s[c], beta[c] = max(x[0], 0.0), x[1]
-        t = lap("specular", t)
-        # 4.1.4 texture = mean_k (image − specular) / (n·l) over the shots that see the pixel lit
-        acc = np.zeros((3,) + images.shape[2:], np.float64)
-        for k in range(n_shots):
-            acc += np.where(obs[k], (y[k] - spec_shot(k)) * inv_nl[k], 0.0)
-        texture = (acc / n_obs).astype(dtype)
-        t = lap("texture", t)
-        # 4.1.5 Err_i = Σ (Image − Image')², stop on |ΔErr| ≤ ε
-        err = 0.0
-        for k in range(n_shots):
-            d = images[k] - e[k] * (texture * nl_pos[k] + spec_shot(k))
-            err += float(np.sum(np.where(valid[k], d * d, 0.0), dtype=np.float64))
-        history.append(err)
-        t = lap("error", t)
-        if abs(err_prev - err) <= tol * max(err_prev if math.isfinite(err_prev) else err, 1e-300):
-            status = "converged"
-            break
-        err_prev = err
-    return BaselineResult(
-        name="paper-numpy", texture=texture.astype(np.float64), s=s.copy(), alpha=np.exp(beta),
-        seconds=time.perf_counter() - t_start, iterations=iters, history=history,
-        stage_times={**times, "lm_evaluations": float(nfev)}, status=status,
-    )
+def _spec_shot(a: _PaperArrays, s: np.ndarray, beta: np.ndarray, k: int, dtype: DTypeLike) -> np.ndarray:
+    """s·max(r·v, 0)^α for shot k where n·l > 0, (3, H, W)."""
+    lobe = np.exp(np.exp(beta).astype(dtype).reshape(3, 1, 1) * a.log_rv[k])
+    return np.where(a.lit[k] & a.rv_pos[k], s.astype(dtype).reshape(3, 1, 1) * lobe, 0.0).astype(dtype, copy=False)
+
+
+def _specular_step(a: _PaperArrays, texture: np.ndarray, s: np.ndarray, beta: np.ndarray) -> int:
+    """4.1.1–4.1.3 per channel: the specular left by the texture, its control points, LM on (s, log α); ``s`` and
+    ``beta`` are updated in place. Returns the LM evaluations."""
+    nfev = 0
+    for c in range(3):
+        oc = a.obs[:, c]
+        spec_obs = (a.y[:, c] - texture[c][None] * a.nl[:, 0])[oc]
+        mean = a.bins[c].mean(spec_obs.astype(np.float64))
+        x0 = np.array([max(s[c], 1e-6), beta[c]])
+        x, k = _lm_channel(a.bins[c].q, mean, x0)
+        nfev += k
+        s[c], beta[c] = max(x[0], 0.0), x[1]
+    return nfev
+
+
+def _texture_step(a: _PaperArrays, s: np.ndarray, beta: np.ndarray, dtype: DTypeLike) -> np.ndarray:
+    """4.1.4: mean over the shots that see a texel lit of (image − specular) / (n·l)."""
+    acc = np.zeros((3,) + a.images.shape[2:], np.float64)
+    for k in range(a.n_shots):
+        acc += np.where(a.obs[k], (a.y[k] - _spec_shot(a, s, beta, k, dtype)) * a.inv_nl[k], 0.0)
+    return (acc / a.n_obs).astype(dtype)
+
+
+def _error(a: _PaperArrays, texture: np.ndarray, s: np.ndarray, beta: np.ndarray, dtype: DTypeLike) -> float:
+    """4.1.5: Err = Σ (Image − Image')² over valid observations."""
+    err = 0.0
+    for k in range(a.n_shots):
+        d = a.images[k] - a.e[k] * (texture * a.nl_pos[k] + _spec_shot(a, s, beta, k, dtype))
+        err += float(np.sum(np.where(a.valid[k], d * d, 0.0), dtype=np.float64))
+    return err
 
 
 # --------------------------------------------------------------------------- Adam baseline
 
 
 def adam_fit(
-    capture,
+    capture: Capture,
     *,
     steps: int = 2000,
     lr: float = 0.05,
@@ -411,10 +363,61 @@ def adam_fit(
     """
     import torch
 
+    t_start = time.perf_counter()
+    p = _adam_problem(capture)
+    u = torch.nn.Parameter(p.t_init / p.scale)
+    s_par = torch.nn.Parameter(torch.full((3,), s0 * float(p.y[p.w > 0].max()) if bool((p.w > 0).any()) else s0))
+    log_a = torch.nn.Parameter(torch.full((3,), math.log(alpha0)))
+    opt = torch.optim.Adam([u, s_par, log_a], lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=lr_final)
+    y_norm = float((p.y * p.w).square().sum() / p.wsum) or 1.0
+    history: list[float] = []
+    status = "max_iters"
+    done = 0
+    for step in range(steps):
+        opt.zero_grad(set_to_none=True)
+        loss = ((_adam_model(p, u, s_par, log_a) - p.y).square() * p.w).sum() / p.wsum / y_norm
+        loss.backward()
+        opt.step()
+        sched.step()
+        with torch.no_grad():
+            s_par.clamp_(min=0.0)
+            log_a.clamp_(min=-5.0, max=10.0)
+        done = step + 1
+        if step % log_every == 0 or step == steps - 1:
+            history.append(float(loss.detach()) * y_norm)
+        if time_budget is not None and time.perf_counter() - t_start > time_budget:
+            status = "time_budget"
+            break
+    if status != "time_budget":
+        status = "converged" if done == steps else status
+    return BaselineResult(
+        name="adam", texture=(u.detach() * p.scale).double().numpy(), s=s_par.detach().double().numpy(),
+        alpha=log_a.detach().exp().double().numpy(), seconds=time.perf_counter() - t_start,
+        iterations=done, history=history, stage_times={"adam": time.perf_counter() - t_start}, status=status,
+    )
+
+
+@dataclass
+class _AdamProblem:
+    """What :func:`adam_fit` precomputes: the geometry is fixed during the fit."""
+
+    nl: Tensor  # (N, 1, H, W) max(n·l, 0)
+    y: Tensor  # (N, 3, H, W) I / E
+    w: Tensor  # (N, 3, H, W) 0/1: valid and lit
+    wsum: Tensor  # Σ w, at least 1
+    t_init: Tensor  # (3, H, W) initial texture
+    scale: float  # the texture's unit: its mean initial value
+    spec_on: Tensor  # (N, 1, H, W) 0/1: the lobe's support
+    log_rv: Tensor  # (N, 1, H, W) log(r·v) where r·v > 0
+
+
+def _adam_problem(capture: Capture) -> _AdamProblem:
+    import torch
+
     # on use: loads torch (this module imports numpy only)
     from torchmetal.geometry import shading_geometry
 
-    t_start = time.perf_counter()
     a = capture_arrays(capture, np.float32)
     images = torch.from_numpy(a["images"])
     valid = torch.from_numpy(a["valid"])
@@ -432,44 +435,16 @@ def adam_fit(
     good = (w > 0) & (geom.n_dot_l > 0.2)
     t_init = torch.where(good, y / geom.n_dot_l.clamp_min(0.2), torch.zeros_like(y)).sum(0) / good.sum(0).clamp_min(1)
     scale = float(t_init.mean().clamp_min(1e-8))
-    u = torch.nn.Parameter(t_init / scale)
-    s_par = torch.nn.Parameter(torch.full((3,), s0 * float(y[w > 0].max()) if bool((w > 0).any()) else s0))
-    log_a = torch.nn.Parameter(torch.full((3,), math.log(alpha0)))
-    opt = torch.optim.Adam([u, s_par, log_a], lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=lr_final)
-    y_norm = float((y * w).square().sum() / wsum) or 1.0
     # geometry is fixed during the fit: precompute log(r·v) and the lobe's support once
     q = geom.spec_q
     spec_on = (lit & (q < 1.0)).float()
     log_rv = torch.log1p(-torch.where(q < 1.0, q, torch.full_like(q, 0.5)))
-    del geom, images, valid, good, q
+    return _AdamProblem(nl=nl, y=y, w=w, wsum=wsum, t_init=t_init, scale=scale, spec_on=spec_on, log_rv=log_rv)
 
-    def model_y():
-        lobe = torch.exp(log_a.exp().reshape(1, 3, 1, 1) * log_rv) * spec_on
-        return (u * scale) * nl + s_par.reshape(1, 3, 1, 1) * lobe
 
-    history: list[float] = []
-    status = "max_iters"
-    done = 0
-    for step in range(steps):
-        opt.zero_grad(set_to_none=True)
-        loss = ((model_y() - y).square() * w).sum() / wsum / y_norm
-        loss.backward()
-        opt.step()
-        sched.step()
-        with torch.no_grad():
-            s_par.clamp_(min=0.0)
-            log_a.clamp_(min=-5.0, max=10.0)
-        done = step + 1
-        if step % log_every == 0 or step == steps - 1:
-            history.append(float(loss.detach()) * y_norm)
-        if time_budget is not None and time.perf_counter() - t_start > time_budget:
-            status = "time_budget"
-            break
-    if status != "time_budget":
-        status = "converged" if done == steps else status
-    return BaselineResult(
-        name="adam", texture=(u.detach() * scale).double().numpy(), s=s_par.detach().double().numpy(),
-        alpha=log_a.detach().exp().double().numpy(), seconds=time.perf_counter() - t_start,
-        iterations=done, history=history, stage_times={"adam": time.perf_counter() - t_start}, status=status,
-    )
+def _adam_model(p: _AdamProblem, u: Tensor, s_par: Tensor, log_a: Tensor) -> Tensor:
+    """The model's I / E: texture (in units of ``p.scale``)·n·l + s·max(r·v, 0)^α."""
+    import torch
+
+    lobe = torch.exp(log_a.exp().reshape(1, 3, 1, 1) * p.log_rv) * p.spec_on
+    return (u * p.scale) * p.nl + s_par.reshape(1, 3, 1, 1) * lobe

@@ -17,6 +17,7 @@ import gc
 import os
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,10 @@ from torchmetal.bench.scoring import (
     to_numpy,
     valid_mask,
 )
+
+if TYPE_CHECKING:
+    from torchmetal.fit.result import FitResult
+    from torchmetal.io.capture import Capture
 
 
 def task_prepare(cfg: dict) -> dict:
@@ -92,8 +97,6 @@ def task_method(cfg: dict) -> dict:
     cfg: path, method ∈ {torchmetal, torchmetal-paper, paper-numpy, adam}, tol, max_iters,
     adam_steps, adam_budget.
     """
-    import torch
-
     cap, truth, fit_idx, hold_idx = _load_prepared(cfg["path"])
     fit_cap = cap.subset(fit_idx)
     hold_cap = cap.subset(hold_idx) if hold_idx else None
@@ -104,16 +107,7 @@ def task_method(cfg: dict) -> dict:
     out: dict = {"method": method, "capture_f32_bytes": capture_nbytes_f32(fit_cap)}
     with PeakMemory() as pm:
         t0 = time.perf_counter()
-        if method == "torchmetal":
-            fit = _fit_torchmetal(fit_cap, cfg)
-        elif method == "torchmetal-paper":
-            fit = _fit_torchmetal(fit_cap, {**cfg, "scheme": "paper", "specular": "global"})
-        elif method == "paper-numpy":
-            fit = baselines.paper_scheme_numpy(fit_cap, tol=float(cfg.get("tol", 1e-6)), max_iters=int(cfg.get("max_iters", 100)))
-        elif method == "adam":
-            fit = baselines.adam_fit(fit_cap, steps=int(cfg.get("adam_steps", 2000)), time_budget=cfg.get("adam_budget"))
-        else:
-            raise ValueError(f"unknown method {method!r}")
+        fit = _fit_method(method, fit_cap, cfg)
         wall = time.perf_counter() - t0
     out.update(wall_s=wall, peak_bytes=pm.peak, peak_abs_bytes=pm.peak_abs, memory_method=pm.method)
     out["peak_over_capture"] = pm.peak / max(out["capture_f32_bytes"], 1)
@@ -122,25 +116,50 @@ def task_method(cfg: dict) -> dict:
     st = getattr(fit, "stage_times", {}) or {}
     out["stage_times"] = {k: float(v) for k, v in st.items() if isinstance(v, (int, float))}
     out["skipped"] = [str(x) for x in (getattr(fit, "skipped", None) or [])]
-
-    texture, s, alpha = fit.texture, fit.s, fit.alpha
-    # held-out PSNR (same torch renderer for every method; torchmetal's own render when it has one)
     if hold_cap is not None:
-        v = valid_mask(hold_cap)
-        if hasattr(fit, "render") and method.startswith("torchmetal"):
-            with torch.no_grad():
-                pred = fit.render(hold_cap.lights, hold_cap.intensities, hold_cap.cameras)
-        else:
-            pred = render_params(texture, s, alpha, hold_cap)
-        # primary: against the noise-free render of the truth; secondary: against the noisy photos
-        clean = truth.get("clean_hold")
-        if clean is not None:
-            out["psnr_truth"] = psnr_or_nan(pred, clean)
-        out["psnr_holdout"] = psnr_or_nan(pred, hold_cap.images, v)
-        if all(k in truth for k in ("texture", "s", "alpha")):
-            ref = render_params(truth["texture"], truth["s"], truth["alpha"], hold_cap)
-            out["psnr_holdout_truth"] = psnr_or_nan(ref, hold_cap.images, v)
-    # parameter errors against the synthetic truth
+        out.update(_holdout_scores(fit, method, truth, hold_cap))
+    out.update(_parameter_errors(fit.texture, fit.s, fit.alpha, truth))
+    return out
+
+
+def _fit_method(method: str, fit_cap: Capture, cfg: dict) -> FitResult | baselines.BaselineResult:
+    if method == "torchmetal":
+        return _fit_torchmetal(fit_cap, cfg)
+    if method == "torchmetal-paper":
+        return _fit_torchmetal(fit_cap, {**cfg, "scheme": "paper", "specular": "global"})
+    if method == "paper-numpy":
+        return baselines.paper_scheme_numpy(fit_cap, tol=float(cfg.get("tol", 1e-6)), max_iters=int(cfg.get("max_iters", 100)))
+    if method == "adam":
+        return baselines.adam_fit(fit_cap, steps=int(cfg.get("adam_steps", 2000)), time_budget=cfg.get("adam_budget"))
+    raise ValueError(f"unknown method {method!r}")
+
+
+def _holdout_scores(fit: FitResult | baselines.BaselineResult, method: str, truth: dict, hold_cap: Capture) -> dict:
+    """Held-out PSNR (same torch renderer for every method; torchmetal's own render when it has one)."""
+    import torch
+
+    out: dict = {}
+    texture, s, alpha = fit.texture, fit.s, fit.alpha
+    v = valid_mask(hold_cap)
+    if hasattr(fit, "render") and method.startswith("torchmetal"):
+        with torch.no_grad():
+            pred = fit.render(hold_cap.lights, hold_cap.intensities, hold_cap.cameras)
+    else:
+        pred = render_params(texture, s, alpha, hold_cap)
+    # primary: against the noise-free render of the truth; secondary: against the noisy photos
+    clean = truth.get("clean_hold")
+    if clean is not None:
+        out["psnr_truth"] = psnr_or_nan(pred, clean)
+    out["psnr_holdout"] = psnr_or_nan(pred, hold_cap.images, v)
+    if all(k in truth for k in ("texture", "s", "alpha")):
+        ref = render_params(truth["texture"], truth["s"], truth["alpha"], hold_cap)
+        out["psnr_holdout_truth"] = psnr_or_nan(ref, hold_cap.images, v)
+    return out
+
+
+def _parameter_errors(texture, s, alpha, truth: dict) -> dict:
+    """Parameter errors against the synthetic truth, and the fitted values."""
+    out: dict = {}
     if "texture" in truth:
         tt = to_numpy(truth["texture"])
         out["psnr_texture"] = psnr_or_nan(to_numpy(texture), tt)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -48,6 +49,11 @@ from torchmetal.fit.run import FitRun
 from torchmetal.geometry import is_flat
 from torchmetal.lobes import LOBES, check_lobe
 from torchmetal.memory import is_large, release_free_memory
+
+if TYPE_CHECKING:
+    from torchmetal.fit.decisions import SubsampleDecisions
+    from torchmetal.fit.lobe_choice import LobeSelection
+    from torchmetal.io.capture import Capture
 
 SCHEMES = ("paper", "refine")
 SPECULARS = ("auto", "global", "clustered", "maps", "none")
@@ -103,22 +109,10 @@ def _grid_maps(x: Tensor, h: int, w: int) -> Tensor:
 
 
 def fit_phong(
-    capture,
-    *,
-    scheme: str = "refine",
-    specular: str = "auto",
-    tol: float = 1e-6,
-    max_iters: int = 100,
-    robust: str | None = None,
-    progress: bool = False,
-    outliers: float | None = None,
-    clusters: tuple[int, ...] = (2, 3, 4),
-    max_pixels_per_chunk: int = 4096,
-    sub_pixels: int = 1 << 16,
-    select_pixels: int = 1 << 13,
-    seed: int = 0,
-    lobe: str = "phong",
-    noise_weights: bool = False,
+    capture: Capture, *, scheme: str = "refine", specular: str = "auto", tol: float = 1e-6, max_iters: int = 100,
+    robust: str | None = None, progress: bool = False, outliers: float | None = None,
+    clusters: tuple[int, ...] = (2, 3, 4), max_pixels_per_chunk: int = 4096, sub_pixels: int = 1 << 16,
+    select_pixels: int = 1 << 13, seed: int = 0, lobe: str = "phong", noise_weights: bool = False,
 ) -> FitResult:
     """Fit the Phong model of docs/design.md §2.2 (texture d(p), s, α per channel) to a capture.
 
@@ -162,42 +156,64 @@ def fit_phong(
     """
     clusters = tuple(clusters)
     _check_args(capture, scheme, specular, tol, max_iters, robust, outliers, clusters)
-    check_lobe(lobe, (*LOBES, "auto"))
-    if scheme == "paper" and lobe not in ("phong", "auto"):
-        raise InputError(f"lobe: expected 'phong' or 'auto' with scheme='paper' (the paper's lobe), found {lobe!r}")
+    _check_lobe_arg(lobe, scheme)
+    kw = dict(specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers, clusters=clusters,
+              chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
+              noise=noise_weights)
     run = FitRun(progress)
-    lobe_sel = None
     try:
-        if lobe == "auto" and scheme == "paper":
-            lobe = "phong"
-            run.skipped.append("lobe: scheme='paper' fits the paper's lobe; phong")
-        elif lobe == "auto" and specular == "none":
-            lobe = "phong"
-            run.skipped.append("lobe: specular='none', no lobe to choose; phong")
-        if scheme == "paper":
-            res = _fit_paper(capture, run, specular=specular, tol=tol, max_iters=max_iters, chunk=max_pixels_per_chunk,
-                             robust=robust)
-        else:
-            kw = dict(specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers, clusters=clusters,
-                      chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
-                      noise=noise_weights)
-            decided = None
-            if lobe == "auto":  # the structure (clusters) with Phong first, then the lobes compete on it
-                n_skipped, n_decided = len(run.skipped), len(run.decisions)
-                decided = subsample_decisions(capture, run, lobe="phong", **kw)
-                lobe, lobe_sel = _choose_lobe(capture, run, decided, tol=tol, max_iters=max_iters,
-                                              select_pixels=select_pixels, chunk=max_pixels_per_chunk)
-                if lobe != "phong":
-                    decided = None  # the decisions again, with the chosen lobe (Phong's notes no longer apply)
-                    del run.skipped[n_skipped:]
-                    run.decisions[n_decided:] = run.decisions[-1:]  # the lobe's own record stays
-            res = _fit_refine(capture, run, lobe=lobe, decided=decided, **kw)
+        res, lobe, lobe_sel = _fit_scheme(capture, run, scheme, lobe, kw)
     finally:
         run.close()
     res.lobe = lobe
     res.lobe_selection = None if lobe_sel is None else lobe_sel.to_dict()
     _check_finite("fit_phong", res.texture, res.s, res.alpha, torch.tensor(res.rmse))
     return res
+
+
+def _check_lobe_arg(lobe: str, scheme: str) -> None:
+    check_lobe(lobe, (*LOBES, "auto"))
+    if scheme == "paper" and lobe not in ("phong", "auto"):
+        raise InputError(f"lobe: expected 'phong' or 'auto' with scheme='paper' (the paper's lobe), found {lobe!r}")
+
+
+def _fit_scheme(capture: Capture, run: FitRun, scheme: str, lobe: str,
+                kw: dict) -> tuple[FitResult, str, LobeSelection | None]:
+    """The fit by ``scheme`` with the refine scheme's options ``kw``: (result, lobe, lobe selection or None)."""
+    lobe = _settled_lobe(lobe, scheme, kw["specular"], run)
+    if scheme == "paper":
+        res = _fit_paper(capture, run, specular=kw["specular"], tol=kw["tol"], max_iters=kw["max_iters"],
+                         chunk=kw["chunk"], robust=kw["robust"])
+        return res, lobe, None
+    return _fit_refine_lobe(capture, run, lobe, kw)
+
+
+def _settled_lobe(lobe: str, scheme: str, specular: str, run: FitRun) -> str:
+    """lobe="auto" where there is nothing to choose (scheme="paper", specular="none") is phong (reported)."""
+    if lobe == "auto" and scheme == "paper":
+        lobe = "phong"
+        run.skipped.append("lobe: scheme='paper' fits the paper's lobe; phong")
+    elif lobe == "auto" and specular == "none":
+        lobe = "phong"
+        run.skipped.append("lobe: specular='none', no lobe to choose; phong")
+    return lobe
+
+
+def _fit_refine_lobe(capture: Capture, run: FitRun, lobe: str, kw: dict) -> tuple[FitResult, str, LobeSelection | None]:
+    """scheme="refine" with ``kw`` (:func:`_fit_refine`'s options); lobe="auto": the structure (clusters) with
+    Phong first, then the lobes compete on it. Returns (result, lobe, lobe selection or None)."""
+    decided = None
+    lobe_sel = None
+    if lobe == "auto":
+        n_skipped, n_decided = len(run.skipped), len(run.decisions)
+        decided = subsample_decisions(capture, run, lobe="phong", **kw)
+        lobe, lobe_sel = _choose_lobe(capture, run, decided, tol=kw["tol"], max_iters=kw["max_iters"],
+                                      select_pixels=kw["select_pixels"], chunk=kw["chunk"])
+        if lobe != "phong":
+            decided = None  # the decisions again, with the chosen lobe (Phong's notes no longer apply)
+            del run.skipped[n_skipped:]
+            run.decisions[n_decided:] = run.decisions[-1:]  # the lobe's own record stays
+    return _fit_refine(capture, run, lobe=lobe, decided=decided, **kw), lobe, lobe_sel
 
 
 def _choose_lobe(capture, run: FitRun, d, *, tol, max_iters, select_pixels, chunk):
@@ -286,40 +302,75 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
         capture, run, specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers,
         clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed, lobe=lobe,
         noise=noise)
-    spec, labeler, s_fixed, sel, use_maps, maps_info, weighting = (
-        d.spec, d.labeler, d.s_fixed, d.sel, d.use_maps, d.maps_info, d.weighting)
+    weighting = d.weighting
     noise_info = None if weighting is None or weighting.variance is None else \
         {"a": weighting.variance[0].tolist(), "b": weighting.variance[1].tolist()}
-    imgs = capture.images
-    dt = compute_dtype(imgs)
-    h, w = imgs.shape[-2:]
+    dt = compute_dtype(capture.images)
+    full = _full_observations(capture, run, d, lobe=lobe, dt=dt, chunk=chunk)
+    if d.spec is None:
+        return _no_specular_refine(capture, run, full, dt, noise_info)
+    fit, s_fix = _refine_full(full, run, d, tol=tol, max_iters=max_iters)
+    if full.source is not None:  # a large capture: the LM's freed temporaries go back before the texture's
+        release_free_memory()
+    if lobe == "ggx" and not d.use_maps and s_fix is None:  # one roughness for the three channels, where the data allow it
+        with run.stage("refine"):
+            fit, shared = share_alpha(full, fit)
+        if shared["shared"]:
+            run.skipped.append(f"specular: per-channel α not kept (GGX: one α for the three channels; they lower the "
+                               f"cost by {shared['cost_rise']:.3g}, below the χ² bound {shared['bound']:.3g})")
+    if d.use_maps:
+        return _finish_maps(capture, run, full, fit, d.spec.k, tol=tol, max_iters=max_iters, sel_info=d.sel,
+                            maps_info=d.maps_info, noise=noise_info)
+    with run.stage("texture"):
+        tex = texture_map(full, fit.s, fit.eb)
+        fit = replace(fit, eb=None)  # e_b (3, P) is spent: the texture's peak need not hold it
+        tex = _finish_texture(tex, full, capture, run)
+    return _refine_result(capture, run, full, fit, tex, d.spec.k, sel=d.sel, maps_info=d.maps_info, noise_info=noise_info)
 
-    # 5. full resolution. A large capture streams the geometry (stored, it would weigh 1.25× the
-    # images): one geometry evaluation more per pass over the pixels (1024² × 8: +0.14 s on a 0.16 s
-    # pass, −0.05 s on the build); a small one stores it (the memory is not worth that time).
+
+def _full_observations(capture, run: FitRun, d: SubsampleDecisions, *, lobe: str, dt: torch.dtype,
+                       chunk: int) -> Observations:
+    """5. full resolution: the observations at the subsample's solution ``d`` (weights, labels, first stats).
+
+    A large capture streams the geometry (stored, it would weigh 1.25× the images): one geometry
+    evaluation more per pass over the pixels (1024² × 8: +0.14 s on a 0.16 s pass, −0.05 s on the
+    build); a small one stores it (the memory is not worth that time).
+    """
+    imgs = capture.images
+    spec, weighting = d.spec, d.weighting
     with run.stage("geometry"):
         ref = None if spec is None else Reference(spec.s, spec.alpha)
         if ref is None and weighting is not None:
             ref = Reference(torch.zeros(1, 3, dtype=torch.float64, device=imgs.device),
                             torch.ones(1, 3, dtype=torch.float64, device=imgs.device))
-        full = build_observations(capture, lobe=lobe, dtype=dt, chunk=chunk, ref=ref, weighting=weighting, labeler=labeler,
-                                  with_stats=spec is not None, want_tmin=use_maps, stream=is_large(capture))
+        full = build_observations(capture, lobe=lobe, dtype=dt, chunk=chunk, ref=ref, weighting=weighting, labeler=d.labeler,
+                                  with_stats=spec is not None, want_tmin=d.use_maps, stream=is_large(capture))
+    return full
+
+
+def _no_specular_refine(capture, run: FitRun, full: Observations, dt: torch.dtype, noise_info: dict | None) -> FitResult:
+    """The refine scheme's result when the decisions dropped the specular term: the diffuse-only texture."""
     n_obs = full.n_obs
-    if spec is None:
-        with run.stage("texture"):
-            tex = _finish_texture(_no_specular_texture(full), full, capture, run)
-        rmse = math.sqrt(float(full.A.sum(dtype=torch.float64)) / n_obs)
-        run.log("texture", 0, rmse, 1.0, full.num_pixels)
-        z = torch.zeros(3, dtype=dt, device=imgs.device)
-        return _result(capture, run, tex, z, torch.full_like(z, ALPHA_MIN),
-                       status="converged", rmse=rmse, scheme="refine", specular="none", noise=noise_info)
+    with run.stage("texture"):
+        tex = _finish_texture(_no_specular_texture(full), full, capture, run)
+    rmse = math.sqrt(float(full.A.sum(dtype=torch.float64)) / n_obs)
+    run.log("texture", 0, rmse, 1.0, full.num_pixels)
+    z = torch.zeros(3, dtype=dt, device=capture.images.device)
+    return _result(capture, run, tex, z, torch.full_like(z, ALPHA_MIN),
+                   status="converged", rmse=rmse, scheme="refine", specular="none", noise=noise_info)
+
+
+def _refine_full(full: Observations, run: FitRun, d: SubsampleDecisions, *, tol: float,
+                 max_iters: int) -> tuple[SpecFit, Tensor | None]:
+    """The full-resolution LM from the subsample's specular ``d.spec`` (then the pixels relabelled when the
+    selection chose it). Returns (fit, s_fixed or None)."""
+    spec, labeler, sel = d.spec, d.labeler, d.sel
     with run.stage("refine"):
-        k = spec.k
         s_fix, b_fix = None, None
         if labeler is not None:  # clusters without evidence keep the global terms
             s_fix, b_fix = pinned_terms(spec.pinned, spec.s, spec.alpha)
-        elif s_fixed is not None:
-            s_fix = s_fixed
+        elif d.s_fixed is not None:
+            s_fix = d.s_fixed
         first, full.first_stats = full.first_stats, None  # its e_b lives only as long as the LM needs it
         fit = fit_specular(full, torch.log(spec.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix,
                            on_iter=run.logger("refine", full.num_pixels), first=first)
@@ -329,21 +380,14 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
             fit, moved = relabel_pixels(full, fit, lambda obs, f: fit_specular(
                 obs, torch.log(f.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix))
             run.log("relabel", 1, math.sqrt(float(fit.cost.sum()) / full.n_obs), 1.0, moved)
-    if full.source is not None:  # a large capture: the LM's freed temporaries go back before the texture's
-        release_free_memory()
-    if lobe == "ggx" and not use_maps and s_fix is None:  # one roughness for the three channels, where the data allow it
-        with run.stage("refine"):
-            fit, shared = share_alpha(full, fit)
-        if shared["shared"]:
-            run.skipped.append(f"specular: per-channel α not kept (GGX: one α for the three channels; they lower the "
-                               f"cost by {shared['cost_rise']:.3g}, below the χ² bound {shared['bound']:.3g})")
-    if use_maps:
-        return _finish_maps(capture, run, full, fit, k, tol=tol, max_iters=max_iters, sel_info=sel, maps_info=maps_info,
-                            noise=noise_info)
-    with run.stage("texture"):
-        tex = texture_map(full, fit.s, fit.eb)
-        fit = replace(fit, eb=None)  # e_b (3, P) is spent: the texture's peak need not hold it
-        tex = _finish_texture(tex, full, capture, run)
+    return fit, s_fix
+
+
+def _refine_result(capture, run: FitRun, full: Observations, fit: SpecFit, tex: Tensor, k: int, *, sel,
+                   maps_info: dict | None, noise_info: dict | None) -> FitResult:
+    """The result of the global (k = 1) or clustered specular ``fit`` and its texture ``tex`` (3, H, W)."""
+    dt = compute_dtype(capture.images)
+    h, w = capture.images.shape[-2:]
     _check_finite("fit_phong(scheme='refine')", tex, fit.s, fit.alpha, fit.cost)
     rmse = _rmse(fit, full)
     sel_info = None if sel is None else {"k": sel.k, "hold": sel.hold, "mse": sel.mse, "reason": sel.reason,

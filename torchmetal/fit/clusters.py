@@ -14,6 +14,7 @@ of :mod:`torchmetal.fit.decision`). Clusters without highlight evidence keep the
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
@@ -24,6 +25,9 @@ from torchmetal.fit.decision import MIN_GAIN_ABS, Decision, paired_choice
 from torchmetal.fit.lm import solve_2x2
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, weighted
 from torchmetal.fit.refine import SpecFit, chunk_model, fit_specular, pinned_terms, spec_sums, texture_map
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 EVIDENCE_REL = 1e-3  # the specular term must explain this fraction of the diffuse-only residual…
 EVIDENCE_ABS = 1e-6  # …and this fraction of Σ w·y²
@@ -173,7 +177,7 @@ def evidence(fit: SpecFit) -> Tensor:
     return (fit.s > 0) & (fit.explained() > EVIDENCE_REL) & (gain > EVIDENCE_ABS * fit.Y)
 
 
-def heldout_evidence(capture, glob: SpecFit, *, stride: int, hold: int, tol: float, max_iters: int,
+def heldout_evidence(capture: Capture, glob: SpecFit, *, stride: int, hold: int, tol: float, max_iters: int,
                      dtype: torch.dtype, chunk: int, weighting: Weighting | None) -> Decision:
     """Does the specular term predict a shot left out of the fit better than diffuse alone?
 
@@ -247,7 +251,8 @@ def relabel(obs: Observations, s: Tensor, alpha: Tensor, per_obs: float) -> tupl
     return torch.where(change, arg, obs.labels), int(change.sum())
 
 
-def relabel_pixels(obs: Observations, fit: SpecFit, refit) -> tuple[SpecFit, int]:
+def relabel_pixels(obs: Observations, fit: SpecFit,
+                   refit: Callable[[Observations, SpecFit], SpecFit]) -> tuple[SpecFit, int]:
     """Move pixels to the cluster whose s, α explain them best, where that is significant, and refit.
 
     The labeler draws clusters from T_min colour and specular features on a subsample; at a
@@ -356,7 +361,7 @@ def _relabel_decision(obs: Observations, ho: Observations, labeler: Labeler, glo
 
 
 def choose_specular(
-    capture,
+    capture: Capture,
     glob: SpecFit,
     *,
     candidates: tuple[int, ...],
@@ -385,17 +390,44 @@ def choose_specular(
     obs = build_observations(capture, stride=stride, shots=fit_shots, dtype=dtype, chunk=chunk, ref=ref,
                              weighting=weighting, want_tmin=True, lobe=glob.lobe)
     g = fit_specular(obs, torch.log(glob.alpha), tol=tol, max_iters=max_iters)
-    if hold is None:  # no shot to spare: in-sample error (only to rank candidates when forced)
-        ho = None
-        score = lambda fit, labels: torch.full((1,), float(fit.cost.sum()) / obs.n_obs, dtype=torch.float64)  # noqa: E731
-    else:
-        ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk, lobe=glob.lobe)
-        score = lambda fit, labels: heldout_errors(ho, texture_map(obs, fit.s, fit.eb), fit.s, fit.alpha, labels)  # noqa: E731
+    ho, score = _scorer(capture, obs, hold, stride=stride, dtype=dtype, chunk=chunk, lobe=glob.lobe)
     errors = {"global": score(g, None)}
     mse = {"global": float(errors["global"].mean())}
     usable = obs.n.sum(0) > 0
     spec = spec_feature_map(obs, g, stride)
     ij = grid_coords(obs.height, obs.width, stride, obs.device).to(obs.dtype)
+    labelers = _cluster_candidates(obs, g, score, errors, mse, ij, usable, spec, candidates=candidates,
+                                   feature_sets=feature_sets, stop=not force and ho is not None, seed=seed, tol=tol,
+                                   max_iters=max_iters)
+    if not labelers:
+        return Selection(1, None, hold, mse, "no cluster candidate fits the image", errors=errors["global"])
+    best = min(labelers, key=mse.get)
+    if ho is None:
+        return Selection(labelers[best].k, labelers[best], -1, mse, f"{best}: lowest in-sample error (no shot to hold out)")
+    return _held_out_selection(obs, ho, g, ij, labelers, best, errors, mse, hold=hold, force=force, tol=tol,
+                               max_iters=max_iters)
+
+
+def _scorer(capture: Capture, obs: Observations, hold: int | None, *, stride: int, dtype: torch.dtype, chunk: int,
+            lobe: str) -> tuple[Observations | None, Callable[[SpecFit, Tensor | None], Tensor]]:
+    """(held-out observations or None, score: (fit, labels) → errors): the held-out shot's squared errors, or
+    without one (``hold`` None: no shot to spare) the in-sample error (only to rank candidates when forced)."""
+    if hold is None:
+        ho = None
+        score = lambda fit, labels: torch.full((1,), float(fit.cost.sum()) / obs.n_obs, dtype=torch.float64)  # noqa: E731
+    else:
+        ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk, lobe=lobe)
+        score = lambda fit, labels: heldout_errors(ho, texture_map(obs, fit.s, fit.eb), fit.s, fit.alpha, labels)  # noqa: E731
+    return ho, score
+
+
+def _cluster_candidates(obs: Observations, g: SpecFit, score: Callable[[SpecFit, Tensor | None], Tensor], errors: dict,
+                        mse: dict, ij: Tensor, usable: Tensor, spec: SpecFeatureMap, *, candidates: tuple[int, ...],
+                        feature_sets: tuple[str, ...], stop: bool, seed: int, tol: float,
+                        max_iters: int) -> dict[str, Labeler]:
+    """Fit each clustered candidate (feature set, K) from the global fit ``g``; its errors and MSE go into
+    ``errors`` and ``mse``. With ``stop``, larger K of a feature set are tried only while the last K beats
+    global's MSE. Returns the candidates' labelers by name."""
     labelers: dict[str, Labeler] = {}
     for feats in feature_sets:
         for k in sorted(candidates):
@@ -410,14 +442,17 @@ def choose_specular(
             errors[name] = score(fit, obs.labels)
             mse[name] = float(errors[name].mean())
             labelers[name] = lab
-            if not force and ho is not None and mse[name] >= mse["global"]:
+            if stop and mse[name] >= mse["global"]:
                 break  # the coarsest split of these features does not beat global: finer ones are not tried
     obs.labels = None
-    if not labelers:
-        return Selection(1, None, hold, mse, "no cluster candidate fits the image", errors=errors["global"])
-    best = min(labelers, key=mse.get)
-    if ho is None:
-        return Selection(labelers[best].k, labelers[best], -1, mse, f"{best}: lowest in-sample error (no shot to hold out)")
+    return labelers
+
+
+def _held_out_selection(obs: Observations, ho: Observations, g: SpecFit, ij: Tensor, labelers: dict[str, Labeler],
+                        best: str, errors: dict, mse: dict, *, hold: int, force: bool, tol: float,
+                        max_iters: int) -> Selection:
+    """Global unless a clustered candidate lowers the held-out errors beyond noise (``force``: the ``best``
+    candidate then); for a clustered choice, whether relabelling the pixels helps too."""
     d = paired_choice("specular clusters", errors, "global", floor=MIN_GAIN_ABS * mean_square(ho))
     d.holds, d.pixels = [hold], ho.num_pixels
     if force and d.chosen == "global":

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -19,6 +20,9 @@ from torchmetal.fit.paper import paper_scheme
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, compute_dtype, grid_stride
 from torchmetal.fit.refine import SpecFit, evaluate_specular, fit_specular, grid_beta, noise_model, residual_scale
 from torchmetal.fit.run import FitRun
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 SIGMA_FLOOR = 1e-5  # residual scale floor, relative to the largest pixel value
 INIT_TOL = 1e-3  # the paper's scheme as init: |ΔErr| ≤ 1e-3·Err …
@@ -49,8 +53,9 @@ class SubsampleDecisions:
     weighting: Weighting | None  # robust weights / outlier masks for the full-resolution observations
 
 
-def subsample_decisions(capture, run: FitRun, *, specular, tol, max_iters, robust, outliers, clusters, chunk,
-                        sub_pixels, select_pixels, seed, lobe="phong", noise: bool = False) -> SubsampleDecisions:
+def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: float, max_iters: int, robust: str | None,
+                        outliers: float | None, clusters: tuple[int, ...], chunk: int, sub_pixels: int,
+                        select_pixels: int, seed: int, lobe: str = "phong", noise: bool = False) -> SubsampleDecisions:
     """Steps 1–4b of the refine scheme (module docstring) on strided pixel subsamples of ``capture``
     (any object with ``images`` (N, 3, H, W) readable by :func:`~torchmetal.fit.problem.build_observations`,
     such as the tiled fit's memory-mapped capture): the same values bit for bit for the same pixels.

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable
 
 import torch
 import torch.nn.functional as F
@@ -50,6 +51,9 @@ from torchmetal.fit.refine import (
     spec_sums,
     texture_map,
 )
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 __all__ = ["GlossMaps", "fit_gloss_maps", "choose_maps", "MapsSelection", "RADIUS", "PRIOR", "SIGMA_GUIDE"]
 
@@ -132,6 +136,25 @@ def _guide(obs: Observations) -> Tensor:
     return f.T.reshape(3, obs.height, obs.width)
 
 
+def _prior_terms(st: Tensor, beta: Tensor, A: Tensor, s0: Tensor, b0: Tensor, prior: float,
+                 ref: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(s, cost, gradient, Hessian) (3, P) at β of the pooled stats ``st`` (6, 3, P) with the ridge prior
+    centred on the base (``s0``, ``b0``); ``ref`` holds the prior's scale, the reference curvatures at the base
+    (filled at the first call)."""
+    B, C, Bc, Cc, Yc, _ = st.unbind(0)
+    if not ref:  # reference curvatures at the base: the prior's scale
+        e = s0 * s0 * (Cc - Bc * Bc / C.clamp_min(1e-300)).clamp_min(0.0)
+        for name, v in (("C", C), ("H", e)):
+            pos = v > 0
+            ref[name] = torch.stack([v[c][pos[c]].median() if bool(pos[c].any()) else v.new_ones(()) for c in range(3)]).view(3, 1)
+    ms, mb = prior * ref["C"], prior * ref["H"]
+    s = ((B + ms * s0) / (C + ms)).clamp_min(0.0)
+    cost = (A - 2.0 * s * B + s * s * C + ms * (s - s0) ** 2 + mb * (beta - b0) ** 2).clamp_min(0.0)
+    grad = -s * (Yc - s * Bc) + mb * (beta - b0)
+    hess = s * s * (Cc - Bc * Bc / (C + ms)).clamp_min(0.0) + mb
+    return s, cost, grad, hess
+
+
 def fit_gloss_maps(
     obs: Observations,
     s0: Tensor,
@@ -167,26 +190,12 @@ def fit_gloss_maps(
         st, eb, _ = spec_sums(obs, torch.exp(beta).T.contiguous(), per_pixel=True)  # (6, 3, P)
         return pool(st.to(f64).reshape(18, h, w), wts, r).reshape(6, 3, p), eb
 
-    def terms(st: Tensor, beta: Tensor):
-        B, C, Bc, Cc, Yc, _ = st.unbind(0)
-        if not ref:  # reference curvatures at the base: the prior's scale
-            e = s0 * s0 * (Cc - Bc * Bc / C.clamp_min(1e-300)).clamp_min(0.0)
-            for name, v in (("C", C), ("H", e)):
-                pos = v > 0
-                ref[name] = torch.stack([v[c][pos[c]].median() if bool(pos[c].any()) else v.new_ones(()) for c in range(3)]).view(3, 1)
-        ms, mb = prior * ref["C"], prior * ref["H"]
-        s = ((B + ms * s0) / (C + ms)).clamp_min(0.0)
-        cost = (A - 2.0 * s * B + s * s * C + ms * (s - s0) ** 2 + mb * (beta - b0) ** 2).clamp_min(0.0)
-        grad = -s * (Yc - s * Bc) + mb * (beta - b0)
-        hess = s * s * (Cc - Bc * Bc / (C + ms)).clamp_min(0.0) + mb
-        return s, cost, grad, hess
-
     floor = (0.01 * torch.finfo(obs.dtype).eps * A).reshape(-1)
 
     def oracle(x: Tensor) -> LMEval:
         beta = x.view(3, p)
         st, eb = stats_at(beta)
-        s, cost, g, hh = terms(st, beta)
+        s, cost, g, hh = _prior_terms(st, beta, A, s0, b0, prior, ref)
         return LMEval(cost.reshape(-1), g.reshape(-1, 1), hh.reshape(-1, 1, 1), aux=(eb, s.reshape(-1)), floor=floor)
 
     def merge(new, old, accepted: Tensor):
@@ -229,10 +238,10 @@ def _maps_errors(ho: Observations, obs: Observations, maps: GlossMaps) -> Tensor
 
 
 def choose_maps(
-    capture,
+    capture: Capture,
     base: Reference,
     *,
-    labeler=None,
+    labeler: Callable[[Tensor, Tensor], Tensor] | None = None,
     stride: int,
     hold: int,
     force: bool,

@@ -15,6 +15,7 @@ on the same rows — the same values bit for bit, whatever the chunking.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -23,6 +24,9 @@ from torchmetal.fit.lobes import LOG_OFF, observation_lobe_terms
 from torchmetal.geometry import grid_shading_terms, is_flat, pixel_axes
 from torchmetal.lobes import grid_half_terms
 from torchmetal.phong import log1p_exact
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 
 def observation_geometry(n_dot_l: Tensor, spec_q: Tensor, dist2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -54,7 +58,7 @@ def block_terms(lights: Tensor, cams: Tensor, xs: Tensor, ys: Tensor, normals: T
     return g, u, L, geo
 
 
-def grid_axes(capture, rows: slice, cols: slice, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor | None]:
+def grid_axes(capture: Capture, rows: slice, cols: slice, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor | None]:
     """x of the columns (C,), y of the rows (R,) and the normals (3, R, C) of the grid, None when
     they are all the flat (0, 0, 1) (the cheaper path of the shading terms)."""
     big_h, big_w = int(capture.images.shape[-2]), int(capture.images.shape[-1])
@@ -64,7 +68,7 @@ def grid_axes(capture, rows: slice, cols: slice, dtype: torch.dtype) -> tuple[Te
 
 
 def grid_geometry(
-    capture, rows: slice, cols: slice, lights: Tensor, cams: Tensor, dtype: torch.dtype, block_rows: int,
+    capture: Capture, rows: slice, cols: slice, lights: Tensor, cams: Tensor, dtype: torch.dtype, block_rows: int,
     *, out: tuple[Tensor, Tensor, Tensor], lobe: str = "phong", geo_out: Tensor | None = None,
 ) -> None:
     """Fill ``out`` = (g, u, L), each (n, 1, R·C), for the pixel grid ``rows`` × ``cols``.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, Any, Callable
 
 import torch
 from torch import Tensor
@@ -11,8 +12,11 @@ from torchmetal.errors import InputError
 from torchmetal.fit.api import fit_phong
 from torchmetal.metrics import psnr
 
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
-def valid_pixels(capture) -> Tensor:
+
+def valid_pixels(capture: Capture) -> Tensor:
     """(N, 3, H, W) bool: inside the mask and not saturated."""
     v = capture.mask.bool().unsqueeze(0).expand_as(capture.images)
     if capture.saturated is not None:
@@ -20,7 +24,7 @@ def valid_pixels(capture) -> Tensor:
     return v
 
 
-def leave_one_out(capture, specular: str = "auto", *, peak: float = 1.0, **fit_kwargs) -> list[float]:
+def leave_one_out(capture: Capture, specular: str = "auto", *, peak: float = 1.0, **fit_kwargs: Any) -> list[float]:
     """PSNR of each shot rendered from a :func:`~torchmetal.fit.fit_phong` fit on all the other shots.
 
     Args:
@@ -40,7 +44,8 @@ def leave_one_out(capture, specular: str = "auto", *, peak: float = 1.0, **fit_k
     return leave_one_out_with(capture, fit_render, peak=peak)
 
 
-def leave_one_out_with(capture, fit_render, *, peak: float = 1.0) -> list[float]:
+def leave_one_out_with(capture: Capture, fit_render: Callable[[Capture, Capture], Tensor], *,
+                       peak: float = 1.0) -> list[float]:
     """PSNR of each shot k rendered by ``fit_render(capture without k, capture of k)`` → (1, 3, H, W).
 
     Any fit (the whole pipeline, another scheme) scored like :func:`leave_one_out`: N values (dB) over

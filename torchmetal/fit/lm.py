@@ -197,36 +197,14 @@ def levenberg_marquardt(
     status = "max_iters"
     it = 0
     for it in range(1, max_iters + 1):
-        floor = ev.floor if ev.floor is not None else torch.zeros_like(ev.cost)
-        diag = torch.diagonal(ev.hess, dim1=-2, dim2=-1)
-        dscale = marquardt_diag(diag, dmax, diag_floor)
-        dmax = dscale
-        step = damped_step(ev.grad, ev.hess, lam, dscale)
-        x_new = x + step
-        if lo is not None:
-            x_new = torch.maximum(x_new, lo)
-        if hi is not None:
-            x_new = torch.minimum(x_new, hi)
-        step = x_new - x
-        pred = predicted_reduction(ev.grad, ev.hess, step)
-        thresh = tol * ev.cost.abs() + floor
-        newton = damped_step(ev.grad, ev.hess, torch.zeros_like(lam), dscale)  # undamped GN step
-        small = (pred <= thresh) | (newton.abs() <= xtol * (1.0 + x.abs())).all(-1) | ~torch.isfinite(pred)
+        x_new, dmax, pred, thresh, small = _trial_step(ev, x, lam, dmax, lo, hi, tol=tol, xtol=xtol, diag_floor=diag_floor)
         done = done | small
         if bool(done.all()):
             it -= 1
             status = "converged"
             break
         x_try = torch.where(done[:, None], x, x_new)
-        new = oracle(x_try)
-        accepted = accept_step(new.cost, ev.cost) & ~done
-        actual = ev.cost - new.cost
-        rho = gain_ratio(actual, pred)
-        x = torch.where(accepted[:, None], x_try, x)
-        ev = select_eval(accepted, new, ev, merge)
-        lam, nu = update_damping(lam, nu, accepted, rho)
-        stalled = ~accepted & (lam >= LAMBDA_MAX)
-        done = done | (accepted & (actual <= thresh)) | stalled
+        x, ev, lam, nu, done = _take_step(oracle(x_try), ev, x, x_try, pred, thresh, lam, nu, done, merge)
         costs.append(ev.cost.clone())
         if on_iter is not None:
             on_iter(it, x, ev, done)
@@ -234,3 +212,40 @@ def levenberg_marquardt(
             status = "converged"
             break
     return LMResult(x=x, eval=ev, iterations=it, converged=done, status=status, costs=costs)
+
+
+def _trial_step(ev: LMEval, x: Tensor, lam: Tensor, dmax: Tensor, lo: Tensor | None, hi: Tensor | None, *, tol: float,
+                xtol: float, diag_floor: Tensor | float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The damped step from x, projected onto the bounds. Returns (x_new, the Marquardt diagonal (the next
+    ``dmax``), predicted reduction, threshold tol·cost + floor, converged: no step can lower the cost)."""
+    floor = ev.floor if ev.floor is not None else torch.zeros_like(ev.cost)
+    diag = torch.diagonal(ev.hess, dim1=-2, dim2=-1)
+    dscale = marquardt_diag(diag, dmax, diag_floor)
+    step = damped_step(ev.grad, ev.hess, lam, dscale)
+    x_new = x + step
+    if lo is not None:
+        x_new = torch.maximum(x_new, lo)
+    if hi is not None:
+        x_new = torch.minimum(x_new, hi)
+    step = x_new - x
+    pred = predicted_reduction(ev.grad, ev.hess, step)
+    thresh = tol * ev.cost.abs() + floor
+    newton = damped_step(ev.grad, ev.hess, torch.zeros_like(lam), dscale)  # undamped GN step
+    small = (pred <= thresh) | (newton.abs() <= xtol * (1.0 + x.abs())).all(-1) | ~torch.isfinite(pred)
+    return x_new, dscale, pred, thresh, small
+
+
+def _take_step(new: LMEval, ev: LMEval, x: Tensor, x_try: Tensor, pred: Tensor, thresh: Tensor, lam: Tensor,
+               nu: Tensor, done: Tensor, merge: Callable[[Any, Any, Tensor], Any] | None,
+               ) -> tuple[Tensor, LMEval, Tensor, Tensor, Tensor]:
+    """Accept the trial ``new`` (at x_try) where it lowers the cost, update the damping. Returns (x, eval,
+    λ, ν, done)."""
+    accepted = accept_step(new.cost, ev.cost) & ~done
+    actual = ev.cost - new.cost
+    rho = gain_ratio(actual, pred)
+    x = torch.where(accepted[:, None], x_try, x)
+    ev = select_eval(accepted, new, ev, merge)
+    lam, nu = update_damping(lam, nu, accepted, rho)
+    stalled = ~accepted & (lam >= LAMBDA_MAX)
+    done = done | (accepted & (actual <= thresh)) | stalled
+    return x, ev, lam, nu, done

@@ -16,6 +16,7 @@ sample keeps the paper's lobe.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable
 
 import torch
 from torch import Tensor
@@ -26,6 +27,9 @@ from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.problem import Observations, build_observations
 from torchmetal.fit.refine import SpecFit, chunk_terms, fit_specular, grid_beta, texture_map
 from torchmetal.lobes import LOBES
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 __all__ = ["LobeSelection", "choose_lobe", "LOBE_GRID", "HOLDS", "FOLDS"]
 
@@ -68,9 +72,9 @@ def specular_energy(obs: Observations, fit: SpecFit) -> Tensor:
 
 
 def choose_lobe(
-    capture, *, stride: int, tol: float, max_iters: int, dtype: torch.dtype, chunk: int,
+    capture: Capture, *, stride: int, tol: float, max_iters: int, dtype: torch.dtype, chunk: int,
     candidates: tuple[str, ...] = LOBES, holds: int = HOLDS, folds: int = FOLDS, min_gain: float = MIN_GAIN,
-    z_min: float = Z_MIN, labeler=None,
+    z_min: float = Z_MIN, labeler: Callable[[Tensor, Tensor], Tensor] | None = None,
 ) -> LobeSelection:
     """Fit each candidate lobe on all shots but a group (in turn, ``holds`` shots in ``folds`` groups) on a
     pixel grid of ``stride``; keep the lowest held-out MSE, Phong unless beaten beyond noise (module docstring).

@@ -31,14 +31,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 from torch import Tensor
 
-from torchmetal.fit.grid_terms import GridSource, base_validity, grid_axes, grid_geometry
-from torchmetal.fit.lobes import LOG_OFF, geo_channels, lobe_terms
-from torchmetal.fit.projected_sums import chunk_stats, reduce_stats
+from torchmetal.fit.chunk_pass import ObservationPass, as_float, observe_chunk
+from torchmetal.fit.chunk_pass import tmin_chunk as tmin_chunk  # re-exported: the pass's helpers moved there
+from torchmetal.fit.chunk_pass import weighted as weighted
+from torchmetal.fit.grid_terms import GridSource, grid_axes, grid_geometry
+from torchmetal.fit.lobes import LOG_OFF as LOG_OFF
+from torchmetal.fit.lobes import geo_channels
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
 
 ACTIVE_LOG = -40.0  # a lobe below e^-40 counts as zero
 SUM_BLOCK = 1 << 16  # pixels per block of the per-element sums
@@ -239,80 +245,11 @@ class Observations:
         return out.T.contiguous()
 
 
-def weighted(x: Tensor, w: Tensor) -> Tensor:
-    """w·x (float weights; a bool mask is converted once)."""
-    return x * (as_float(w, x.dtype) if w.dtype == torch.bool else w)
-
-
-def as_float(mask: Tensor, dtype: torch.dtype) -> Tensor:
-    """bool → 0/1 float through a free uint8 view (bool → float directly is several times slower)."""
-    return mask.view(torch.uint8).to(dtype)
-
-
-def tmin_chunk(y: Tensor, a: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
-    """T_min = min_k y/a over weighted observations with a > 0 (4.1.6); 0 where none.
-
-    Returns (T_min (3, c), argmin shot (3, c) int64).
-    """
-    ok = (w > 0) & (a > 0)
-    ratio = torch.where(ok, y / torch.where(ok, a, torch.ones_like(a)), torch.full_like(y, math.inf))
-    t, k = ratio.min(0)
-    return torch.where(torch.isfinite(t), t, torch.zeros_like(t)), k
-
-
-def _irls_chunk(target: Tensor, a: Tensor, base: Tensor, weighting: Weighting, y: Tensor | None = None) -> Tensor:
-    """Per-pixel IRLS of the texture against ``target`` = y − specular; float weights (n, 3, c).
-
-    ``base`` (n, 3, c) 0/1 float. Starts from the median over shots of target/a (one glint cannot
-    drag the start), and never rejects every observation of a pixel. With a noise model
-    (``weighting.variance``) the weights carry :meth:`Weighting.noise_weight` of the model value
-    a·d + (``y`` − ``target``), the specular term (a·d alone when ``y`` is None).
-    """
-    dt = a.dtype
-    zero = torch.zeros((), dtype=dt, device=a.device)
-    ok = base > 0
-    d = torch.nanmedian(torch.where(ok, target / torch.where(ok, a, torch.ones_like(a)), torch.full_like(a, math.nan)), 0).values
-    d = torch.where(torch.isnan(d), zero, d)
-    w = base
-    sigma = weighting.sigma.to(dt).view(1, 3, 1)
-    rounds = max(1, weighting.rounds if weighting.robust is not None else min(weighting.rounds, 2))
-    for i in range(rounds):
-        if i > 0:
-            wa = w * a
-            den = (wa * a).sum(0)
-            okd = den > 0
-            d = torch.where(okd, (wa * target).sum(0) / torch.where(okd, den, torch.ones_like(den)), d)
-        res = target - a * d
-        if weighting.robust is not None:
-            w = base * weighting(res)
-        elif weighting.outlier_k is not None:
-            w = base * as_float(res.abs() <= weighting.outlier_k * sigma, dt)
-        else:
-            w = base
-        if weighting.variance is not None:
-            pred = a * d if y is None else torch.addcmul(y - target, a, d)
-            w = w * weighting.noise_weight(pred)
-    lost = (w.sum(0) == 0) & (base.sum(0) > 0)
-    if bool(lost.any()):
-        w = torch.where(lost.unsqueeze(0), base, w)
-    return w
-
-
 def build_observations(
-    capture,
-    *,
-    stride: int = 1,
-    shots: list[int] | None = None,
-    dtype: torch.dtype | None = None,
-    chunk: int = 4096,
-    ref: Reference | None = None,
-    weighting: Weighting | None = None,
-    labeler: Callable[[Tensor, Tensor], Tensor] | None = None,
-    want_tmin: bool = False,
-    with_stats: bool = False,
-    lobe: str = "phong",
-    window: tuple[slice, slice] | None = None,
-    stream: bool = False,
+    capture: Capture, *, stride: int = 1, shots: list[int] | None = None, dtype: torch.dtype | None = None,
+    chunk: int = 4096, ref: Reference | None = None, weighting: Weighting | None = None,
+    labeler: Callable[[Tensor, Tensor], Tensor] | None = None, want_tmin: bool = False, with_stats: bool = False,
+    lobe: str = "phong", window: tuple[slice, slice] | None = None, stream: bool = False,
 ) -> Observations:
     """Precompute the observations of ``capture`` on a pixel grid of the given stride.
 
@@ -342,40 +279,76 @@ def build_observations(
         :class:`Observations`.
     """
     imgs = capture.images
-    dev = imgs.device
     dt = dtype or compute_dtype(imgs)
+    rows, cols = _grid_slices(imgs, stride, window)
+    idx = None if shots is None else torch.as_tensor(shots, dtype=torch.long, device=imgs.device)
+    y, sat, mask, h, w = _grid_pixels(capture, rows, cols, idx)
+    lights, cams, inten = _shot_terms(capture, idx, dt, int(y.shape[0]))
+    chunks = chunk_ranges(h * w, chunk)
+    ps = _start_pass(y, inten, mask, sat, rows, cols, w, dt, len(chunks), ref=ref, weighting=weighting, labeler=labeler,
+                     want_tmin=want_tmin, with_stats=with_stats, stream=stream, lobe=lobe)
+    _pass_geometry(ps, capture, lights, cams, chunk, stream)
+    for j, (p0, p1) in enumerate(chunks):
+        observe_chunk(ps, j, p0, p1)
+    return Observations(
+        y=y, g=ps.g, u=ps.u, L=ps.L, inten=inten, valid=ps.valid, weight=ps.weight, chunks=chunks, lmax=ps.lmax,
+        saa=ps.saa, d0=ps.d0, A=ps.A, n=ps.cnt,
+        fallback=torch.zeros(3, 1, dtype=dt, device=imgs.device).expand(3, h * w) if ps.fb is None else ps.fb,
+        labels=ps.labels, tmin=ps.tmin, height=h, width=w, dtype=dt,
+        first_stats=None if ps.stats_acc is None else (ps.stats_acc.permute(0, 2, 1).contiguous(), ps.eb),
+        lobe=lobe, geo=ps.geo, source=ps.source,
+    )
+
+
+def _grid_slices(imgs: Tensor, stride: int, window: tuple[slice, slice] | None) -> tuple[slice, slice]:
+    """(rows, cols) of full-resolution pixels: the stride grid (offset stride // 2), or ``window``."""
     big_h, big_w = int(imgs.shape[-2]), int(imgs.shape[-1])
     off = stride // 2 if stride > 1 else 0
     rows, cols = slice(off, big_h, stride), slice(off, big_w, stride)
     if window is not None:
         rows, cols = (slice(*s.indices(n)) for s, n in zip(window, (big_h, big_w)))
-    idx = None if shots is None else torch.as_tensor(shots, dtype=torch.long, device=dev)
+    return rows, cols
 
-    def grid(t: Tensor) -> Tensor:
-        t = t[..., rows, cols]
-        return t if idx is None else t.index_select(0, idx)
 
-    y4 = grid(imgs)
+def _on_grid(t: Tensor, rows: slice, cols: slice, idx: Tensor | None) -> Tensor:
+    t = t[..., rows, cols]
+    return t if idx is None else t.index_select(0, idx)
+
+
+def _grid_pixels(capture: Capture, rows: slice, cols: slice,
+                 idx: Tensor | None) -> tuple[Tensor, Tensor | None, Tensor | None, int, int]:
+    """(y (N, 3, P), saturated (N, 3, P) or None when nothing is clipped, mask (1, 1, P) or None when every pixel
+    is inside, h, w) of the grid's pixels and the shots ``idx``."""
+    y4 = _on_grid(capture.images, rows, cols, idx)
     n_shots, _, h, w = y4.shape
     p = h * w
     y = y4.reshape(n_shots, 3, p)
-    sat = grid(capture.saturated).reshape(n_shots, 3, p) if capture.saturated is not None else None
+    sat = _on_grid(capture.saturated, rows, cols, idx).reshape(n_shots, 3, p) if capture.saturated is not None else None
     mask = capture.mask[..., rows, cols].reshape(1, 1, p).bool() if capture.mask is not None else None
     if sat is not None and not bool(sat.view(torch.uint8).amax()):  # nothing clipped (uint8 amax: 10× cheaper than any)
         sat = None
     if mask is not None and bool(mask.view(torch.uint8).amin()):  # every pixel inside
         mask = None
+    return y, sat, mask, h, w
+
+
+def _shot_terms(capture: Capture, idx: Tensor | None, dt: torch.dtype, n_shots: int) -> tuple[Tensor, Tensor, Tensor]:
+    """(lights, cameras, intensities (N, 3, 1)) of the shots ``idx`` in the working dtype."""
     lights = capture.lights.to(dt)
     cams = capture.cameras.to(dt)
     inten = capture.intensities.to(dt)
     if idx is not None:
         lights, cams, inten = lights[idx], cams[idx], inten[idx]
-    inten = inten.view(n_shots, 3, 1)
-    inten_pos = inten > 0
-    if ref is not None:  # the working dtype: a float64 s, α would promote every (n, 3, c) temporary
-        ref_dt = Reference(ref.s.to(dt), ref.alpha.to(dt))
+    return lights, cams, inten.view(n_shots, 3, 1)
 
-    chunks = chunk_ranges(p, chunk)
+
+def _start_pass(y: Tensor, inten: Tensor, mask: Tensor | None, sat: Tensor | None, rows: slice, cols: slice, w: int,
+                dt: torch.dtype, n_chunks: int, *, ref: Reference | None, weighting: Weighting | None,
+                labeler: Callable[[Tensor, Tensor], Tensor] | None, want_tmin: bool, with_stats: bool, stream: bool,
+                lobe: str) -> ObservationPass:
+    """The pass's inputs and its (empty) maps: only those asked for."""
+    n_shots, _, p = y.shape
+    dev = y.device
     new = lambda *shape, dtype=dt: torch.empty(*shape, dtype=dtype, device=dev)  # noqa: E731
     weighs = weighting is not None and weighting.weighs  # per-observation weights stored (robust or noise)
     valid_all = new(n_shots, 3, p, dtype=torch.uint8) if not stream or weighting is not None else None
@@ -383,96 +356,35 @@ def build_observations(
     weight_all = new(n_shots, 3, p, dtype=wstore) if weighs else None
     saa, d0, A = new(3, 3, p).unbind(0)
     cnt = new(3, p, dtype=torch.int16 if n_shots < 2**15 else torch.int32)  # a count per pixel and channel
-    fb = None  # (3, P), allocated at the first pixel without a valid observation
-    lmax = new(n_shots, len(chunks))
+    lmax = new(n_shots, n_chunks)
     labels = torch.zeros(p, dtype=torch.long, device=dev) if labeler is not None else None
     tmin_all = new(3, p) if want_tmin else None
-    zero = torch.zeros((), dtype=dt, device=dev)
     stats_acc = eb_all = None
     if with_stats and ref is not None:
         stats_acc = torch.zeros(6, 3, ref.k, dtype=torch.float64, device=dev)
         eb_all = new(3, p)
-    source = g_all = u_all = l_all = geo_all = None
+    # the working dtype: a float64 s, α would promote every (n, 3, c) temporary
+    ref_dt = None if ref is None else Reference(ref.s.to(dt), ref.alpha.to(dt))
+    return ObservationPass(
+        y=y, inten=inten, inten_pos=inten > 0, mask=mask, sat=sat, rows=rows, cols=cols, width=w, dt=dt,
+        zero=torch.zeros((), dtype=dt, device=dev), ref=ref_dt, ref_k=0 if ref is None else ref.k, weighting=weighting,
+        weighs=weighs, labeler=labeler, want_tmin=want_tmin, lobe=lobe, valid=valid_all, weight=weight_all, wstore=wstore,
+        saa=saa, d0=d0, A=A, cnt=cnt, lmax=lmax, labels=labels, tmin=tmin_all, stats_acc=stats_acc, eb=eb_all,
+    )
+
+
+def _pass_geometry(ps: ObservationPass, capture: Capture, lights: Tensor, cams: Tensor, chunk: int, stream: bool) -> None:
+    """The pass's geometry: a :class:`GridSource` that recomputes it per chunk (``stream``), else (g, u, L, geo)
+    computed once and stored."""
+    dt, rows, cols, lobe = ps.dt, ps.rows, ps.cols, ps.lobe
     if stream:
         xs, ys, normals = grid_axes(capture, rows, cols, dt)
-        source = GridSource(lights, cams, xs, ys, None if normals is None else normals.to(dt), lobe, inten_pos, mask, sat,
-                            dt)
-    else:
-        g_all, u_all, l_all = new(n_shots, 1, p), new(n_shots, 1, p), new(n_shots, 1, p)
-        geo_all = new(n_shots, 3, p) if geo_channels(lobe) else None
-        grid_geometry(capture, rows, cols, lights, cams, dt, max(1, chunk // w), out=(g_all, u_all, l_all), lobe=lobe,
-                      geo_out=geo_all)
-
-    for j, (p0, p1) in enumerate(chunks):
-        sl = slice(p0, p1)
-        if source is not None:
-            g, u, L, geo, base_b = source.terms(p0, p1)
-        else:
-            g, u, L = g_all[:, :, sl], u_all[:, :, sl], l_all[:, :, sl]
-            geo = None if geo_all is None else geo_all[:, :, sl]
-            base_b = base_validity(g, None if mask is None else mask[:, :, sl], inten_pos,
-                                   None if sat is None else sat[:, :, sl])
-        yc = y[:, :, sl].to(dt)
-        a = inten * g
-        base = as_float(base_b, dt)
-        t_c = tmin_chunk(yc, a, base)[0] if (want_tmin or labeler is not None) else None
-        lab = None
-        if labeler is not None:
-            flat = torch.arange(p0, p1, device=dev)
-            lab = labeler(t_c, torch.stack([rows.start + (flat // w) * rows.step, cols.start + (flat % w) * cols.step]).to(dt))
-            labels[sl] = lab
-        if tmin_all is not None:
-            tmin_all[:, sl] = t_c
-        b = t = s_c = None
-        if ref is not None:
-            s_c, al_c = ref_dt.maps(lab, p1 - p0)
-            _, b, t = lobe_terms(g, u, L, inten, al_c.unsqueeze(0), geo, lobe)
-        wts = base
-        wa = a * wts
-        s_aa = (wa * a).sum(0)
-        if weighting is not None and b is not None:
-            target = torch.addcmul(yc, s_c.unsqueeze(0), b, value=-1.0)  # y − s·b
-            if weighs:
-                wts = _irls_chunk(target, a, base, weighting, yc)
-                weight_all[:, :, sl] = wts.to(wstore)
-                wts = weight_all[:, :, sl].to(dt)  # the stored (rounded) weights define the cost
-            elif weighting.outlier_k is not None:  # a least-squares pass; IRLS only where something exceeds k·σ
-                okd = s_aa > 0
-                d_ref = torch.where(okd, (wa * target).sum(0) / torch.where(okd, s_aa, torch.ones_like(s_aa)), zero)
-                sig = (weighting.outlier_k * weighting.sigma.to(dt)).view(1, 3, 1)
-                exceed = ((target - a * d_ref).abs() * base) > sig
-                hit = exceed.any(0).any(0).nonzero().squeeze(1)
-                if hit.numel():
-                    wts = base.clone()
-                    wts[:, :, hit] = _irls_chunk(target[:, :, hit], a[:, :, hit], base[:, :, hit], weighting)
-            if wts is not base:
-                wa = a * wts
-                s_aa = (wa * a).sum(0)
-        if valid_all is not None:
-            valid_all[:, :, sl] = (base_b if wts is base else wts > 0).view(torch.uint8)
-        ok = s_aa > 0
-        isaa_c = torch.where(ok, 1.0 / torch.where(ok, s_aa, torch.ones_like(s_aa)), zero)
-        dd = (wa * yc).sum(0) * isaa_c
-        r0 = torch.addcmul(yc, a, dd, value=-1.0)  # y − a·d0
-        wr0 = wts * r0
-        A[:, sl] = (wr0 * (wr0 if wts is base else r0)).sum(0)  # w² = w for 0/1 weights
-        cnt[:, sl] = (wts > 0).sum(0)
-        saa[:, sl], d0[:, sl] = s_aa, dd
-        if not bool(ok.all()):  # texture where no observation is valid: all lit ones, saturated included
-            la = torch.where(a > 0, a, zero)
-            den = (la * a).sum(0)
-            tgt = yc if b is None else torch.addcmul(yc, s_c.unsqueeze(0), b, value=-1.0)
-            fb = torch.zeros(3, p, dtype=dt, device=dev) if fb is None else fb
-            fb[:, sl] = torch.where(den > 0, (la * tgt).sum(0) / torch.where(den > 0, den, torch.ones_like(den)), zero)
-        lmax[:, j] = torch.where(u > 0, L, LOG_OFF).amax(-1)[:, 0]  # u > 0 ⇔ lit
-        if stats_acc is not None:
-            e, _, st = chunk_stats(yc, a, b, t, wts, isaa_c, wa=wa)
-            eb_all[:, sl] = e
-            reduce_stats(st, lab, ref.k, stats_acc)
-    return Observations(
-        y=y, g=g_all, u=u_all, L=l_all, inten=inten, valid=valid_all, weight=weight_all, chunks=chunks, lmax=lmax,
-        saa=saa, d0=d0, A=A, n=cnt, fallback=torch.zeros(3, 1, dtype=dt, device=dev).expand(3, p) if fb is None else fb,
-        labels=labels, tmin=tmin_all, height=h, width=w, dtype=dt,
-        first_stats=None if stats_acc is None else (stats_acc.permute(0, 2, 1).contiguous(), eb_all),
-        lobe=lobe, geo=geo_all, source=source,
-    )
+        ps.source = GridSource(lights, cams, xs, ys, None if normals is None else normals.to(dt), lobe, ps.inten_pos,
+                               ps.mask, ps.sat, dt)
+        return
+    n_shots, _, p = ps.y.shape
+    new = lambda *shape: torch.empty(*shape, dtype=dt, device=ps.y.device)  # noqa: E731
+    ps.g, ps.u, ps.L = new(n_shots, 1, p), new(n_shots, 1, p), new(n_shots, 1, p)
+    ps.geo = new(n_shots, 3, p) if geo_channels(lobe) else None
+    grid_geometry(capture, rows, cols, lights, cams, dt, max(1, chunk // ps.width), out=(ps.g, ps.u, ps.L), lobe=lobe,
+                  geo_out=ps.geo)

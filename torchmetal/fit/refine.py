@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import Callable, Iterator
 
 import torch
 import torch.nn.functional as F
@@ -80,7 +80,8 @@ def pixel_map(x: Tensor, labels: Tensor | None) -> Tensor:
     return x[labels].T
 
 
-def chunk_terms(obs: Observations, s: Tensor, alpha: Tensor, labels: Tensor | None):
+def chunk_terms(obs: Observations, s: Tensor, alpha: Tensor,
+                labels: Tensor | None) -> Iterator[tuple[int, tuple[int, int], tuple[Tensor, ...], Tensor, Tensor]]:
     """Per chunk j of ``obs``: (j, (p0, p1), obs.chunk(j), s (1, 3, c|1), α (1, 3, c|1)) for elements s, α (K, 3)
     on pixel ``labels`` (P,) (ignored for K = 1)."""
     lab = labels if s.shape[0] > 1 else None
@@ -91,7 +92,8 @@ def chunk_terms(obs: Observations, s: Tensor, alpha: Tensor, labels: Tensor | No
         yield j, (p0, p1), obs.chunk(j), sp.unsqueeze(0), ap.unsqueeze(0)
 
 
-def chunk_model(obs: Observations, texture: Tensor, s: Tensor, alpha: Tensor, labels: Tensor | None):
+def chunk_model(obs: Observations, texture: Tensor, s: Tensor, alpha: Tensor,
+                labels: Tensor | None) -> Iterator[tuple[Tensor, Tensor, Tensor, Tensor]]:
     """Per chunk of ``obs``: (y, w, a·d, s·b) (N, 3, c) each — the photos, weights, diffuse and specular terms of
     the texture d (3, P) and the elements s, α (K, 3) on pixel ``labels`` (P,) (ignored for K = 1): what the
     residual scale, the noise model and the held-out errors are taken from (residual y − a·d − s·b)."""
@@ -198,6 +200,43 @@ def fit_specular(
         state["active"] = frac
         return evaluate(stats, eb)
 
+    def report(it: int, x: Tensor, ev: LMEval, done: Tensor) -> None:
+        if on_iter is not None:
+            on_iter(it, math.sqrt(float(ev.cost.sum()) / n_total), state["active"])
+
+    lo, hi, x0 = _beta_bounds(beta0, beta_fixed)
+    if first is not None and bool((x0 == beta0.reshape(-1, 1).to(torch.float64)).all()):
+        ev0 = evaluate(first[0].to(A.device), first[1])
+    else:
+        ev0 = oracle(x0)
+    report(0, x0, ev0, torch.zeros(0))
+    res = levenberg_marquardt(oracle, x0, lower=lo, upper=hi, tol=tol, xtol=tol, max_iters=max_iters,
+                              merge=_merge_aux(k, labels), first=ev0, on_iter=report)
+    eb, s = res.eval.aux
+    return SpecFit(
+        s=s.view(k, 3), alpha=torch.exp(res.x.view(k, 3)), eb=eb, cost=res.eval.cost.view(k, 3), A=A, Y=Y,
+        iterations=res.iterations, status=res.status, active=state["active"], lobe=obs.lobe,
+    )
+
+
+def _beta_bounds(beta0: Tensor, beta_fixed: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """(lower, upper, start) (K·3, 1) float64 of the LM on β: [BETA_MIN, BETA_MAX], pinned where ``beta_fixed``
+    is finite; the start ``beta0`` clamped into them."""
+    k = int(beta0.shape[0])
+    lo = torch.full((k * 3, 1), BETA_MIN, dtype=torch.float64, device=beta0.device)
+    hi = torch.full_like(lo, BETA_MAX)
+    if beta_fixed is not None:
+        bf = beta_fixed.reshape(-1, 1).to(torch.float64)
+        pin = ~torch.isnan(bf)
+        lo, hi = torch.where(pin, bf, lo), torch.where(pin, bf, hi)
+    x0 = torch.minimum(torch.maximum(beta0.reshape(-1, 1).to(torch.float64), lo), hi)
+    return lo, hi, x0
+
+
+def _merge_aux(k: int, labels: Tensor | None) -> Callable[[tuple, tuple, Tensor], tuple]:
+    """The LM's ``merge`` of the aux parts (e_b (3, P), s (K·3,)): e_b from the new evaluation on the pixels of
+    accepted elements."""
+
     def merge(new, old, accepted: Tensor):
         if bool(accepted.all()):  # no full-size copy when every element moves (or none does)
             return new
@@ -206,29 +245,7 @@ def fit_specular(
         acc_pix = pixel_map(accepted.view(k, 3).to(torch.uint8), labels).bool()
         return torch.where(acc_pix, new[0], old[0]), torch.where(accepted, new[1], old[1])
 
-    def report(it: int, x: Tensor, ev: LMEval, done: Tensor) -> None:
-        if on_iter is not None:
-            on_iter(it, math.sqrt(float(ev.cost.sum()) / n_total), state["active"])
-
-    lo = torch.full((k * 3, 1), BETA_MIN, dtype=torch.float64, device=beta0.device)
-    hi = torch.full_like(lo, BETA_MAX)
-    if beta_fixed is not None:
-        bf = beta_fixed.reshape(-1, 1).to(torch.float64)
-        pin = ~torch.isnan(bf)
-        lo, hi = torch.where(pin, bf, lo), torch.where(pin, bf, hi)
-    x0 = torch.minimum(torch.maximum(beta0.reshape(-1, 1).to(torch.float64), lo), hi)
-    if first is not None and bool((x0 == beta0.reshape(-1, 1).to(torch.float64)).all()):
-        ev0 = evaluate(first[0].to(A.device), first[1])
-    else:
-        ev0 = oracle(x0)
-    report(0, x0, ev0, torch.zeros(0))
-    res = levenberg_marquardt(oracle, x0, lower=lo, upper=hi, tol=tol, xtol=tol, max_iters=max_iters,
-                              merge=merge, first=ev0, on_iter=report)
-    eb, s = res.eval.aux
-    return SpecFit(
-        s=s.view(k, 3), alpha=torch.exp(res.x.view(k, 3)), eb=eb, cost=res.eval.cost.view(k, 3), A=A, Y=Y,
-        iterations=res.iterations, status=res.status, active=state["active"], lobe=obs.lobe,
-    )
+    return merge
 
 
 def pinned_terms(pinned: Tensor | None, s: Tensor, alpha: Tensor) -> tuple[Tensor | None, Tensor | None]:

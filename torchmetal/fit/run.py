@@ -4,6 +4,7 @@ left-out shots, the progress bar."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from torchmetal.fit.result import IterationCounts
@@ -25,7 +26,7 @@ class FitRun:
             self.bar = tqdm(desc="fit_phong", unit="it", leave=False)
 
     @contextmanager
-    def stage(self, name: str):
+    def stage(self, name: str) -> Iterator[None]:
         t0 = time.perf_counter()
         try:
             yield
@@ -40,7 +41,7 @@ class FitRun:
             self.bar.update(1)
             self.bar.set_postfix(stage=stage, rmse=f"{rmse:.3g}")
 
-    def logger(self, stage: str, pixels: int):
+    def logger(self, stage: str, pixels: int) -> Callable[[int, float, float], None]:
         return lambda it, rmse, active: self.log(stage, it, rmse, active, pixels)
 
     def close(self) -> None:

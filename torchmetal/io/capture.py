@@ -478,26 +478,9 @@ def _load_saturated(f: Path, n: int, h: int, w: int) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(arr.transpose(0, 3, 1, 2)))
 
 
-def load_capture(path: str | os.PathLike) -> Capture:
-    """Read a capture directory (docs/design.md §2.1).
-
-    Images are read one at a time into a preallocated (N, 3, H, W) float32 tensor. 8/16-bit
-    files are decoded straight from their integer codes by lookup table (for sRGB, the curve
-    evaluated in float64 and rounded once to float32); float sRGB files with
-    :func:`srgb_to_linear`. Saturation comes from the raw values (255 / 65535
-    for PNG; none for float files, unless the capture carries ``saturated.npy``).
-
-    Args:
-        path: the capture directory, or its capture.json.
-
-    Raises:
-        CaptureError: anything missing, malformed or physically impossible, in one line.
-    """
-    root = Path(path)
-    meta_file = root if root.suffix.lower() == ".json" and not root.is_dir() else root / "capture.json"
-    root = meta_file.parent
-    color_space, size, normals_name, mask_name, sat_name, shots = parse_meta(read_meta(meta_file), str(meta_file))
-
+def _read_images(root: Path, shots: list[_Shot], color_space: str) -> tuple[Tensor, Tensor, list[float]]:
+    """The shots' images (N, 3, H, W) float32 linear, read one at a time, their saturation (N, 3, H, W) bool and
+    each shot's brightest linear value."""
     n = len(shots)
     first = read_raw(root / shots[0].image)
     h, w = first.shape[:2]
@@ -524,6 +507,32 @@ def load_capture(path: str | os.PathLike) -> Capture:
             peaks.append(float(code_table(8 if raw.dtype == np.uint8 else 16, color_space == "srgb")[raw.max()]))
         del raw
     del first
+    return images, saturated, peaks
+
+
+def load_capture(path: str | os.PathLike) -> Capture:
+    """Read a capture directory (docs/design.md §2.1).
+
+    Images are read one at a time into a preallocated (N, 3, H, W) float32 tensor. 8/16-bit
+    files are decoded straight from their integer codes by lookup table (for sRGB, the curve
+    evaluated in float64 and rounded once to float32); float sRGB files with
+    :func:`srgb_to_linear`. Saturation comes from the raw values (255 / 65535
+    for PNG; none for float files, unless the capture carries ``saturated.npy``).
+
+    Args:
+        path: the capture directory, or its capture.json.
+
+    Raises:
+        CaptureError: anything missing, malformed or physically impossible, in one line.
+    """
+    root = Path(path)
+    meta_file = root if root.suffix.lower() == ".json" and not root.is_dir() else root / "capture.json"
+    root = meta_file.parent
+    color_space, size, normals_name, mask_name, sat_name, shots = parse_meta(read_meta(meta_file), str(meta_file))
+
+    n = len(shots)
+    images, saturated, peaks = _read_images(root, shots, color_space)
+    h, w = images.shape[-2:]
 
     normals = _load_normals(root / normals_name, h, w) if normals_name else None
     mask = load_mask(root / mask_name, h, w) if mask_name else None

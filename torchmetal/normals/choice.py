@@ -88,7 +88,7 @@ def rendered_pixel_errors(pred: Tensor, hold: Capture) -> Tensor:
 
 
 def choose_normals(capture: Capture, *, fit_kwargs: dict | None = None, max_pixels: int = PIXELS, folds: int = FOLDS,
-                   **rule) -> tuple[str, Decision]:
+                   **rule: float) -> tuple[str, Decision]:
     """"given" for a capture with normals; else "estimate" or "flat", decided on left-out shots (module
     docstring). ``rule``: :func:`~torchmetal.fit.decision.paired_choice`'s ``z_min`` / ``min_gain``.
 

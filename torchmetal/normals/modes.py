@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 NORMALS_MODES = ("auto", "given", "flat", "estimate")
 
 
-def with_normals(capture: Capture, mode: str, **kw) -> tuple[Capture, dict]:
+def with_normals(capture: Capture, mode: str, **kw: Any) -> tuple[Capture, dict]:
     """The capture with the normals ``mode`` asks for, and a report entry.
 
     "auto": the capture's own when it has them, else "estimate" or "flat" as shots left out of the fit

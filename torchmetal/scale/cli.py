@@ -17,7 +17,7 @@ def _fit_options(fit_parser: argparse.ArgumentParser) -> list[argparse.Action]:
     return [a for a in fit_parser._actions if a.dest not in _OWN]
 
 
-def register(sub) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``fit-many`` verb to the sub-parsers ``sub`` (after ``fit``, whose options it copies)."""
     p = sub.add_parser("fit-many", help="fit many captures (one fit per capture) on a process pool or Ray",
                        description="Fit every capture with the same fit options; retries failed fits, skips "

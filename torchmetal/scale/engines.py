@@ -81,7 +81,7 @@ class RayEngine:
                 ray.init(address=address, include_dashboard=False, log_to_driver=False)
         self._remote = ray.remote(num_cpus=1, max_retries=0)(_call)
 
-    def submit(self, task: Callable[[Any], Any], payload: Any):
+    def submit(self, task: Callable[[Any], Any], payload: Any) -> Any:
         return self._remote.remote(task, payload)
 
     def wait(self, handles: list) -> list:
@@ -89,7 +89,7 @@ class RayEngine:
         ready_ids = {r.hex() for r in ready}
         return [h for h in handles if h.hex() in ready_ids]
 
-    def result(self, handle) -> Any:
+    def result(self, handle: Any) -> Any:
         ray = self._ray
         try:
             return ray.get(handle)
@@ -115,7 +115,7 @@ def _call(task: Callable[[Any], Any], payload: Any) -> Any:
     return task(payload)
 
 
-def make_engine(engine: str, workers: int, address: str | None = None):
+def make_engine(engine: str, workers: int, address: str | None = None) -> LocalEngine | RayEngine:
     """The engine named ``engine`` ("local" or "ray") with ``workers`` concurrent tasks."""
     if engine not in ENGINES:
         raise InputError(f"engine: expected one of {list(ENGINES)}, found {engine!r}")

@@ -14,6 +14,7 @@ import io
 import json
 import os
 from pathlib import Path
+from typing import Callable
 
 from torchmetal.errors import InputError
 from torchmetal.scale.many import Job, JobRecord, TaskError, run_many
@@ -93,7 +94,7 @@ def fit_many(
     threads: int | None = 1,
     progress: bool = True,
     resume: bool = True,
-    task=verb_task,
+    task: Callable[[dict], dict] = verb_task,
     entry: str = FIT_ENTRY,
 ) -> list[JobRecord]:
     """Fit every capture with ``torchmetal fit`` and the options ``fit_args``; see

@@ -126,60 +126,19 @@ def run_many(
         progress: a tqdm bar over jobs.
         resume: skip jobs whose record says done with the same key and whose output exists.
     """
-    if not (isinstance(retries, int) and retries >= 0):
-        raise InputError(f"retries: expected an int >= 0, found {retries!r}")
-    names = [j.name for j in jobs]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise InputError(f"jobs: expected unique names (the output folders), found {dup} more than once")
+    _check_jobs(jobs, retries)
     outdir = Path(outdir)
     (outdir / RECORDS).mkdir(parents=True, exist_ok=True)
-    records: list[JobRecord | None] = [None] * len(jobs)
-    todo = deque()
-    for i, job in enumerate(jobs):
-        prev = _done_before(outdir, job) if resume else None
-        if prev is not None:
-            records[i] = prev
-        else:
-            todo.append(i)
+    records, todo = _resumed(jobs, outdir, resume)
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="fit-many", unit="capture")
-    attempts = [0] * len(jobs)
-    errors: list[list[str]] = [[] for _ in jobs]
-    started: dict[int, float] = {}
     if todo:
         eng = make_engine(engine, workers, address)
-        inflight: dict[Any, int] = {}
         try:
-            while todo or inflight:
-                while todo and len(inflight) < workers:
-                    i = todo.popleft()
-                    attempts[i] += 1
-                    started[i] = time.perf_counter()
-                    inflight[eng.submit(task, jobs[i].payload)] = i
-                for h in eng.wait(list(inflight)):
-                    i = inflight.pop(h)
-                    try:
-                        result = eng.result(h)
-                    except Exception as e:  # noqa: BLE001 — every failure is recorded, none is lost
-                        errors[i].append(f"attempt {attempts[i]}: {_describe(e)}")
-                        if getattr(e, "retry", True) and attempts[i] <= retries:
-                            todo.append(i)
-                            continue
-                        records[i] = JobRecord(jobs[i].name, "failed", attempts[i], 0.0, errors[i], {}, jobs[i].output,
-                                               jobs[i].payload, jobs[i].identity)
-                    else:
-                        records[i] = JobRecord(jobs[i].name, "ok", attempts[i], time.perf_counter() - started[i],
-                                               errors[i], dict(result or {}), jobs[i].output, jobs[i].payload,
-                                               jobs[i].identity)
-                    _write_record(outdir, records[i])
-                    write_summary(outdir, [r for r in records if r is not None])
-                    if bar is not None:
-                        bar.update(1)
-                        bar.set_postfix(last=f"{jobs[i].name}:{records[i].status}")
+            _run_jobs(eng, jobs, task, outdir, records, todo, workers=workers, retries=retries, bar=bar)
         finally:
             eng.close()
             if bar is not None:
@@ -189,6 +148,64 @@ def run_many(
     out = [r for r in records if r is not None]
     write_summary(outdir, out)
     return out
+
+
+def _check_jobs(jobs: list[Job], retries: int) -> None:
+    if not (isinstance(retries, int) and retries >= 0):
+        raise InputError(f"retries: expected an int >= 0, found {retries!r}")
+    names = [j.name for j in jobs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"jobs: expected unique names (the output folders), found {dup} more than once")
+
+
+def _resumed(jobs: list[Job], outdir: Path, resume: bool) -> tuple[list[JobRecord | None], deque]:
+    """(records: the jobs done before when ``resume``, else None; the indices of the jobs to run, in order)."""
+    records: list[JobRecord | None] = [None] * len(jobs)
+    todo = deque()
+    for i, job in enumerate(jobs):
+        prev = _done_before(outdir, job) if resume else None
+        if prev is not None:
+            records[i] = prev
+        else:
+            todo.append(i)
+    return records, todo
+
+
+def _run_jobs(eng: Any, jobs: list[Job], task: Callable[[dict], dict], outdir: Path, records: list[JobRecord | None],
+              todo: deque, *, workers: int, retries: int, bar: Any) -> None:
+    """Run the jobs ``todo`` on the engine, ``workers`` at a time, retrying failures; each finished job's record
+    goes into ``records`` and to disk, with the summary."""
+    attempts = [0] * len(jobs)
+    errors: list[list[str]] = [[] for _ in jobs]
+    started: dict[int, float] = {}
+    inflight: dict[Any, int] = {}
+    while todo or inflight:
+        while todo and len(inflight) < workers:
+            i = todo.popleft()
+            attempts[i] += 1
+            started[i] = time.perf_counter()
+            inflight[eng.submit(task, jobs[i].payload)] = i
+        for h in eng.wait(list(inflight)):
+            i = inflight.pop(h)
+            try:
+                result = eng.result(h)
+            except Exception as e:  # noqa: BLE001 — every failure is recorded, none is lost
+                errors[i].append(f"attempt {attempts[i]}: {_describe(e)}")
+                if getattr(e, "retry", True) and attempts[i] <= retries:
+                    todo.append(i)
+                    continue
+                records[i] = JobRecord(jobs[i].name, "failed", attempts[i], 0.0, errors[i], {}, jobs[i].output,
+                                       jobs[i].payload, jobs[i].identity)
+            else:
+                records[i] = JobRecord(jobs[i].name, "ok", attempts[i], time.perf_counter() - started[i],
+                                       errors[i], dict(result or {}), jobs[i].output, jobs[i].payload,
+                                       jobs[i].identity)
+            _write_record(outdir, records[i])
+            write_summary(outdir, [r for r in records if r is not None])
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(last=f"{jobs[i].name}:{records[i].status}")
 
 
 def _fmt(v: Any) -> str:

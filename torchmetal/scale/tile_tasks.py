@@ -20,6 +20,9 @@ Tasks (``payload["kind"]``):
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from typing import Any
+
 import numpy as np
 import torch
 
@@ -41,7 +44,7 @@ def _capture(path: str) -> TiledCapture:
     return _OPEN[path]
 
 
-def tile_task(p: dict):
+def tile_task(p: dict) -> Any:
     """Run one tile's task (see the module docstring); ``p`` is a picklable dict."""
     threads = p.get("threads")
     if threads:
@@ -102,11 +105,12 @@ class TilePasses:
     :mod:`torchmetal.scale.engines` with at most 2 × ``workers`` tasks in flight.
     """
 
-    def __init__(self, tiles: list[tuple[slice, slice]], base: dict, engine=None, workers: int = 1, bar=None) -> None:
+    def __init__(self, tiles: list[tuple[slice, slice]], base: dict, engine: Any = None, workers: int = 1,
+                 bar: Any = None) -> None:
         self.tiles, self.base, self.engine, self.workers, self.bar = tiles, base, engine, workers, bar
         self.passes = 0
 
-    def map(self, kind: str, **kw):
+    def map(self, kind: str, **kw: Any) -> Iterator[Any]:
         self.passes += 1
         payloads = [{**self.base, **kw, "kind": kind, "rows": r, "cols": c} for r, c in self.tiles]
         if self.engine is None:

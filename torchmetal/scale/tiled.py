@@ -27,7 +27,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -46,6 +46,9 @@ from torchmetal.scale.engines import make_engine
 from torchmetal.scale.tile_tasks import _OPEN, TilePasses
 from torchmetal.scale.tiled_texture import SeenStats, fill_tiles
 from torchmetal.scale.tiles import TiledCapture, convert_capture, is_tiled
+
+if TYPE_CHECKING:
+    import os
 
 SPECULARS = ("auto", "global", "clustered", "none")
 
@@ -150,15 +153,7 @@ def fit_tiled(
         file in ``scratch``; ``report()["tiled"]`` has the tile count and passes.
     """
     cap = capture if isinstance(capture, TiledCapture) else TiledCapture(capture)
-    tile_grid(cap.height, cap.width, tile)  # checks tile
-    if not (isinstance(workers, int) and workers >= 1):
-        raise InputError(f"workers: expected an int >= 1, found {workers!r}")
-    if specular not in SPECULARS:
-        raise InputError(f"specular: expected one of {list(SPECULARS)}, found {specular!r}")
-    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
-        raise InputError(f"tol: expected a finite number > 0, found {tol!r}")
-    if not (isinstance(max_iters, int) and max_iters >= 1):
-        raise InputError(f"max_iters: expected an int >= 1, found {max_iters!r}")
+    _check_tiled_args(cap, tile=tile, workers=workers, specular=specular, tol=tol, max_iters=max_iters)
     scratch = Path(scratch) if scratch is not None else Path(tempfile.mkdtemp(prefix="torchmetal-tiled-"))
     scratch.mkdir(parents=True, exist_ok=True)
     run = FitRun(False)
@@ -167,12 +162,7 @@ def fit_tiled(
         from tqdm.auto import tqdm
 
         bar = tqdm(desc="fit --tile", unit="tile", leave=False)
-    eng = None
-    if engine is not None:
-        import os
-
-        eng = make_engine(engine, workers, address)
-        threads = threads or max(1, (os.cpu_count() or 1) // workers)
+    eng, threads = _start_engine(engine, workers, address, threads)
     try:
         opt = TiledOptions(tile=tile, specular=specular, tol=tol, max_iters=max_iters, clusters=tuple(clusters),
                            chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
@@ -183,6 +173,29 @@ def fit_tiled(
             bar.close()
         if eng is not None:
             eng.close()
+
+
+def _check_tiled_args(cap: TiledCapture, *, tile: int, workers: int, specular: str, tol: float, max_iters: int) -> None:
+    tile_grid(cap.height, cap.width, tile)  # checks tile
+    if not (isinstance(workers, int) and workers >= 1):
+        raise InputError(f"workers: expected an int >= 1, found {workers!r}")
+    if specular not in SPECULARS:
+        raise InputError(f"specular: expected one of {list(SPECULARS)}, found {specular!r}")
+    if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+        raise InputError(f"tol: expected a finite number > 0, found {tol!r}")
+    if not (isinstance(max_iters, int) and max_iters >= 1):
+        raise InputError(f"max_iters: expected an int >= 1, found {max_iters!r}")
+
+
+def _start_engine(engine: str | None, workers: int, address: str | None, threads: int | None) -> tuple[object | None, int | None]:
+    """(the engine of the tile tasks, None: this process; torch threads per task, default CPU cores / workers)."""
+    eng = None
+    if engine is not None:
+        import os
+
+        eng = make_engine(engine, workers, address)
+        threads = threads or max(1, (os.cpu_count() or 1) // workers)
+    return eng, threads
 
 
 def _subsample_decisions(cap, run: FitRun, *, specular, tol, max_iters, clusters, chunk, sub_pixels, select_pixels, seed):
@@ -376,10 +389,10 @@ def _normals(cap: TiledCapture, tiles: list, flat: bool, dt: torch.dtype, scratc
     return torch.from_numpy(nrm_file).permute(2, 0, 1)
 
 
-def fit_tiled_material(capture_path, *, tile: int, scheme: str = "refine", specular: str = "auto",
+def fit_tiled_material(capture_path: str | os.PathLike, *, tile: int, scheme: str = "refine", specular: str = "auto",
                        flakes: str = "auto", tol: float = 1e-6, max_iters: int = 100, robust: str | None = "auto",
                        seed: int = 0, progress: bool = False, scratch: str | Path, engine: str | None = None,
-                       workers: int = 1):
+                       workers: int = 1) -> PipelineResult:
     """``fit --tile``: a tiled capture (or any capture, converted into ``scratch`` first, one
     image at a time) → :class:`~torchmetal.pipeline.PipelineResult` with the flake stage skipped.
 

@@ -27,6 +27,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -58,7 +59,7 @@ def _spatial(key) -> tuple[slice, slice]:
 class Planes:
     """A lazily read (C…, H, W) array: ``shape``, ``dtype``, ``device`` and ``[..., rows, cols]``."""
 
-    def __init__(self, shape: tuple[int, ...], dtype: torch.dtype, read) -> None:
+    def __init__(self, shape: tuple[int, ...], dtype: torch.dtype, read: Callable[[slice, slice], Tensor]) -> None:
         self.shape = torch.Size(shape)
         self.dtype = dtype
         self.device = torch.device("cpu")
@@ -186,7 +187,7 @@ class TiledCapture:
         out = np.where(np.abs(length - 1.0) > UNIT_TOL, n / length, n).astype(np.float32)
         return torch.from_numpy(np.ascontiguousarray(out.transpose(2, 0, 1)))
 
-    def region(self, rows: slice, cols: slice):
+    def region(self, rows: slice, cols: slice) -> Capture:
         """The pixels ``rows`` × ``cols`` as an in-memory Capture (its own, smaller, surface)."""
         images, saturated = self._pixels(rows, cols)
         return Capture(images=images, normals=self._read_normals(rows, cols), mask=self._read_mask(rows, cols),
@@ -220,46 +221,7 @@ def convert_capture(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
     tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", dir=dst.parent))
     try:
         (tmp / "images").mkdir()
-        n = len(shots)
-        sat_out = None
-        h = w = None
-        new_shots = []
-        for k, shot in enumerate(shots):
-            f = root / shot.image
-            raw = read_raw(f)
-            if h is None:
-                h, w = raw.shape[:2]
-            elif raw.shape[:2] != (h, w):
-                raise CaptureError(f"{f}: expected size {w}x{h} (width x height, as {shots[0].image}), found "
-                                   f"{raw.shape[1]}x{raw.shape[0]}")
-            img = np.empty((3, h, w), np.float32)
-            sat = np.empty((3, h, w), bool)
-            is_float = raw.dtype.kind == "f"
-            decode_planes(raw, img, sat, srgb=cs == "srgb" and not is_float)
-            t = torch.from_numpy(img)
-            if is_float:
-                check_pixels(t, str(f))
-                if cs == "srgb":
-                    t.copy_(srgb_to_linear(t))
-            del raw
-            name = f"images/{k:03d}.npy"
-            np.save(tmp / name, np.ascontiguousarray(img.transpose(1, 2, 0)))
-            if sat.any() or sat_name:
-                if sat_out is None:
-                    sat_out = np.lib.format.open_memmap(tmp / "saturated.npy", mode="w+", dtype=bool, shape=(n, h, w, 3))
-                sat_out[k] = sat.transpose(1, 2, 0)
-            new_shots.append({"image": name, "light": shot.light, "light_intensity": shot.intensity, "camera": shot.camera})
-            del img, sat
-        if sat_out is not None:
-            if sat_name:
-                extra = _npy(root / sat_name)
-                if extra.shape != (n, h, w, 3) or extra.dtype != np.bool_:
-                    raise CaptureError(f"{root / sat_name}: expected a bool array of shape {(n, h, w, 3)}, found "
-                                       f"{extra.dtype} {extra.shape}")
-                for k in range(n):
-                    sat_out[k] |= extra[k]
-            sat_out.flush()
-            del sat_out
+        new_shots, h, w = _convert_images(root, shots, cs, sat_name, tmp)
         out_meta = {"format": meta["format"], "version": meta["version"], "color_space": "linear",
                     "surface": {"width": size[0], "height": size[1]}, "shots": new_shots}
         if (tmp / "saturated.npy").exists():
@@ -276,3 +238,60 @@ def convert_capture(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return dst
+
+
+def _convert_images(root: Path, shots: list, cs: str, sat_name: str | None, tmp: Path) -> tuple[list[dict], int, int]:
+    """Decode the shots' images one at a time into ``tmp/images/*.npy`` (and ``tmp/saturated.npy`` when anything
+    clips or the source has a saturated.npy, merged in). Returns (the new shots' metadata, h, w)."""
+    n = len(shots)
+    sat_out = None
+    h = w = None
+    new_shots = []
+    for k, shot in enumerate(shots):
+        f = root / shot.image
+        raw = read_raw(f)
+        if h is None:
+            h, w = raw.shape[:2]
+        elif raw.shape[:2] != (h, w):
+            raise CaptureError(f"{f}: expected size {w}x{h} (width x height, as {shots[0].image}), found "
+                               f"{raw.shape[1]}x{raw.shape[0]}")
+        img, sat = _decode(raw, f, cs, h, w)
+        del raw
+        name = f"images/{k:03d}.npy"
+        np.save(tmp / name, np.ascontiguousarray(img.transpose(1, 2, 0)))
+        if sat.any() or sat_name:
+            if sat_out is None:
+                sat_out = np.lib.format.open_memmap(tmp / "saturated.npy", mode="w+", dtype=bool, shape=(n, h, w, 3))
+            sat_out[k] = sat.transpose(1, 2, 0)
+        new_shots.append({"image": name, "light": shot.light, "light_intensity": shot.intensity, "camera": shot.camera})
+        del img, sat
+    if sat_out is not None:
+        if sat_name:
+            _merge_saturated(sat_out, root / sat_name, n, h, w)
+        sat_out.flush()
+        del sat_out
+    return new_shots, h, w
+
+
+def _decode(raw: np.ndarray, f: Path, cs: str, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """(image (3, H, W) float32 linear, saturated (3, H, W) bool) of a raw image, decoded as ``load_capture`` does."""
+    img = np.empty((3, h, w), np.float32)
+    sat = np.empty((3, h, w), bool)
+    is_float = raw.dtype.kind == "f"
+    decode_planes(raw, img, sat, srgb=cs == "srgb" and not is_float)
+    t = torch.from_numpy(img)
+    if is_float:
+        check_pixels(t, str(f))
+        if cs == "srgb":
+            t.copy_(srgb_to_linear(t))
+    return img, sat
+
+
+def _merge_saturated(sat_out: np.ndarray, f: Path, n: int, h: int, w: int) -> None:
+    """OR the source capture's saturated.npy ``f`` into ``sat_out`` (N, H, W, 3)."""
+    extra = _npy(f)
+    if extra.shape != (n, h, w, 3) or extra.dtype != np.bool_:
+        raise CaptureError(f"{f}: expected a bool array of shape {(n, h, w, 3)}, found "
+                           f"{extra.dtype} {extra.shape}")
+    for k in range(n):
+        sat_out[k] |= extra[k]

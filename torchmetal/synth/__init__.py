@@ -91,7 +91,7 @@ class SynthResult:
         c = self.capture if indices is None else self.capture.subset(indices)
         return _render(self.truth, self.specular_maps(), c.normals, c.lights, c.intensities, c.cameras, c.size)
 
-    def material(self):
+    def material(self) -> Material:
         """The truth as a :class:`torchmetal.material.Material` (for comparing fits)."""
         t = self.truth
         flat = self.capture.flat
@@ -277,21 +277,10 @@ def _check_args(size, shots, texture, alpha, s, layout, noise, bits, exposure, f
 
 
 def synth_capture(
-    *,
-    size: int | tuple[int, int] = 256,
-    shots: int = 12,
-    seed: int = 0,
-    texture: str = "auto",
-    alpha: tuple[float, float, float] = (40.0, 60.0, 80.0),
-    s: tuple[float, float, float] = (0.6, 0.6, 0.6),
-    layout: str = "ring",
-    bumpy: bool = False,
-    noise: float = 0.0,
-    bits: int | None = None,
-    exposure: float = 1.0,
-    flakes: FlakeModel | None = None,
-    spec_clusters: int = 1,
-    dtype: torch.dtype = torch.float32,
+    *, size: int | tuple[int, int] = 256, shots: int = 12, seed: int = 0, texture: str = "auto",
+    alpha: tuple[float, float, float] = (40.0, 60.0, 80.0), s: tuple[float, float, float] = (0.6, 0.6, 0.6),
+    layout: str = "ring", bumpy: bool = False, noise: float = 0.0, bits: int | None = None, exposure: float = 1.0,
+    flakes: FlakeModel | None = None, spec_clusters: int = 1, dtype: torch.dtype = torch.float32,
 ) -> SynthResult:
     """Render a synthetic capture with known truth.
 
@@ -317,6 +306,30 @@ def synth_capture(
         :class:`SynthResult` (capture, truth, params).
     """
     h, w = _check_args(size, shots, texture, alpha, s, layout, noise, bits, exposure, flakes, spec_clusters)
+    tex64, texture_name = _pick_texture(texture, h, w, seed)
+    truth = _synth_truth(tex64, h, w, s, alpha, bumpy=bumpy, spec_clusters=spec_clusters, flakes=flakes, seed=seed,
+                         dtype=dtype)
+    normals = truth["normals"]
+    lights, cameras, intensities = _synth_lights(layout, shots, seed, float(tex64.mean()), exposure, dtype)
+    result = SynthResult(capture=None, truth=truth)  # type: ignore[arg-type]
+    images, saturated = _synth_images(result, lights, intensities, cameras, noise=noise, bits=bits, seed=seed,
+                                      dtype=dtype)
+    result.capture = Capture(
+        images=images, normals=None if not bumpy else normals, lights=lights, intensities=intensities,
+        cameras=cameras, size=SURFACE, saturated=saturated, names=[f"images/{k:03d}.png" for k in range(shots)],
+        color_space="linear",
+    )
+    result.params = {
+        "size": [h, w], "shots": shots, "seed": int(seed), "texture": texture_name, "alpha": list(map(float, alpha)),
+        "s": list(map(float, s)), "layout": layout, "bumpy": bool(bumpy), "noise": float(noise), "bits": bits,
+        "exposure": float(exposure), "flakes": flakes.to_dict() if flakes is not None else None,
+        "spec_clusters": spec_clusters, "dtype": str(dtype).removeprefix("torch."),
+    }
+    return result
+
+
+def _pick_texture(texture: str, h: int, w: int, seed: int) -> tuple[Tensor, str]:
+    """(texture (3, H, W) float64, its name): a photo for "auto"/"photo" when one is available, else procedural."""
     texture_name = "procedural"
     tex64 = None
     if texture in ("auto", "photo"):
@@ -326,7 +339,12 @@ def synth_capture(
             texture_name = f"photo:{name}"
     if tex64 is None:
         tex64 = procedural_texture(h, w, _generator(seed, _TEXTURE))
+    return tex64, texture_name
 
+
+def _synth_truth(tex64: Tensor, h: int, w: int, s: tuple[float, float, float], alpha: tuple[float, float, float], *,
+                 bumpy: bool, spec_clusters: int, flakes: FlakeModel | None, seed: int, dtype: torch.dtype) -> dict:
+    """The truth (:class:`SynthResult`'s keys) of texture ``tex64``: normals, specular (clusters), flakes."""
     s64 = torch.tensor(s, dtype=torch.float64)
     a64 = torch.tensor(alpha, dtype=torch.float64)
     truth: dict = {"texture": tex64.to(dtype), "s": s64.to(dtype), "alpha": a64.to(dtype)}
@@ -346,17 +364,27 @@ def synth_capture(
                      s=(area @ cs).to(dtype), alpha=(area @ ca).to(dtype))
     truth["flakes"] = flakes
     truth["flake_field"] = flake_field(flakes, h, w, normals) if flakes is not None else None
+    return truth
 
+
+def _synth_lights(layout: str, shots: int, seed: int, mean_texture: float, exposure: float,
+                  dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
+    """(lights (N, 4), cameras (N, 4), intensities (N, 3)) of the layout, intensities calibrated to the texture."""
     g_geo = _generator(seed, _GEOMETRY)
     lights64, cameras64 = light_layout(layout, shots, g_geo)
-    inten64 = calibrate_intensity(lights64, float(tex64.mean()), DIFFUSE_LEVEL * exposure, g_geo)
-    lights, cameras, intensities = lights64.to(dtype), cameras64.to(dtype), inten64.to(dtype)
+    inten64 = calibrate_intensity(lights64, mean_texture, DIFFUSE_LEVEL * exposure, g_geo)
+    return lights64.to(dtype), cameras64.to(dtype), inten64.to(dtype)
 
-    result = SynthResult(capture=None, truth=truth)  # type: ignore[arg-type]
-    images = _render(truth, result.specular_maps(), normals, lights, intensities, cameras, SURFACE)
+
+def _synth_images(result: SynthResult, lights: Tensor, intensities: Tensor, cameras: Tensor, *, noise: float,
+                  bits: int | None, seed: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """(images (N, 3, H, W), saturated (N, 3, H, W) bool): the truth rendered, noise added, clamped at 0 and, with
+    ``bits``, clipped to [0, 1] and quantised as the file would be."""
+    truth = result.truth
+    images = _render(truth, result.specular_maps(), truth["normals"], lights, intensities, cameras, SURFACE)
     if noise > 0:
         g_noise = _generator(seed, _NOISE)
-        for k in range(shots):
+        for k in range(len(lights)):
             sigma = noise * float(images[k].mean())
             images[k] += sigma * torch.randn(images[k].shape, generator=g_noise, dtype=dtype)
     images.clamp_(min=0.0)
@@ -367,19 +395,7 @@ def synth_capture(
         images = q.to(dtype) / top  # the same float a reader gets from the file
     else:
         saturated = torch.zeros(images.shape, dtype=torch.bool)
-
-    result.capture = Capture(
-        images=images, normals=None if not bumpy else normals, lights=lights, intensities=intensities,
-        cameras=cameras, size=SURFACE, saturated=saturated, names=[f"images/{k:03d}.png" for k in range(shots)],
-        color_space="linear",
-    )
-    result.params = {
-        "size": [h, w], "shots": shots, "seed": int(seed), "texture": texture_name, "alpha": list(map(float, alpha)),
-        "s": list(map(float, s)), "layout": layout, "bumpy": bool(bumpy), "noise": float(noise), "bits": bits,
-        "exposure": float(exposure), "flakes": flakes.to_dict() if flakes is not None else None,
-        "spec_clusters": spec_clusters, "dtype": str(dtype).removeprefix("torch."),
-    }
-    return result
+    return images, saturated
 
 
 # ---------------------------------------------------------------------------------- on disk
