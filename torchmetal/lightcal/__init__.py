@@ -1,5 +1,5 @@
-"""Light calibration: nuisance parameters of the capture's lights, fitted beside the material and kept
-only where shots left out of the fit prefer them (DESIGN 2.2: "light calibration" is a candidate).
+"""Light calibration: nuisance parameters of the capture's lights, fitted beside the material
+where asked for, or (``light="auto"``) where shots left out of the fit prefer them (docs/design.md §2.2, §4).
 
 A phone's flash is not the isotropic point light of capture.json: its beam falls off (or the phone's
 vignetting correction brightens the edges) with the angle from its axis, and its power can drift from
