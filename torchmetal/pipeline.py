@@ -61,7 +61,7 @@ class PipelineResult:
     light: LightCalibration = field(default_factory=LightCalibration)  # the capture's, where chosen
 
 
-def render_shots(fit, capture, *, chunk: int = 4) -> torch.Tensor:
+def render_shots(fit: FitResult, capture: Capture, *, chunk: int = 4) -> torch.Tensor:
     """Phong renders of every shot of ``capture`` (N, 3, H, W), a few shots at a time."""
     parts = [
         fit.render(capture.lights[k : k + chunk], capture.intensities[k : k + chunk], capture.cameras[k : k + chunk])
@@ -96,6 +96,15 @@ def decision_records(first, fit, normals_report: dict | None, flake_result, ligh
     flakes = {} if flake_result is None else flake_result.report
     out += [flakes[k]["decision"] for k in FLAKE_CHOICES if (flakes.get(k) or {}).get("decision")]
     return out
+
+
+def _misfit_only(particles: Particles, counts: dict, t0: float) -> FlakeStageResult:
+    """The flake stage's result when the detections do not exceed the mirrored residual's."""
+    report = {"skipped": ("detections consistent with the Phong fit's misfit: no SNR at which they exceed the "
+                          f"mirrored residual's (locations brighter in the residual {counts['positive']} vs in "
+                          f"its mirror {counts['mirrored']}, above SNR {counts['snr']})"),
+              "particles": len(particles), "null_test": counts, "times": {"total": time.perf_counter() - t0}}
+    return FlakeStageResult(None, particles, report)
 
 
 def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
@@ -139,12 +148,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     counts["mask_rim"] = {"positive": rim_pos, "mirrored": rim_mir}
     counts["extended"] = {"positive": ext_pos, "mirrored": ext_mir}
     if not kept:
-        report = {"skipped": ("detections consistent with the Phong fit's misfit: no SNR at which they exceed the "
-                              f"mirrored residual's (locations brighter in the residual {counts['positive']} vs in "
-                              f"its mirror {counts['mirrored']}, above SNR {counts['snr']})"),
-                  "particles": len(det.particles), "null_test": counts,
-                  "times": {"total": time.perf_counter() - t0}}
-        return FlakeStageResult(None, det.particles, report), fit, fit.texture
+        return _misfit_only(det.particles, counts, t0), fit, fit.texture
     coat = fit
     if refit is not None:
         fit = refit()
@@ -162,7 +166,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
 
 
 def fit_material(
-    capture,
+    capture: Capture,
     *,
     scheme: str = "refine",
     specular: str = "auto",
@@ -221,20 +225,10 @@ def fit_material(
     none, the density map), each on shots left out; every choice's record ends in the report's "decisions"
     (:func:`decision_records`).
     """
-    if flakes not in FLAKE_MODES:
-        raise InputError(f"flakes: expected one of {FLAKE_MODES}, found {flakes!r}")
-    mode = {True: "on", False: "off"}.get(observed_flakes, observed_flakes) if isinstance(observed_flakes, (bool, str)) else None
-    if mode not in OBSERVED_MODES:
-        raise InputError(f"observed_flakes: expected one of {OBSERVED_MODES} or a bool, found {observed_flakes!r}")
-    if weights not in WEIGHTS:
-        raise InputError(f"weights: expected one of {WEIGHTS}, found {weights!r}")
-    if light not in LIGHT_MODES:
-        raise InputError(f"light: expected one of {list(LIGHT_MODES)}, found {light!r}")
     t0 = time.perf_counter()
-    opts = Options(scheme=scheme, specular=specular, flakes=flakes, tol=tol, max_iters=max_iters, robust=robust,
-                   seed=seed, observed=mode, progress=progress, lobe=lobe, normals=normals, weights=weights,
-                   light=light)
-    state = State(opts)
+    state = State(Options.checked(scheme=scheme, specular=specular, flakes=flakes, tol=tol, max_iters=max_iters,
+                                  robust=robust, seed=seed, observed=observed_flakes, progress=progress, lobe=lobe,
+                                  normals=normals, weights=weights, light=light))
     for stage in STAGES:
         capture, state = stage(capture, state)
     material = state.material
@@ -263,6 +257,21 @@ class Options:
     normals: str
     weights: str
     light: str = "off"
+
+    @classmethod
+    def checked(cls, *, observed: str | bool, **kw) -> Options:
+        """The options, each checked against its allowed values (one-line :class:`InputError` otherwise);
+        ``observed`` may be a bool (True: "on")."""
+        if kw["flakes"] not in FLAKE_MODES:
+            raise InputError(f"flakes: expected one of {FLAKE_MODES}, found {kw['flakes']!r}")
+        mode = {True: "on", False: "off"}.get(observed, observed) if isinstance(observed, (bool, str)) else None
+        if mode not in OBSERVED_MODES:
+            raise InputError(f"observed_flakes: expected one of {OBSERVED_MODES} or a bool, found {observed!r}")
+        if kw["weights"] not in WEIGHTS:
+            raise InputError(f"weights: expected one of {WEIGHTS}, found {kw['weights']!r}")
+        if kw["light"] not in LIGHT_MODES:
+            raise InputError(f"light: expected one of {list(LIGHT_MODES)}, found {kw['light']!r}")
+        return cls(observed=mode, **kw)
 
     def fit_kwargs(self) -> dict:
         """:func:`~torchmetal.fit.fit_phong` arguments every fit of the run shares (``robust`` aside)."""
