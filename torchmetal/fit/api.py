@@ -28,6 +28,7 @@ from torch import Tensor
 from torchmetal.checks import check_finite
 from torchmetal.errors import FitError, InputError
 from torchmetal.fit.clusters import heldout_mse, relabel_pixels
+from torchmetal.fit.colour import fit_white
 from torchmetal.fit.decisions import subsample_decisions
 from torchmetal.fit.gloss import fit_gloss_maps
 from torchmetal.fit.lobe_choice import choose_lobe
@@ -375,6 +376,9 @@ def _refine_full(full: Observations, run: FitRun, d: SubsampleDecisions, *, tol:
         fit = fit_specular(full, torch.log(spec.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix,
                            on_iter=run.logger("refine", full.num_pixels), first=first)
         del first
+        if d.white:  # one s for the three channels (fit.colour), chosen on the held-out shot
+            fit = fit_white(full, fit, tol=tol, max_iters=max_iters, on_iter=run.logger("refine", full.num_pixels))
+            s_fix = fit.s  # GGX's shared α would re-solve s per channel
     if labeler is not None and sel is not None and sel.relabel:
         with run.stage("relabel"):
             fit, moved = relabel_pixels(full, fit, lambda obs, f: fit_specular(

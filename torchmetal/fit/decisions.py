@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.clusters import Labeler, Selection, choose_specular, evidence, fit_clustered, heldout_evidence
+from torchmetal.fit.colour import choose_colour
 from torchmetal.fit.gloss import choose_maps
 from torchmetal.fit.lobe_choice import LOBE_GRID, specular_energy
 from torchmetal.fit.paper import paper_scheme
@@ -51,11 +52,13 @@ class SubsampleDecisions:
     use_maps: bool  # the full-resolution fit gets gloss maps
     maps_info: dict | None
     weighting: Weighting | None  # robust weights / outlier masks for the full-resolution observations
+    white: bool = False  # one s for the three channels (:mod:`torchmetal.fit.colour`)
 
 
 def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: float, max_iters: int, robust: str | None,
                         outliers: float | None, clusters: tuple[int, ...], chunk: int, sub_pixels: int,
-                        select_pixels: int, seed: int, lobe: str = "phong", noise: bool = False) -> SubsampleDecisions:
+                        select_pixels: int, seed: int, lobe: str = "phong", noise: bool = False,
+                        colour: bool = True) -> SubsampleDecisions:
     """Steps 1–4b of the refine scheme (module docstring) on strided pixel subsamples of ``capture``
     (any object with ``images`` (N, 3, H, W) readable by :func:`~torchmetal.fit.problem.build_observations`,
     such as the tiled fit's memory-mapped capture): the same values bit for bit for the same pixels.
@@ -100,6 +103,9 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
         run.decisions.append(maps_info["decision"])
     if use_maps:
         labeler = None
+    white = colour and _colour_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, use_maps=use_maps,
+                                        labeler=labeler, sub=sub, grids=grids, tol=sub_tol, max_iters=max_iters,
+                                        weighting=weighting)
     if labeler is not None:
         with run.stage("refine"):
             sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
@@ -107,7 +113,7 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
             spec = fit_clustered(sub, labeler, glob, tol=sub_tol, max_iters=max_iters)
     else:
         spec = glob
-    return SubsampleDecisions(spec, labeler, s_fixed, sel, use_maps, maps_info, weighting)
+    return SubsampleDecisions(spec, labeler, s_fixed, sel, use_maps, maps_info, weighting, white)
 
 
 @dataclass(frozen=True)
@@ -207,6 +213,23 @@ def _highlight_evidence(capture, run: FitRun, g: _Grids, sub: Observations, glob
     chans = [c for c, e in zip("RGB", ev.tolist()) if not e]
     run.skipped.append(f"specular: no highlight evidence in channel(s) {', '.join(chans)}; s = 0 there")
     return glob, torch.where(ev, torch.full_like(glob.s[0], math.nan), torch.zeros_like(glob.s[0])).view(1, 3)
+
+
+def _colour_decision(capture: Capture, run: FitRun, glob: SpecFit | None, sel: Selection | None, *, specular: str,
+                     s_fixed: Tensor | None, use_maps: bool, labeler: Labeler | None, sub: Observations, grids: _Grids,
+                     tol: float, max_iters: int, weighting: Weighting | None) -> bool:
+    """4c. White specular (one s for the three channels) against per-channel s on the selection's held-out
+    shot (:func:`~torchmetal.fit.colour.choose_colour`): tried for a global lobe of specular="auto" with
+    highlights in every channel. Returns whether white won."""
+    n_shots = int(capture.images.shape[0])
+    if glob is None or specular != "auto" or use_maps or labeler is not None or s_fixed is not None or n_shots < 3:
+        return False
+    hold = sel.hold if sel is not None and sel.hold >= 0 else _hold_shot(sub, glob)
+    with run.stage("select"):
+        d = choose_colour(capture, glob, stride=grids.sel_stride, hold=hold, tol=tol, max_iters=max_iters,
+                          dtype=grids.dtype, chunk=grids.chunk, weighting=weighting)
+    run.decisions.append(d.to_dict())
+    return d.chosen == "white"
 
 
 def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, sub, sel_stride, tol, max_iters, dt, chunk,

@@ -203,7 +203,8 @@ def _subsample_decisions(cap, run: FitRun, *, specular, tol, max_iters, clusters
     :func:`~torchmetal.fit.decisions.subsample_decisions` itself: returns (spec fit or None, labeler or None,
     s_fixed or None, selection info or None). Gloss maps that win are refused (one line)."""
     d = subsample_decisions(cap, run, specular=specular, tol=tol, max_iters=max_iters, robust=None, outliers=None,
-                            clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed)
+                            clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
+                            colour=False)
     if d.use_maps:
         raise FitError("fit --tile: gloss maps win on the held-out shot, and the tiled fit does not fit them (their "
                        "smoothness prior couples all pixels); fit this capture in memory or with --specular global")
