@@ -204,7 +204,7 @@ def fit_specular(
         if on_iter is not None:
             on_iter(it, math.sqrt(float(ev.cost.sum()) / n_total), state["active"])
 
-    lo, hi, x0 = _beta_bounds(beta0, beta_fixed)
+    lo, hi, x0 = beta_bounds(beta0, beta_fixed)
     if first is not None and bool((x0 == beta0.reshape(-1, 1).to(torch.float64)).all()):
         ev0 = evaluate(first[0].to(A.device), first[1])
     else:
@@ -219,7 +219,7 @@ def fit_specular(
     )
 
 
-def _beta_bounds(beta0: Tensor, beta_fixed: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+def beta_bounds(beta0: Tensor, beta_fixed: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
     """(lower, upper, start) (K·3, 1) float64 of the LM on β: [BETA_MIN, BETA_MAX], pinned where ``beta_fixed``
     is finite; the start ``beta0`` clamped into them."""
     k = int(beta0.shape[0])

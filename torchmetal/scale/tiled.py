@@ -38,7 +38,7 @@ from torchmetal.fit.clusters import RELABEL_ROUNDS, LabelMap
 from torchmetal.fit.decisions import subsample_decisions
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Reference, compute_dtype
-from torchmetal.fit.refine import ALPHA_MIN, BETA_MAX, BETA_MIN, element_terms, pinned_terms
+from torchmetal.fit.refine import ALPHA_MIN, beta_bounds, element_terms, pinned_terms
 from torchmetal.fit.result import FitResult
 from torchmetal.fit.run import FitRun
 from torchmetal.pipeline import PipelineResult
@@ -79,13 +79,7 @@ def _solve_specular(passes: TilePasses, dt: torch.dtype, beta0: Tensor, first: T
             total += stats
         return evaluate(total)
 
-    lo = torch.full((k * 3, 1), BETA_MIN, dtype=torch.float64)
-    hi = torch.full_like(lo, BETA_MAX)
-    if beta_fixed is not None:
-        bf = beta_fixed.reshape(-1, 1).to(torch.float64)
-        pin = ~torch.isnan(bf)
-        lo, hi = torch.where(pin, bf, lo), torch.where(pin, bf, hi)
-    x0 = torch.minimum(torch.maximum(beta0.reshape(-1, 1).to(torch.float64), lo), hi)
+    lo, hi, x0 = beta_bounds(beta0.cpu(), beta_fixed)
     ev0 = evaluate(first) if bool((x0 == beta0.reshape(-1, 1).to(torch.float64)).all()) else oracle(x0)
     on_iter(0, ev0)
     res = levenberg_marquardt(oracle, x0, lower=lo, upper=hi, tol=tol, xtol=tol, max_iters=max_iters,
