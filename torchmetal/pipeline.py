@@ -82,7 +82,8 @@ def _without_glints(capture, labels: torch.Tensor):
 FLAKE_CHOICES = ("observed_choice", "flakes_choice", "density_map_choice")  # flake report entries holding a decision
 
 
-def decision_records(first, fit, normals_report: dict | None, flake_result, light_report: dict | None = None) -> list[dict]:
+def decision_records(first: FitResult, fit: FitResult, normals_report: dict | None, flake_result: FlakeStageResult | None,
+                     light_report: dict | None = None) -> list[dict]:
     """Every choice made on left-out shots, in the order made, as :class:`~torchmetal.fit.decision.Decision`
     dicts: normals, the light calibration, the lobe (``first``, the first fit, chose it), the final fit's specular choices
     (evidence, clusters, relabelling, gloss maps), then the flake choices."""

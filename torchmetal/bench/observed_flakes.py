@@ -13,10 +13,14 @@ predicted glint centroid within 2 px.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from torchmetal.bench.zoo import _psnr, render_material
+
+if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
+    from torchmetal.material import Material
 
 NOISE = 0.005  # σ of the fixed noise the glint residuals are counted in
 MATCH_PX = 2.0
@@ -54,7 +58,7 @@ def glint_scores(truth: np.ndarray, truth_base: np.ndarray, pred: np.ndarray, pr
             "within_2px": matched / max(nt, 1)}
 
 
-def score_observed(case, material) -> dict:
+def score_observed(case, material: Material) -> dict:
     """{"none", "statistical", "observed"} → {"psnr", "md", and for the flake renders the glint scores}."""
     import torch
 

@@ -23,6 +23,7 @@ import numpy as np
 from torchmetal.bench.scoring import rel_err
 
 if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
+    from torchmetal.material import Material
     from torchmetal.pipeline import PipelineResult
 
 METHODS = {
@@ -38,7 +39,7 @@ def _psnr(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None) -> 
     return psnr(pred, ref, mask=None if mask is None else mask[None, None])
 
 
-def render_material(material, lights: np.ndarray, intensities: np.ndarray, cameras: np.ndarray, *,
+def render_material(material: Material, lights: np.ndarray, intensities: np.ndarray, cameras: np.ndarray, *,
                     flakes: bool = True) -> np.ndarray:
     """(H, 3, n, n) float32 renders of a material for held-out shots (the torch renderer)."""
     import torch

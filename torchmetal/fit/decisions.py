@@ -126,7 +126,7 @@ class _Grids:
     chunk: int
     lobe: str
 
-    def build(self, capture, stride: int, **kw) -> Observations:
+    def build(self, capture: Capture, stride: int, **kw) -> Observations:
         return build_observations(capture, lobe=self.lobe, stride=stride, dtype=self.dtype, chunk=self.chunk, **kw)
 
 

@@ -74,7 +74,7 @@ def _matches(path: Path, material, flakes: bool) -> bool:
     return (meta.get("height"), meta.get("width")) == (str(material.height), str(material.width)) and has == flakes
 
 
-def export_graphs(material, out_dir: str | os.PathLike, *, reuse: Sequence[str | os.PathLike] = (),
+def export_graphs(material: Material, out_dir: str | os.PathLike, *, reuse: Sequence[str | os.PathLike] = (),
                   opset: int = 20, log=None) -> dict[str, str]:
     """The viewer's ONNX graphs of ``material`` in ``out_dir``; returns config ``graphs``.
 
@@ -145,7 +145,7 @@ def photo_png(capture: Capture, k: int) -> bytes:
     return encode_image(linear_to_srgb(img).permute(1, 2, 0).numpy(), ".png", bits=8)
 
 
-def write_preview(material, out_dir: str | os.PathLike) -> tuple[dict | None, str]:
+def write_preview(material: Material, out_dir: str | os.PathLike) -> tuple[dict | None, str]:
     """The 3D preview's ``material.glb`` in ``out_dir`` (when three.js is installed); returns the
     config's (``preview``, ``preview_note``)."""
     # on use: loads torch (this module imports nothing heavy)
@@ -161,7 +161,7 @@ def write_preview(material, out_dir: str | os.PathLike) -> tuple[dict | None, st
     return {"glb": PREVIEW_GLB, "three": found[1]}, "3D preview: the glTF export in three.js"
 
 
-def make_config(material, graphs: dict[str, str], shots: list[dict], *, mode: str,
+def make_config(material: Material, graphs: dict[str, str], shots: list[dict], *, mode: str,
                 title: str = "torchmetal", ort: dict | None = None, threads: int = 1,
                 preview: dict | None = None, preview_note: str = "") -> dict:
     """The page's ``config.json`` (see the module docstring)."""
