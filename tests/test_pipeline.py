@@ -121,8 +121,8 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
     assert records["lobe"]["chosen"] == kept.material.lobe and "specular evidence" in records
     assert records["observed flakes"]["chosen"] == ("observed" if kept.material.observed_flakes is not None
                                                     else "statistical")
-    assert set(records) <= {"normals", "lobe", "specular evidence", "specular clusters", "relabel", "gloss maps",
-                            "observed flakes", "flakes", "density map"}
+    assert set(records) <= {"normals", "light", "lobe", "specular evidence", "specular clusters", "relabel", "gloss maps",
+                            "specular colour", "observed flakes", "flakes", "density map"}
     times = kept.report["stage_times"]  # the total counts the flake choices too
     assert kept.report["total_time"] >= times["flakes"] + times["flakes.observed"] + times["flakes.choice"]
     monkeypatch.setattr(pipeline, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))
