@@ -18,8 +18,8 @@ gets the falloff, not a gain).
 
 - :mod:`~torchmetal.lightcal.model`: :class:`LightCalibration` (factor, apply, the report's dict);
 - :mod:`~torchmetal.lightcal.estimate`: the exponent and gains from a fit's log-ratio residuals;
-- :mod:`~torchmetal.lightcal.choice`: ``light="auto"``: off, falloff or falloff + gains, decided on
-  left-out shots (:func:`~torchmetal.fit.decision.paired_choice`).
+- :mod:`~torchmetal.lightcal.choice`: ``light="auto"``: off or the falloff, decided on left-out shots
+  (:func:`~torchmetal.fit.decision.paired_choice`); gains only when asked for (``light="gains"``).
 """
 
 from torchmetal.lightcal.choice import LIGHT_MODES, choose_light, with_light

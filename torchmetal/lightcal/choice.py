@@ -30,7 +30,7 @@ from torchmetal.fit.api import fit_phong
 from torchmetal.fit.decision import Decision, paired_choice
 from torchmetal.lightcal.estimate import calibrate
 from torchmetal.lightcal.model import LightCalibration
-from torchmetal.normals.choice import rendered_pixel_errors, strided_capture
+from torchmetal.normals.choice import rendered_pixel_errors, shot_groups, strided_capture
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -76,16 +76,14 @@ def choose_light(capture: Capture, *, fit_kwargs: dict | None = None, max_pixels
     kw = {**(fit_kwargs or {}), **FIT}
     n = capture.num_shots
     sub = strided_capture(capture, max_pixels)
-    groups = [list(range(g, n, min(folds, n)))[: n - 3] for g in range(min(folds, n))]
+    groups = shot_groups(n, folds)
     errors: dict[str, list[Tensor]] = {"off": [], "falloff": []}
     for group in groups:
         fold = _fold_errors(sub.subset([k for k in range(n) if k not in group]), sub.subset(group), kw)
         for k, e in fold.items():
             errors[k].append(e)
     cat = {k: torch.cat(v) for k, v in errors.items()}
-    seen = ~torch.isnan(cat["off"])
-    for e in cat.values():
-        seen &= ~torch.isnan(e)
+    seen = ~torch.isnan(torch.stack(list(cat.values()))).any(0)  # pixels with a valid held-out observation in both
     d = paired_choice("light", {k: e[seen] for k, e in cat.items()}, ref="off", **rule)
     d.holds = groups
     d.pixels = int(sub.images.shape[-2] * sub.images.shape[-1])

@@ -66,6 +66,12 @@ def strided_capture(capture: Capture, max_pixels: int = PIXELS) -> Capture:
                    mask=pick(capture.mask), saturated=pick(capture.saturated), size=size)
 
 
+def shot_groups(n: int, folds: int) -> list[list[int]]:
+    """The shots 0..n−1 dealt into ≤ ``folds`` groups to leave out in turn (shot k in group k mod folds),
+    each cut where it would leave fewer than 3 shots to fit."""
+    return [list(range(g, n, min(folds, n)))[: n - 3] for g in range(min(folds, n))]
+
+
 def pixel_errors(fit: FitResult, hold: Capture) -> Tensor:
     """(P,) float64: per mask pixel, the median over ``hold``'s valid observations (shots × channels) of the
     squared error of rendering them with ``fit``; NaN where the pixel has none.
@@ -103,8 +109,7 @@ def choose_normals(capture: Capture, *, fit_kwargs: dict | None = None, max_pixe
                                 reason=f"a left-out test of estimated normals needs >= {MIN_SHOTS} shots, found {n}")
     fit_kwargs = dict(fit_kwargs or {})
     sub = strided_capture(capture, max_pixels)
-    # every shot left out once, in ≤ ``folds`` groups — cut where a group would leave the estimate under 3 shots
-    groups = [list(range(g, n, min(folds, n)))[: n - 3] for g in range(min(folds, n))]
+    groups = shot_groups(n, folds)
     errors: dict[str, list[Tensor]] = {"flat": [], "estimate": []}
     for group in groups:
         train = sub.subset([k for k in range(n) if k not in group])
