@@ -177,6 +177,18 @@ def evidence(fit: SpecFit) -> Tensor:
     return (fit.s > 0) & (fit.explained() > EVIDENCE_REL) & (gain > EVIDENCE_ABS * fit.Y)
 
 
+def fit_without_hold(capture: Capture, glob: SpecFit, *, stride: int, hold: int, tol: float, max_iters: int,
+                     dtype: torch.dtype, chunk: int, weighting: Weighting | None
+                     ) -> tuple[Observations, Observations, SpecFit]:
+    """The observations of every shot but ``hold`` (weighted at ``glob``), those of ``hold``, and the
+    variable-projection fit on the former from ``glob``'s α: what a single-shot held-out choice scores."""
+    n = int(capture.images.shape[0])
+    obs = build_observations(capture, stride=stride, shots=[i for i in range(n) if i != hold], dtype=dtype, chunk=chunk,
+                             ref=Reference(glob.s, glob.alpha), weighting=weighting, lobe=glob.lobe)
+    ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk, lobe=glob.lobe)
+    return obs, ho, fit_specular(obs, torch.log(glob.alpha), tol=tol, max_iters=max_iters)
+
+
 def heldout_evidence(capture: Capture, glob: SpecFit, *, stride: int, hold: int, tol: float, max_iters: int,
                      dtype: torch.dtype, chunk: int, weighting: Weighting | None) -> Decision:
     """Does the specular term predict a shot left out of the fit better than diffuse alone?
@@ -186,11 +198,8 @@ def heldout_evidence(capture: Capture, glob: SpecFit, *, stride: int, hold: int,
     capture. Fit on every shot but ``hold`` (the one with most predicted specular energy) and
     compare the held-out errors by the paired rule: "diffuse" (s = 0) is kept unless "specular" wins.
     """
-    n = int(capture.images.shape[0])
-    obs = build_observations(capture, stride=stride, shots=[i for i in range(n) if i != hold], dtype=dtype, chunk=chunk,
-                             ref=Reference(glob.s, glob.alpha), weighting=weighting, lobe=glob.lobe)
-    ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk, lobe=glob.lobe)
-    g = fit_specular(obs, torch.log(glob.alpha), tol=tol, max_iters=max_iters)
+    obs, ho, g = fit_without_hold(capture, glob, stride=stride, hold=hold, tol=tol, max_iters=max_iters, dtype=dtype,
+                                  chunk=chunk, weighting=weighting)
     zero = torch.zeros_like(g.s)
     errors = {"diffuse": heldout_errors(ho, texture_map(obs, zero, g.eb), zero, g.alpha),
               "specular": heldout_errors(ho, texture_map(obs, g.s, g.eb), g.s, g.alpha)}

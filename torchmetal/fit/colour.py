@@ -20,9 +20,9 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from torchmetal.fit.clusters import heldout_errors, mean_square
+from torchmetal.fit.clusters import fit_without_hold, heldout_errors, mean_square
 from torchmetal.fit.decision import MIN_GAIN_ABS, Decision, paired_choice
-from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations
+from torchmetal.fit.problem import Observations, Weighting
 from torchmetal.fit.refine import SpecFit, evaluate_specular, fit_specular, spec_sums, texture_map
 
 if TYPE_CHECKING:
@@ -54,11 +54,8 @@ def choose_colour(capture: Capture, glob: SpecFit, *, stride: int, hold: int, to
                   dtype: torch.dtype, chunk: int, weighting: Weighting | None) -> Decision:
     """"free" (per-channel s) or "white", fitted on every shot but ``hold`` from the global fit ``glob``
     and scored on ``hold`` (module docstring)."""
-    n = int(capture.images.shape[0])
-    obs = build_observations(capture, stride=stride, shots=[i for i in range(n) if i != hold], dtype=dtype, chunk=chunk,
-                             ref=Reference(glob.s, glob.alpha), weighting=weighting, lobe=glob.lobe)
-    ho = build_observations(capture, stride=stride, shots=[hold], dtype=dtype, chunk=chunk, lobe=glob.lobe)
-    free = fit_specular(obs, torch.log(glob.alpha), tol=tol, max_iters=max_iters)
+    obs, ho, free = fit_without_hold(capture, glob, stride=stride, hold=hold, tol=tol, max_iters=max_iters, dtype=dtype,
+                                     chunk=chunk, weighting=weighting)
     white = fit_white(obs, free, tol=tol, max_iters=max_iters)
     errors = {k: heldout_errors(ho, texture_map(obs, f.s, f.eb), f.s, f.alpha) for k, f in (("free", free), ("white", white))}
     d = paired_choice("specular colour", errors, "free", floor=MIN_GAIN_ABS * mean_square(ho))
