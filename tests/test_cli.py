@@ -124,3 +124,15 @@ def test_fit_light_option(tmp_path):
     assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m2", "--light", "falloff", "--tile", "16"), "--light")
     proc = run_cli("fit", cap, "-o", tmp_path / "m3", "--light", "flash")
     assert proc.returncode == 2 and "--light" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_fit_weights_option(tmp_path):
+    """--weights auto (the default) records its held-out choice; noise with --tile is a one-line refusal."""
+    cap, mat = tmp_path / "cap", tmp_path / "mat"
+    assert main(["synth", "-o", str(cap), "--size", "32", "--shots", "5"]) == 0
+    assert main(["fit", str(cap), "-o", str(mat), "-q", "--flakes", "off"]) == 0
+    names = [d["name"] for d in json.loads((mat / "material.json").read_text())["fit"]["decisions"]]
+    assert "weights" in names
+    assert main(["fit", str(cap), "-o", str(tmp_path / "u"), "-q", "--flakes", "off", "--weights", "uniform"]) == 0
+    assert "weights" not in [d["name"] for d in json.loads((tmp_path / "u" / "material.json").read_text())["fit"]["decisions"]]
+    assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m2", "--weights", "noise", "--tile", "16"), "--weights")

@@ -1,6 +1,7 @@
 """Material directory: round trip, atomic writes, one-line errors."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -94,3 +95,15 @@ def test_bad_material_values():
         Material(torch.rand(3, 2, 2), torch.zeros(3), torch.ones(3), (1.0, 1.0), spec_labels=torch.zeros(2, 2))
     with pytest.raises(MaterialError, match="density"):
         FlakeModel(density=float("nan"))
+
+
+def test_report_with_non_finite_numbers_saves_as_strings(tmp_path):
+    """A decision's held-out PSNR is inf for a perfect prediction: material.json stays strict JSON."""
+    m = Material(torch.full((3, 4, 4), 0.5), torch.tensor([0.1, 0.1, 0.1]), torch.tensor([10.0, 10.0, 10.0]), (1.0, 1.0))
+    m.report = {"decisions": [{"psnr_heldout": {"uniform": math.inf}, "z": {"noise": float("nan")}}], "t": (1.0, -math.inf)}
+    save_material(m, tmp_path / "m")
+    fit = json.loads((tmp_path / "m" / "material.json").read_text())["fit"]
+    assert fit == {"decisions": [{"psnr_heldout": {"uniform": "inf"}, "z": {"noise": "nan"}}], "t": [1.0, "-inf"]}
+    m.flakes = FlakeModel(density=0.01, extra={"std_err": {"log_glint_sigma": math.nan}})  # not computed: NaN
+    save_material(m, tmp_path / "f")
+    assert load_material(tmp_path / "f").flakes.extra == {"std_err": {"log_glint_sigma": "nan"}}

@@ -119,10 +119,11 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
     records = {d["name"]: d for d in kept.report["decisions"]}  # one record per choice, in one list
     assert records["flakes"]["chosen"] == "flakes" and records["flakes"]["scores"]["flakes"]["md"] == mean(ch["flakes"])
     assert records["lobe"]["chosen"] == kept.material.lobe and "specular evidence" in records
+    assert "weights" in records  # the first fit's choice, kept by the flake stage's refits, is on record
     assert records["observed flakes"]["chosen"] == ("observed" if kept.material.observed_flakes is not None
                                                     else "statistical")
-    assert set(records) <= {"normals", "light", "lobe", "specular evidence", "specular clusters", "relabel", "gloss maps",
-                            "specular colour", "observed flakes", "flakes", "density map"}
+    assert set(records) <= {"normals", "light", "weights", "lobe", "specular evidence", "specular clusters", "relabel",
+                            "gloss maps", "specular colour", "observed flakes", "flakes", "density map"}
     times = kept.report["stage_times"]  # the total counts the flake choices too
     assert kept.report["total_time"] >= times["flakes"] + times["flakes.observed"] + times["flakes.choice"]
     monkeypatch.setattr(pipeline, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))

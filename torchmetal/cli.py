@@ -87,6 +87,9 @@ def _fit_tiled(args: argparse.Namespace, scratch: list) -> tuple[PipelineResult,
     if args.lobe not in ("phong", "auto"):
         raise InputError(f"--lobe {args.lobe}: expected 'phong' or 'auto' with --tile (tiled fits use the paper's "
                          "lobe)")
+    if args.weights == "noise":
+        raise InputError("--weights noise: expected 'auto' or 'uniform' with --tile (tiled fits weigh every observation "
+                         "alike)")
     if args.light not in ("off", "auto"):
         raise InputError(f"--light {args.light}: expected 'off' or 'auto' with --tile (tiled fits use no light "
                          "calibration)")
@@ -250,10 +253,11 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
                         "statistics (MD) are no further from the photos with it; on: whenever detections exceed noise")
     f.add_argument("--robust", choices=["auto", "none", "huber", "cauchy"], default="auto",
                    help="IRLS weights of the Phong fit (auto: least squares, Huber for the flake statistics)")
-    f.add_argument("--weights", choices=["uniform", "noise"], default="uniform",
-                   help="least-squares weights: uniform (default): every observation alike; noise: each by the "
-                        "inverse of its expected noise variance, read + shot noise fitted to the residuals (tiled "
-                        "fits and --scheme paper: uniform)")
+    f.add_argument("--weights", choices=["auto", "uniform", "noise"], default="auto",
+                   help="least-squares weights: auto (default): noise where a held-out shot says it predicts "
+                        "better, else uniform; uniform: every observation alike; noise: each by the inverse of its "
+                        "expected noise variance, read + shot noise fitted to the residuals (tiled fits and "
+                        "--scheme paper: uniform)")
     f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
     f.add_argument("--max-iters", type=int, default=100)
     f.add_argument("--seed", type=int, default=0, help="seed of the flake field")

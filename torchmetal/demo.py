@@ -44,7 +44,7 @@ import torch
 from torchmetal import pipeline
 from torchmetal.flakes.model import FlakeModel
 from torchmetal.flakes.model.md import metallic_difference
-from torchmetal.material import save_material
+from torchmetal.material import json_finite, save_material
 from torchmetal.metrics import psnr
 from torchmetal.onnx_export import export_onnx
 from torchmetal.phong import phong_render
@@ -81,19 +81,6 @@ def _rel(a, b) -> list[float]:
     a = torch.as_tensor(a, dtype=torch.float64)
     b = torch.as_tensor(b, dtype=torch.float64)
     return ((a - b).abs() / b.abs().clamp_min(1e-12)).tolist()
-
-
-def _finite(x):
-    """JSON-safe: non-finite floats become strings so json.dumps(allow_nan=False) never fails."""
-    if isinstance(x, float):
-        return x if math.isfinite(x) else str(x)
-    if isinstance(x, dict):
-        return {str(k): _finite(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite(v) for v in x]
-    if isinstance(x, torch.Tensor):
-        return _finite(x.tolist())
-    return x
 
 
 def _flake_stats(result, truth_model, truth_field) -> dict:
@@ -178,7 +165,7 @@ def run_demo(out_dir: str | os.PathLike = "torchmetal-demo", *, size: int = 256,
     times["total"] = time.perf_counter() - t_start
     metrics["demo_times"] = times
     metrics["files"] = {"figure": "report.png", "material": "material", "onnx": "material/renderer.onnx"}
-    (out / "metrics.json").write_text(json.dumps(_finite(metrics), indent=2, allow_nan=False) + "\n")
+    (out / "metrics.json").write_text(json.dumps(json_finite(metrics), indent=2, allow_nan=False) + "\n")
     if verbose:
         print(summary(metrics, out))
     return metrics

@@ -159,6 +159,21 @@ def _to_list(x: Tensor) -> list:
     return x.detach().cpu().double().tolist()
 
 
+def json_finite(x):
+    """JSON-safe: non-finite floats become strings ("inf", "nan") so ``json.dumps(allow_nan=False)`` never
+    fails (a decision's held-out PSNR is inf for a perfect prediction); dicts, lists, tuples and tensors
+    recursively."""
+    if isinstance(x, float):
+        return x if math.isfinite(x) else str(x)
+    if isinstance(x, dict):
+        return {str(k): json_finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_finite(v) for v in x]
+    if isinstance(x, torch.Tensor):
+        return json_finite(x.tolist())
+    return x
+
+
 def material_to_json(m: Material) -> dict:
     return {
         "format": FORMAT,
@@ -178,7 +193,7 @@ def material_to_json(m: Material) -> dict:
         },
         "flakes": _flakes_json(m.flakes),
         "observed_flakes": None if m.observed_flakes is None else observed_json(m.observed_flakes),
-        "fit": m.report,
+        "fit": json_finite(m.report),
     }
 
 
@@ -191,6 +206,8 @@ def _flakes_json(f: FlakeModel | None) -> dict | None:
     if f is None:
         return None
     d = f.to_dict()
+    if "extra" in d:  # the fit's report on the statistics: a standard error not computed is NaN
+        d["extra"] = json_finite(d["extra"])
     maps = {k: v for k, v in FLAKE_MAP_FILES.items() if getattr(f, k) is not None}
     if maps:
         d["maps"] = maps

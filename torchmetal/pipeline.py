@@ -6,7 +6,8 @@ stage returns no model and the material stores ``flakes: null``. Detections that
 tests but do not bring left-out shots' sparkle statistics closer give the flake-free material
 (:func:`~torchmetal.flakes.choice.keep_flakes`).
 
-The Phong fit is plain least squares by default (``robust="auto"``, ``weights="uniform"``). The flake stage
+The Phong fit is least squares by default (``robust="auto"``), weighted by the expected noise where a
+held-out shot prefers it (``weights="auto"``). The flake stage
 first asks whether the detections are glints at all: misfit gives residuals of both signs, glints positive
 ones, so detections must exceed those of the mirrored residual
 (:func:`~torchmetal.flakes.estimate.null_test.glint_excess`), counting spots only (a sheen band, the streak of a
@@ -31,7 +32,7 @@ from torchmetal.fit import FitResult, fit_phong
 from torchmetal.flakes.choice import choose_observed, keep_flakes
 from torchmetal.flakes.density_choice import choose_density_map
 from torchmetal.flakes.estimate.lobe_core import drop_core
-from torchmetal.flakes.estimate.null_test import drop_extended, glint_excess
+from torchmetal.flakes.estimate.null_test import drop_extended, glint_excess, glint_snr
 from torchmetal.flakes.estimate.observed_flakes import observed_flakes as measure_observed
 from torchmetal.flakes.estimate.prescreen import screen_fit
 from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
@@ -45,7 +46,7 @@ from torchmetal.normals import with_normals
 
 FLAKE_MODES = ("auto", "on", "off")
 OBSERVED_MODES = ("auto", "on", "off")
-WEIGHTS = ("noise", "uniform")
+WEIGHTS = ("auto", "noise", "uniform")
 ROBUST_GLINTS = "huber"  # robust="auto": the Phong fit's weights once the detections are glints
 CLEAN_MIN_PARTICLES = 20  # fewer first-round detections: no statistics (flake_statistics' min_flakes)
 
@@ -80,20 +81,21 @@ def _without_glints(capture, labels: torch.Tensor):
 
 
 FLAKE_CHOICES = ("observed_choice", "flakes_choice", "density_map_choice")  # flake report entries holding a decision
+FIRST_FIT_CHOICES = ("lobe", "weights")  # made by the first fit alone: the flake stage's refits keep them
 
 
 def decision_records(first: FitResult, fit: FitResult, normals_report: dict | None, flake_result: FlakeStageResult | None,
                      light_report: dict | None = None) -> list[dict]:
     """Every choice made on left-out shots, in the order made, as :class:`~torchmetal.fit.decision.Decision`
-    dicts: normals, the light calibration, the lobe (``first``, the first fit, chose it), the final fit's specular choices
+    dicts: normals, the light calibration, the lobe and the weights (``first``, the first fit, chose them), the final fit's specular choices
     (evidence, clusters, relabelling, gloss maps), then the flake choices."""
     out = []
     if normals_report and normals_report.get("decision"):
         out.append(normals_report["decision"])
     if light_report and light_report.get("decision"):
         out.append(light_report["decision"])
-    out += [d for d in first.decisions if d["name"] == "lobe"]
-    out += [d for d in fit.decisions if d["name"] != "lobe"]
+    out += [d for d in first.decisions if d["name"] in FIRST_FIT_CHOICES]  # the refits keep these
+    out += [d for d in fit.decisions if d["name"] not in FIRST_FIT_CHOICES]
     flakes = {} if flake_result is None else flake_result.report
     out += [flakes[k]["decision"] for k in FLAKE_CHOICES if (flakes.get(k) or {}).get("decision")]
     return out
@@ -150,14 +152,19 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     counts["extended"] = {"positive": ext_pos, "mirrored": ext_mir}
     if not kept:
         return _misfit_only(det.particles, counts, t0), fit, fit.texture
+    # the statistics detect where the detections are glints, not misfit (null_test.glint_snr)
+    k_hi = glint_snr(counts, det.k_hi)
     coat = fit
     if refit is not None:
         fit = refit()
         phong_images = render_shots(fit, capture)
-        det = detect_capture(capture, phong_images)
+        det = detect_capture(capture, phong_images, k_hi=k_hi)
+    elif k_hi != det.k_hi:
+        det = detect_capture(capture, phong_images, k_hi=k_hi)
     texture, phong_images, _ = texture_without_glints(capture, fit.texture, phong_images, det.labels)
-    result = flake_stage(capture, phong_images, seed=seed)
+    result = flake_stage(capture, phong_images, seed=seed, detect={"k_hi": k_hi})
     result.report["null_test"] = counts
+    result.report["detection_snr"] = k_hi
     if coat_fit is not None and result.model is not None:  # the coating: least squares away from the glints
         coat = coat_fit(_without_glints(capture, det.labels))
         texture, _, _ = texture_without_glints(capture, coat.texture, render_shots(coat, capture), det.labels,
@@ -180,7 +187,7 @@ def fit_material(
     progress: bool = False,
     lobe: str = "auto",
     normals: str = "auto",
-    weights: str = "uniform",
+    weights: str = "auto",
     light: str = "off",
 ) -> PipelineResult:
     """Fit a full material to a capture.
@@ -209,8 +216,10 @@ def fit_material(
             left-out shots prefer them to the flat plane, :mod:`~torchmetal.normals.choice`), "given"
             (the capture's normals.npy; flat without one), "flat" (0, 0, 1), or "estimate" (photometric
             stereo with the Phong terms, :func:`~torchmetal.normals.estimate_normals`; the material keeps them).
-        weights: "uniform" (the default: plain least squares) or "noise" (each observation weighted by the
-            inverse of its expected noise variance, ``fit_phong(noise_weights=True)``).
+        weights: "auto" (the default: noise weights where the first fit's held-out shot predicts better with
+            them, else plain least squares; the refits keep that choice), "uniform" (plain least squares) or
+            "noise" (each observation weighted by the inverse of its expected noise variance,
+            ``fit_phong(noise_weights=True)``).
         light: the light calibration (:mod:`torchmetal.lightcal`: the flash's falloff from its axis and
             per-shot gains, nuisances of the capture, not the material): "off" (the default: on the shared
             real captures left-out shots did not prefer a falloff, docs/design.md §4), "auto" (the falloff
@@ -277,7 +286,7 @@ class Options:
     def fit_kwargs(self) -> dict:
         """:func:`~torchmetal.fit.fit_phong` arguments every fit of the run shares (``robust`` aside)."""
         return dict(scheme=self.scheme, specular=self.specular, tol=self.tol, max_iters=self.max_iters,
-                    progress=self.progress, noise_weights=self.weights == "noise")
+                    progress=self.progress, noise_weights="auto" if self.weights == "auto" else self.weights == "noise")
 
 
 @dataclass
@@ -336,7 +345,8 @@ def stage_flakes(capture: Capture, st: State) -> tuple[Capture, State]:
         st.stage_times["flakes"] = 0.0
         return capture, st
     t = time.perf_counter()
-    kw = {**o.fit_kwargs(), "lobe": st.first.lobe}  # refits keep the lobe the first fit chose
+    # refits keep the lobe and the weights the first fit chose
+    kw = {**o.fit_kwargs(), "lobe": st.first.lobe, "noise_weights": st.first.noise is not None}
     two_fits = o.robust == "auto" and o.scheme == "refine"
     # the statistics' Huber refit keeps the first fit's specular structure (the trials of clusters and gloss
     # maps again cost more than the rest of the refit); the coating's refit below chooses it again, glints out

@@ -192,8 +192,42 @@ def test_real_task_scores_paper_and_default_leave_one_out(tmp_path):
         assert r[v]["mean"] == pytest.approx(sum(r[v]["psnr"]) / 4)
         # in sample (fitted on the shots it is scored on): the model's reach, above the left-out mean
         assert 30 < r[v]["in_sample"] < 100 and r[v]["in_sample"] > r[v]["mean"], (v, r[v])
+    assert "coat" not in r["global"]  # fit_phong renders have no sparkles to leave out
+    for v in ("paper", "default"):  # no flakes on this scene: the coat is the render
+        assert r[v]["coat"] == pytest.approx(r[v]["psnr"]) and r[v]["coat_in_sample"] == pytest.approx(r[v]["in_sample"])
     bad = run_task("real", {"dir": str(case.capture_dir), "speculars": ["nonsense"]})
     assert "error" in bad and "nonsense" in bad["error"]
+
+
+def test_real_task_coat_is_the_render_without_sparkles(monkeypatch, tmp_path):
+    """A pipeline variant's coat column renders its material without the flake model: the sparkled
+    render is brighter where the flakes glint, the coat is the flake-free render exactly."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    import torch
+
+    import torchmetal.pipeline
+    from torchmetal.bench.real_tasks import _material_fit_render
+    from torchmetal.flakes.model import FlakeModel
+    from torchmetal.io.capture import load_capture
+    from torchmetal.lightcal import LightCalibration
+    from torchmetal.renderer import MaterialRenderer
+    from torchmetal.synth.zoo import SCENES, make_case
+
+    case = make_case(SCENES["three_shots"].with_(size=32, shots=4), tmp_path / "cap")
+    cap = load_capture(case.capture_dir)
+    coat_only = torchmetal.pipeline.fit_material(cap, flakes="off").material
+    sparkly = replace(coat_only, flakes=FlakeModel(density=0.1, tilt_sigma=0.3, glint_sigma=0.4, color_mean=(5.0, 5.0, 5.0)))
+    monkeypatch.setattr(torchmetal.pipeline, "fit_material",
+                        lambda *a, **k: SimpleNamespace(material=sparkly, light=LightCalibration()))
+    coats: list = []
+    one = cap.subset([1])
+    pred = _material_fit_render("default", coats)(cap.subset([0, 2, 3]), one)
+    with torch.no_grad():
+        want = MaterialRenderer(coat_only)(one.lights, one.intensities, one.cameras)
+    assert len(coats) == 1 and torch.allclose(coats[0], want)
+    assert float((pred - want).abs().max()) > 1e-3  # the sparkles are in the scored render, not in the coat
 
 
 def test_cli_rejects_unknown_sections(capsys):

@@ -2,7 +2,8 @@
 
 1. The default ``fit_material`` is never worse than the paper's scheme (−0.2 dB) on the coating.
 2. Where Phong is the truth (global, or two materials; the shots sample the lobe), it is within
-   1 dB of the oracle (the truth's own specular, texture solved from the same shots).
+   1 dB of the oracle (the truth's own specular, texture solved from the same shots); so it is where the
+   truth is Blinn or the renderer's GGX, and the default picks that lobe.
 3. No flake model on a flake-free scene; a model on every flake scene, with its statistics near the truth's.
 4. Where the shots never sample the lobe's peak, no highlight is invented.
 """
@@ -52,6 +53,21 @@ def test_default_reaches_the_oracle_where_phong_is_the_truth(zoo, name):
     assert r["default"]["s_err"] < 0.02 and r["default"]["alpha_err"] < 0.02
 
 
+TRUE_LOBE = {"blinn": "blinn", "ggx_full": "ggx"}  # zoo truth lobes that are in the default's candidate set
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [n for n, s in SCENES.items()
+                                  if s.lobe in TRUE_LOBE and s.second is None and s.flakes is None])
+def test_default_picks_the_true_lobe_and_reaches_the_oracle(zoo, name):
+    """Where the truth is another lobe of the candidate set (Blinn, the renderer's GGX with Fresnel and
+    shadowing), the default chooses it on left-out shots and lands within 1 dB of the oracle. (ggx_truth's
+    lobe is the distribution D alone, outside the set: there the default's GGX stays 1.7 dB short.)"""
+    r = zoo[name]
+    assert r["default"]["lobe"] == TRUE_LOBE[SCENES[name].lobe], r["default"]["lobe"]
+    assert r["default"]["psnr"] >= min(r["oracle"], PSNR_CEILING) - 1.0, (r["default"]["psnr"], r["oracle"])
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(SCENES))
 def test_flake_models_only_where_there_are_flakes(zoo, name):
@@ -67,8 +83,9 @@ def test_no_highlight_where_the_data_never_showed_one(zoo, name):
 
 
 PHOTO_TEXTURE_BIAS = pytest.mark.xfail(strict=True, reason=(
-    "open: on a photo texture (zoo flakes_orange: the coffee photo, tinted) the fitted density is ~7x and the "
-    "tilt ~2.6x the truth's; the same flakes on the procedural texture are within tolerance"))
+    "open: on a photo texture (zoo flakes_orange: the coffee photo, tinted) the density comes out 17 % low and the "
+    "tilt 26 % high (before the statistics detected above null_test.glint_snr: ~6x and ~2.7x); the same flakes on "
+    "the procedural texture are within tolerance"))
 
 
 @pytest.mark.slow

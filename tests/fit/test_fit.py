@@ -356,7 +356,7 @@ def test_noise_weights_beat_plain_least_squares_under_shot_noise(tmp_path):
     from torchmetal.io.capture import load_capture
     from torchmetal.synth.zoo import SCENES, make_case
 
-    scene = SCENES["photo_srgb8"].with_(size=96, encoding="float", noise=0.0, shots=14)
+    scene = SCENES["photo_srgb8"].with_(size=192, encoding="float", noise=0.0, shots=14)  # 96²: auto's z only 1.5
     cap = load_capture(make_case(scene, tmp_path / "c").capture_dir)
     clean = cap.images.double()
     g = torch.Generator().manual_seed(3)
@@ -370,6 +370,25 @@ def test_noise_weights_beat_plain_least_squares_under_shot_noise(tmp_path):
             pred = fit.render(held.lights, held.intensities, held.cameras)
         scores[weights] = float(psnr(pred, held.images))
     assert scores[True] > scores[False] + 0.1, scores
+    auto = fit_phong(fit_cap, noise_weights="auto", specular="global")  # the held-out shot sees the gain
+    (d,) = [d for d in auto.decisions if d["name"] == "weights"]
+    assert d["chosen"] == "noise" and d["reference"] == "uniform" and auto.noise is not None
+    assert torch.equal(auto.texture, fit_phong(fit_cap, noise_weights=True, specular="global").texture)
+
+
+def test_noise_weights_auto_keeps_least_squares_without_noise(tmp_path):
+    """A noise-free float capture: the noise model's floor makes the weights uniform, nothing to gain on the
+    held-out shot; auto keeps plain least squares (the same fit, bit for bit)."""
+    from torchmetal.io.capture import load_capture
+    from torchmetal.synth.zoo import SCENES, make_case
+
+    cap = load_capture(make_case(SCENES["float_clean"].with_(size=64), tmp_path / "c").capture_dir)
+    auto = fit_phong(cap, noise_weights="auto", specular="global")
+    (d,) = [d for d in auto.decisions if d["name"] == "weights"]
+    assert d["chosen"] == "uniform" and auto.noise is None
+    assert torch.equal(auto.texture, fit_phong(cap, specular="global").texture)
+    with pytest.raises(InputError, match="noise_weights: expected True, False or 'auto'"):
+        fit_phong(cap, noise_weights="sometimes")
 
 
 def test_skips_key_each_skipped_sentence_by_its_stage():

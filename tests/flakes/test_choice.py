@@ -79,7 +79,8 @@ class _Tagged:
 
 def _fake_scores(monkeypatch, table: dict):
     """choice._scores from a table {(material tag, shot): (psnr, md)}; materials are tagged namespaces."""
-    monkeypatch.setattr(choice, "_scores", lambda material, capture, k: dict(zip(("psnr", "md"), table[(material.tag, k)])))
+    monkeypatch.setattr(choice, "_scores", lambda material, capture, shots: [
+        dict(zip(("psnr", "md"), table[(material.tag, k)])) for k in shots])
 
 
 @pytest.mark.parametrize("flake_md, kept", [(10.0, True), (30.0, False), (20.0, True)])
@@ -107,10 +108,10 @@ def test_keep_flakes_scores_its_own_left_out_shots(monkeypatch):
                           model=FlakeModel(density=0.01, glint_sigma=0.05))
     seen = []
 
-    def scores(material, capture, k):
+    def scores(material, capture, shots):
         obs = material.observed_flakes
-        seen.append((material.tag, k, None if obs is None else len(obs)))
-        return {"psnr": 30.0, "md": 5.0 if material.tag == "flaky" else 50.0}
+        seen.extend((material.tag, k, None if obs is None else len(obs)) for k in shots)
+        return [{"psnr": 30.0, "md": 5.0 if material.tag == "flaky" else 50.0} for _ in shots]
 
     monkeypatch.setattr(choice, "_scores", scores)
     keep, rep = keep_flakes(cap, _Tagged("flaky", object()), _Tagged("plain"), res, None)

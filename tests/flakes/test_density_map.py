@@ -160,7 +160,7 @@ def test_choice_report_and_rule(monkeypatch):
     monkeypatch.setattr(dc, "estimate_map", lambda *a, **k: estimate_map(*a, **{**k, "grid": (2, 2)}))
 
     def fake(better: bool):
-        def score(material, capture, k, grid):
+        def score(material, capture, k, grid, pred=None):
             has = material.flakes.density_map is not None
             md = 10.0 if (has == better) else 20.0
             return {"md": md, "block_error": md / 10, "predicted": [[0.0] * grid[1]] * grid[0],
@@ -357,3 +357,14 @@ def test_chi2_sf_is_the_upper_tail_without_scipy():
     assert abs(chi2_sf(10.0, 4) - 0.04042768199451279) < 1e-12
     assert abs(chi2_sf(100.0, 15) - 1.3047043436251422e-14) < 1e-24
     assert "scipy" not in density_map.__dict__
+
+
+def test_left_out_renders_in_one_renderer_equal_one_by_one():
+    """The choices render several left-out shots with one renderer (the flake field baked once): the same
+    values as a renderer per shot."""
+    from torchmetal.flakes.choice import render_held
+
+    cap, mat = _capture(), _material(MAPPED, 64, 64)
+    both = render_held(mat, cap, [1, 3])
+    assert both.shape == (2, 3, 64, 64) and float(both.max()) > 0
+    assert torch.equal(both[0], render_held(mat, cap, [1])[0]) and torch.equal(both[1], render_held(mat, cap, [3])[0])

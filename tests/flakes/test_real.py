@@ -1,9 +1,10 @@
 """The flake stage on the real capture ../shared/data/cards_blue (skipped when the data is absent).
 
 cards_blue is a flash-at-the-lens smartphone capture of glittery card (7 shots, 1024²). Its
-glints are dense and mostly near the noise: before the amplitude floor and the band quadrature
-of P_any, the glint likelihood ran off to "a steep bright tail of invisible flakes" and no
-model was fitted. Shot 3 is left out and rendered with and without the flake term.
+faint detections are mostly the coating's misfit on a velvety texture (the mirrored residual has
+as many): the statistics detect only where the positive spots outnumber the mirrored ones twenty
+to one (null_test.glint_snr: 20σ here), so the model is built from the bright glints. Shot 3 is
+left out and rendered with and without the flake term.
 """
 
 
@@ -36,7 +37,7 @@ def test_statistics_are_fitted(cards_blue):
     _, _, res = cards_blue
     model, rep = res.material.flakes, res.flakes.report
     assert model is not None, rep.get("skipped")
-    # a near-solid glitter layer: denser than the hash field draws, so rendered at capacity
+    assert rep["detection_snr"] > 5.0  # raised above the detector's 5σ: the faint spots are misfit
     assert model.density == pytest.approx(min(rep["density"], MAX_DENSITY))
     assert 0.02 < model.tilt_sigma < 0.5 and 1e-3 < model.glint_sigma < 0.2
     assert all(0.0 < c < 1.0 for c in model.color_mean)
@@ -51,14 +52,32 @@ def test_flake_term_lowers_md_of_the_left_out_shot(cards_blue):
             img = MaterialRenderer(res.material, flakes=flakes)(one.lights.float(), one.intensities.float(), one.cameras.float())
             assert bool(torch.isfinite(img).all())
             md[flakes] = float(metallic_difference(img, one.images.float()))
-    assert md[True] < 0.8 * md[False]  # measured: 31.9 with, 57.1 without
+    assert md[True] < 0.95 * md[False]  # measured: 52.4 with, 60.7 without (5σ detections: 31.9, 57.1)
+
+
+def test_sparkles_carry_no_more_energy_than_the_photo_shows(cards_blue):
+    """The rendered sparkles' energy on the left-out shot, against the photo's positive high-pass excess over
+    the flake-free render (its positive minus its negative part: misfit is both): measured 0.5 (with every
+    5σ detection a flake it was 2–4, and the render a field of dots the photo does not show)."""
+    from torchmetal.flakes.model.filters import box_mean
+
+    _, one, res = cards_blue
+    with torch.inference_mode():
+        args = (one.lights.float(), one.intensities.float(), one.cameras.float())
+        sparkly, plain = (MaterialRenderer(res.material, flakes=f)(*args) for f in (True, False))
+    valid = (one.mask & ~one.saturated[0].any(0, keepdim=True)).expand_as(plain[0])
+    r = one.images.float() - plain
+    hp = (r - box_mean(r, 7))[0][valid]
+    excess = float((hp.clamp_min(0) ** 2).mean() - (hp.clamp_max(0) ** 2).mean())
+    energy = float(((sparkly - plain)[0][valid] ** 2).mean())
+    assert excess > 0 and 0 < energy < 1.2 * excess, (energy, excess)
 
 
 def test_overlay_png(cards_blue, tmp_path):
     fit_cap, _, res = cards_blue
     parts = res.flakes.particles.for_shot(0)
     out = save_detection_overlay(tmp_path / "flakes.png", fit_cap.images[0], parts, gain=4.0)
-    assert out.is_file() and out.stat().st_size > 10_000 and len(parts) > 500
+    assert out.is_file() and out.stat().st_size > 10_000 and len(parts) > 10
 
 
 def test_matte_sphere_gets_no_invented_flakes():

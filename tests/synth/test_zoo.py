@@ -73,3 +73,25 @@ def test_ci_scenes_are_the_zoo_smaller():
     assert [s.name for s in ci] == list(SCENES) and all(s.size <= SCENES[s.name].size for s in ci)
     with pytest.raises(ValueError, match="layout"):
         Scene("bad", layout="nowhere")
+
+
+def test_full_ggx_truth_is_the_renderers_lobe():
+    """The zoo's ggx_full lobe (numpy, written apart from the fit) equals torchmetal.lobes.ggx_lobe, Fresnel
+    and shadowing included, on random normals, lights and views; the plain ggx lobe is its distribution alone."""
+    from torchmetal.lobes import ggx_lobe
+    from torchmetal.synth.zoo_render import lobe_value
+
+    rng = np.random.default_rng(0)
+
+    def unit(x):
+        return x / np.linalg.norm(x, axis=0, keepdims=True)
+
+    n = unit(np.concatenate([0.3 * rng.normal(size=(2, 8, 8)), np.ones((1, 8, 8))]))
+    l, v = (unit(np.concatenate([rng.normal(size=(2, 8, 8)), 1 + rng.random((1, 8, 8))])) for _ in range(2))
+    s, alpha = np.full(3, 0.3), np.array([150.0, 40.0, 7.0])
+    h = unit(l + v)
+    t = lambda x: torch.from_numpy(x.sum(0))[None, None]  # noqa: E731
+    want = 0.3 * ggx_lobe(1.0 - t(n * h), t(n * l), t(n * v), t(v * h), torch.from_numpy(alpha))[0].numpy()
+    want = np.where((n * l).sum(0)[None] > 0, want, 0.0)
+    np.testing.assert_allclose(lobe_value("ggx_full", n, l, v, s, alpha), want, rtol=1e-12, atol=1e-15)
+    assert not np.allclose(lobe_value("ggx", n, l, v, s, alpha), want)

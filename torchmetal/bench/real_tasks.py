@@ -23,6 +23,9 @@ def task_real(cfg: dict) -> dict:
     rendered as the material renders (sparkles included). Beside each PSNR, the chroma-artifact share
     (:func:`torchmetal.metrics.chroma_artifact_share`) of every left-out shot, and the in-sample PSNR
     (``in_sample``: fitted on every shot, scored on the same shots — what the model can explain at all).
+    A pipeline variant also gets ``coat`` / ``coat_mean`` / ``coat_in_sample``: the same PSNRs of its material
+    rendered without its sparkles, the zoo's coat score (random sparkle positions cost PSNR even where the
+    flake statistics are right, so the coatings compare without them; the sparkles are judged by MD).
 
     With ``cfg["gallery"]`` (a directory), the default pipeline's first ``cfg["gallery_shots"]`` (3)
     left-out shots are written there as ``{capture}_shot{k}.png``: photo | render | error (|Δ| of the
@@ -40,7 +43,8 @@ def task_real(cfg: dict) -> dict:
     gallery = Path(cfg["gallery"]) if cfg.get("gallery") else None
     for spec in cfg.get("speculars", ["global", "clustered"]):
         t0 = time.perf_counter()
-        fr = _phong_fit_render(spec) if spec in ("global", "clustered") else _material_fit_render(spec)
+        coats: list = []  # a pipeline variant's renders without sparkles, one per call
+        fr = _phong_fit_render(spec) if spec in ("global", "clustered") else _material_fit_render(spec, coats)
         renders: list = []
 
         def keep(train, one, fr=fr, renders=renders):
@@ -50,6 +54,7 @@ def task_real(cfg: dict) -> dict:
 
         vals = [float(v) for v in leave_one_out_with(cap, keep)]
         seconds = time.perf_counter() - t0
+        coat = [psnr_or_nan(c, cap.images[k : k + 1], valid_mask(cap.subset([k]))) for k, c in enumerate(coats)]
         chroma = []
         for k, pred in enumerate(renders):
             one = cap.subset([k])
@@ -60,6 +65,9 @@ def task_real(cfg: dict) -> dict:
         out[spec] = {"psnr": vals, "mean": float(np.mean(vals)), "seconds": seconds, "chroma": chroma,
                      "chroma_mean": float(np.nanmean(chroma)) if any(c == c for c in chroma) else float("nan"),
                      "in_sample": in_sample}
+        if coats:
+            out[spec].update(coat=coat, coat_mean=float(np.mean(coat)),
+                             coat_in_sample=psnr_or_nan(coats[-1], cap.images, valid_mask(cap)))
         if gallery is not None and spec == "default":
             out[spec]["gallery"] = [str(_gallery_png(gallery / f"{name}_shot{k}.png", cap.images[k], renders[k][0]))
                                     for k in range(min(len(renders), int(cfg.get("gallery_shots", 3))))]
@@ -113,9 +121,12 @@ REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong"}, "light_au
                  "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}
 
 
-def _material_fit_render(method: str):
+def _material_fit_render(method: str, coats: list | None = None):
     """fit_render for :func:`~torchmetal.fit.holdout.leave_one_out_with`: the whole pipeline with the
-    options of the zoo's ``method``, rendered by the material's renderer."""
+    options of the zoo's ``method``, rendered by the material's renderer. With ``coats`` (a list), each
+    call also appends the render without the material's sparkles (flake model and observed flakes), on CPU."""
+    from dataclasses import replace
+
     import torch
 
     # on use: loads torch (this module imports numpy only)
@@ -128,9 +139,16 @@ def _material_fit_render(method: str):
 
     def fit_render(train, one):
         res = fit_material(train, seed=0, **variants[method])
-        with torch.no_grad():  # the photos' lights: the calibration's falloff (a left-out shot has no gain)
+        # the photos' lights: the calibration's falloff (a left-out shot has no gain)
+        factor = res.light.without_gains().factor(one) if one is not train else res.light.factor(one)
+        with torch.no_grad():
             pred = MaterialRenderer(res.material)(one.lights, one.intensities, one.cameras)
-        return pred * res.light.without_gains().factor(one) if one is not train else pred * res.light.factor(one)
+            if coats is not None:
+                m = res.material
+                coat = pred if m.flakes is None and m.observed_flakes is None else \
+                    MaterialRenderer(replace(m, flakes=None, observed_flakes=None))(one.lights, one.intensities, one.cameras)
+                coats.append((coat * factor).detach().float().cpu())
+        return pred * factor
 
     return fit_render
 

@@ -113,7 +113,7 @@ def fit_phong(
     capture: Capture, *, scheme: str = "refine", specular: str = "auto", tol: float = 1e-6, max_iters: int = 100,
     robust: str | None = None, progress: bool = False, outliers: float | None = None,
     clusters: tuple[int, ...] = (2, 3, 4), max_pixels_per_chunk: int = 4096, sub_pixels: int = 1 << 16,
-    select_pixels: int = 1 << 13, seed: int = 0, lobe: str = "phong", noise_weights: bool = False,
+    select_pixels: int = 1 << 13, seed: int = 0, lobe: str = "phong", noise_weights: bool | str = False,
 ) -> FitResult:
     """Fit the Phong model of docs/design.md §2.2 (texture d(p), s, α per channel) to a capture.
 
@@ -145,9 +145,11 @@ def fit_phong(
             scheme="paper"). Other lobes than phong need scheme="refine".
         noise_weights: weigh each observation by the inverse of its expected noise variance, a + b·ŷ per
             channel fitted to the residuals (:func:`~torchmetal.fit.refine.noise_model`: read noise, shot
-            noise, the 8-bit sRGB step that grows with the value); False (the default): every observation
-            alike. Only with scheme="refine". CI zoo: +0.1–0.3 dB on every noisy scene, but the residuals also
-            hold misfit (see the function), so it is an option.
+            noise, the 8-bit sRGB step that grows with the value); False (the default here): every observation
+            alike; "auto": noise weights where the shot with the most specular energy, left out of both fits,
+            is predicted better with them (the paired rule of :mod:`torchmetal.fit.decision`; a "weights"
+            decision; ``fit_material``'s default). Only with scheme="refine". The residuals also hold misfit
+            (see :func:`~torchmetal.fit.refine.noise_model`): the held-out shot is what tells the two apart.
 
     Returns:
         :class:`FitResult`.
@@ -156,6 +158,8 @@ def fit_phong(
         InputError: bad arguments. FitError: non-finite input or a fit that went non-finite.
     """
     clusters = tuple(clusters)
+    if not (isinstance(noise_weights, bool) or noise_weights == "auto"):
+        raise InputError(f"noise_weights: expected True, False or 'auto', found {noise_weights!r}")
     _check_args(capture, scheme, specular, tol, max_iters, robust, outliers, clusters)
     _check_lobe_arg(lobe, scheme)
     kw = dict(specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers, clusters=clusters,

@@ -13,13 +13,32 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from torchmetal.fit.clusters import Labeler, Selection, choose_specular, evidence, fit_clustered, heldout_evidence
+from torchmetal.fit.clusters import (
+    Labeler,
+    Selection,
+    choose_specular,
+    evidence,
+    fit_clustered,
+    fit_without_hold,
+    heldout_errors,
+    heldout_evidence,
+    mean_square,
+)
 from torchmetal.fit.colour import choose_colour
+from torchmetal.fit.decision import MIN_GAIN_ABS, paired_choice
 from torchmetal.fit.gloss import choose_maps
 from torchmetal.fit.lobe_choice import LOBE_GRID, specular_energy
 from torchmetal.fit.paper import paper_scheme
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, compute_dtype, grid_stride
-from torchmetal.fit.refine import SpecFit, evaluate_specular, fit_specular, grid_beta, noise_model, residual_scale
+from torchmetal.fit.refine import (
+    SpecFit,
+    evaluate_specular,
+    fit_specular,
+    grid_beta,
+    noise_model,
+    residual_scale,
+    texture_map,
+)
 from torchmetal.fit.run import FitRun
 
 if TYPE_CHECKING:
@@ -57,13 +76,13 @@ class SubsampleDecisions:
 
 def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: float, max_iters: int, robust: str | None,
                         outliers: float | None, clusters: tuple[int, ...], chunk: int, sub_pixels: int,
-                        select_pixels: int, seed: int, lobe: str = "phong", noise: bool = False,
+                        select_pixels: int, seed: int, lobe: str = "phong", noise: bool | str = False,
                         colour: bool = True) -> SubsampleDecisions:
     """Steps 1–4b of the refine scheme (module docstring) on strided pixel subsamples of ``capture``
     (any object with ``images`` (N, 3, H, W) readable by :func:`~torchmetal.fit.problem.build_observations`,
     such as the tiled fit's memory-mapped capture): the same values bit for bit for the same pixels.
     ``noise``: weigh each observation by its expected variance (:func:`~torchmetal.fit.refine.noise_model`,
-    fitted to the subsample fit's residuals)."""
+    fitted to the subsample fit's residuals); "auto": where a held-out shot prefers it (:func:`_weights_decision`)."""
     imgs = capture.images
     dt = compute_dtype(imgs)
     n_shots, _, h, w = imgs.shape
@@ -73,7 +92,10 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
     grids = _Grids(stride, sel_stride, dt, chunk, lobe)
     sub, glob = _initial_fit(capture, run, grids, specular=specular, tol=tol, sub_tol=sub_tol, max_iters=max_iters)
     weighting = None
-    if outliers is not None or robust is not None or noise:
+    if noise == "auto":
+        sub, glob, weighting = _weights_decision(capture, run, grids, sub, glob, robust=robust, outliers=outliers,
+                                                 sub_tol=sub_tol, max_iters=max_iters)
+    elif outliers is not None or robust is not None or noise:
         sub, glob, weighting = _weighted_refit(capture, run, grids, sub, glob, robust=robust, outliers=outliers,
                                                noise=noise, sub_tol=sub_tol, max_iters=max_iters)
     glob, s_fixed = _highlight_evidence(capture, run, grids, sub, glob, sub_tol=sub_tol, max_iters=max_iters,
@@ -182,6 +204,40 @@ def _weighted_refit(capture, run: FitRun, g: _Grids, sub: Observations, glob: Sp
                                "full-resolution outlier masking skipped")
             weighting = None if weighting.variance is None else replace(weighting, outlier_k=None)
     return sub, glob, weighting
+
+
+def _weights_decision(capture, run: FitRun, g: _Grids, sub: Observations, glob: SpecFit | None, *, robust, outliers,
+                      sub_tol, max_iters) -> tuple[Observations, SpecFit | None, Weighting | None]:
+    """2a. Uniform or noise weights (each observation by the inverse of its expected variance,
+    :func:`~torchmetal.fit.refine.noise_model`), on the shot with the most specular energy left out of both
+    fits and scored unweighted by the paired rule; uniform is the reference. Without a specular fit or with
+    fewer than 3 shots, uniform. Returns what :func:`_weighted_refit` returns for the winner (robust weights
+    and outlier masks, when asked, on top)."""
+    n_shots = int(capture.images.shape[0])
+    plain = (sub, glob, None)
+    if robust is not None or outliers is not None:
+        plain = _weighted_refit(capture, run, g, sub, glob, robust=robust, outliers=outliers, noise=False,
+                                sub_tol=sub_tol, max_iters=max_iters)
+    if glob is None or n_shots < 3:
+        return plain
+    weighted = _weighted_refit(capture, run, g, sub, glob, robust=robust, outliers=outliers, noise=True, sub_tol=sub_tol,
+                               max_iters=max_iters)
+    if weighted[1] is None:
+        return plain
+    hold = _hold_shot(sub, glob)
+    with run.stage("select"):
+        errors = {}
+        for name, (_, fit, weighting) in (("uniform", plain), ("noise", weighted)):
+            obs, ho, f = fit_without_hold(capture, fit, stride=g.sel_stride, hold=hold, tol=sub_tol, max_iters=max_iters,
+                                          dtype=g.dtype, chunk=g.chunk, weighting=weighting)
+            errors[name] = heldout_errors(ho, texture_map(obs, f.s, f.eb), f.s, f.alpha)
+        if not errors["uniform"].numel():  # every observation of the shot saturated, masked or unlit
+            run.skipped.append(f"weights: held-out shot {hold} has no valid observation; uniform")
+            return plain
+        d = paired_choice("weights", errors, "uniform", floor=MIN_GAIN_ABS * mean_square(ho))
+        d.holds, d.pixels = [hold], ho.num_pixels
+    run.decisions.append(d.to_dict())
+    return weighted if d.chosen == "noise" else plain
 
 
 def _highlight_evidence(capture, run: FitRun, g: _Grids, sub: Observations, glob: SpecFit | None, *, sub_tol, max_iters,

@@ -365,10 +365,10 @@ def noise_model(obs: Observations, s: Tensor, alpha: Tensor, eb: Tensor, *, floo
     a is at least ``floor`` (a variance below which residuals are rounding, not noise: a noise-free capture gets
     uniform weights) and :data:`~torchmetal.fit.problem.VARIANCE_W_MIN` of the brightest bin's variance.
 
-    The residuals also hold the model's misfit, which can grow with the value; that is why the weights are an
-    option (``fit_phong(noise_weights=True)``, ``--weights noise``), not the default: a noise-free capture with
-    a black patch weighted its highlights 500× down (s 17 % off; uniform 3.7 %), and capping the range at 10×
-    (4.2 %) let two_materials' misfit choose other clusters and GGX (CI zoo 45.3 dB; uniform 54.5)."""
+    The residuals also hold the model's misfit, which can grow with the value; that is why the weights are
+    chosen on a held-out shot (``noise_weights="auto"``, the pipeline's default) and never forced: a noise-free
+    capture with a black patch weighted its highlights 500× down (s 17 % off; uniform 3.7 %), and capping the
+    range at 10× (4.2 %) let two_materials' misfit choose other clusters and GGX (CI zoo 45.3 dB; uniform 54.5)."""
     d = texture_map(obs, s, eb)
     preds: list[list[Tensor]] = [[], [], []]
     sq: list[list[Tensor]] = [[], [], []]

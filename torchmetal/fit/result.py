@@ -83,7 +83,8 @@ class FitResult:
         stage_times: seconds per stage; iterations: per stage (``int()`` gives the total).
         status: "converged" | "max_iters" | "skipped"; skipped: what was not needed and why, one
             "stage: why" sentence each (``skips``: the same as a dict stage → why).
-        rmse: final root-mean-square residual over the valid observations.
+        rmse: final root-mean-square residual over the valid observations, each weighted as the fit weighs it
+            (robust or noise weights, relative to a black observation's; plain least squares: unweighted).
         scheme, specular: what ran ("paper"/"refine"; "global"/"clustered"/"none").
         selection: the held-out comparison behind specular="auto"/"clustered", if any.
         flat: True when every normal is (0, 0, 1).

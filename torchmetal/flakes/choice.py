@@ -64,14 +64,21 @@ def observed_without(capture: Capture, particles: Particles, flake_id: torch.Ten
     return observed_flakes(others, p, flake_id[rows], model)
 
 
-def _scores(material, capture, k: int) -> dict:
-    """PSNR (dB, linear, peak 1) and MD of the material's render of shot ``k`` against its photo."""
+def render_held(material: Material, capture: Capture, shots: list[int]) -> torch.Tensor:
+    """The material's renders of ``shots`` (S, 3, H, W), in one renderer: its flake field is baked once."""
     with torch.no_grad():
-        pred = MaterialRenderer(material)(capture.lights[k : k + 1].float(), capture.intensities[k : k + 1].float(),
-                                          capture.cameras[k : k + 1].float())
-    photo = capture.images[k : k + 1].float()
-    valid = (capture.mask & ~capture.saturated[k].any(0, keepdim=True)).expand_as(photo[0]).unsqueeze(0)
-    return {"psnr": float(psnr(pred, photo, mask=valid)), "md": float(md(pred[0], photo[0], window=MD_WINDOW))}
+        return MaterialRenderer(material)(capture.lights[shots].float(), capture.intensities[shots].float(),
+                                          capture.cameras[shots].float())
+
+
+def _scores(material, capture, shots: list[int]) -> list[dict]:
+    """PSNR (dB, linear, peak 1) and MD of the material's render of each of ``shots`` against its photo."""
+    out = []
+    for k, pred in zip(shots, render_held(material, capture, shots)):
+        photo = capture.images[k].float()
+        valid = (capture.mask & ~capture.saturated[k].any(0, keepdim=True)).expand_as(photo)
+        out.append({"psnr": float(psnr(pred, photo, mask=valid)), "md": float(md(pred, photo, window=MD_WINDOW))})
+    return out
 
 
 def mean_score(rows: list[dict], key: str) -> float:
@@ -106,11 +113,9 @@ def choose_observed(capture: Capture, material: Material, flake_result: FlakeSta
         obs = observed_without(capture, parts, fid, model, k)
         if obs is None:
             continue
-        stat = _scores(material, capture, k)
-        own = _scores(replace(material, observed_flakes=obs), capture, k)
         report["held"].append(k)
-        report["statistical"].append(stat)
-        report["observed"].append(own)
+        report["observed"] += _scores(replace(material, observed_flakes=obs), capture, [k])
+    report["statistical"] = _scores(material, capture, report["held"]) if report["held"] else []
     if not report["held"]:
         report["reason"] = "no left-out shot keeps associated detections in the others"
         return None, report
@@ -170,11 +175,11 @@ def keep_flakes(capture: Capture, material: Material, plain: Material, flake_res
                 cand = replace(material, observed_flakes=observed_without(
                     capture, flake_result.particles, fid, flake_result.model, k))
             rep["held"].append(k)
-            rep["flakes"].append(_scores(cand, capture, k))
+            rep["flakes"] += _scores(cand, capture, [k])
     if not rep["held"]:
         rep["reason"] = "no left-out shot: kept"
         return True, rep
-    rep["none"] = [_scores(plain, capture, k) for k in rep["held"]]
+    rep["none"] = _scores(plain, capture, rep["held"])
     f_md, n_md = mean_score(rep["flakes"], "md"), mean_score(rep["none"], "md")
     rep["kept"] = f_md <= n_md
     rep["reason"] = (f"left-out shots {rep['held']}: MD {f_md:.2f} with the flake model, {n_md:.2f} without "

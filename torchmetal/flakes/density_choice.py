@@ -24,16 +24,14 @@ from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.fit.decision import Decision
-from torchmetal.flakes.choice import HELD, MD_WINDOW, held_shots, mean_score, observed_without
+from torchmetal.flakes.choice import HELD, MD_WINDOW, held_shots, mean_score, observed_without, render_held
 from torchmetal.flakes.estimate.density_map import DETECT_MODES, estimate_map, with_map
 from torchmetal.flakes.model.field import map_blocks
-from torchmetal.flakes.model.filters import box_mean
+from torchmetal.flakes.model.filters import box_mean, max_filter
 from torchmetal.metrics import md
-from torchmetal.renderer import MaterialRenderer
 
 if TYPE_CHECKING:
     from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
@@ -56,7 +54,7 @@ def sparkle_counts(pred: Tensor, photo: Tensor, grid: tuple[int, int], valid: Te
     hp = x - box_mean(x, 2)
     sig = 1.4826 * hp[..., ::2, ::2].flatten(1).abs().median(1).values
     thr = k * float(sig.max().clamp_min(1e-6))
-    peaks = (hp >= F.max_pool2d(hp, 3, stride=1, padding=1)) & (hp > thr)
+    peaks = (hp >= max_filter(hp, 1)) & (hp > thr)
     if valid is not None:
         peaks &= valid.view(1, 1, *valid.shape)
     h, w = x.shape[-2:]
@@ -72,21 +70,15 @@ def block_error(pred: Tensor, obs: Tensor) -> float:
     return float(torch.log((pred + 1.0) / (obs + 1.0)).abs().mean())
 
 
-def render_shot(material: Material, capture: Capture, k: int) -> Tensor:
-    """The material's render of shot ``k``, (3, H, W)."""
-    with torch.no_grad():
-        return MaterialRenderer(material)(capture.lights[k : k + 1].float(), capture.intensities[k : k + 1].float(),
-                                          capture.cameras[k : k + 1].float())[0]
-
-
 def shot_valid(capture: Capture, k: int) -> Tensor:
     """(H, W) bool: shot ``k``'s unsaturated pixels in the mask."""
     return (capture.mask & ~capture.saturated[k].any(0, keepdim=True)).reshape(capture.images.shape[-2:])
 
 
-def score_shot(material: Material, capture: Capture, k: int, grid: tuple[int, int]) -> dict:
-    """MD, block sparkle error and the per-block sparkle counts of shot ``k``'s render against its photo."""
-    pred = render_shot(material, capture, k)
+def score_shot(material: Material, capture: Capture, k: int, grid: tuple[int, int], pred: Tensor | None = None) -> dict:
+    """MD, block sparkle error and the per-block sparkle counts of shot ``k``'s render (``pred`` (3, H, W)
+    when the caller has it) against its photo."""
+    pred = render_held(material, capture, [k])[0] if pred is None else pred
     photo = capture.images[k].float()
     p, o = sparkle_counts(pred, photo, grid, shot_valid(capture, k))
     return {"md": float(md(pred, photo, window=MD_WINDOW)), "block_error": block_error(p, o),
@@ -157,21 +149,26 @@ def _score_folds(rep: dict, capture: Capture, material: Material, parts: Particl
     """Score every candidate on each left-out shot (its maps estimated from the other shots) into ``rep``."""
     model = material.flakes
     rep["folds"] = []
+    folds = []
     for k in held_shots(parts, fid, capture.num_shots, held):
         others = [i for i in range(capture.num_shots) if i != k]
         maps = {f"map:{m}": estimate_map(capture, model, parts, fid, others, mode=m) for m in DETECT_MODES}
         if any(dm is None or dm.uniform for dm in maps.values()):
             rep["folds"].append({"shot": k, "skipped": "too few flakes, one block, or Poisson-like block counts"})
             continue
+        folds.append((k, maps))
+        rep["held"].append(k)
+        rep["folds"].append({"shot": k, **{name: dm.report["density_map"] for name, dm in maps.items()}})
+    # the uniform model needs no fold's estimate: without observed flakes, one render of every left-out shot
+    uniform = render_held(material, capture, rep["held"]) if folds and material.observed_flakes is None else None
+    for i, (k, maps) in enumerate(folds):
         base = material
         if material.observed_flakes is not None:
             base = replace(material, observed_flakes=observed_without(capture, parts, fid, model, k))
         grid = maps["map:glint"].grid
-        rep["held"].append(k)
-        rep["per_shot"]["uniform"].append(score_shot(base, capture, k, grid))
+        rep["per_shot"]["uniform"].append(score_shot(base, capture, k, grid, None if uniform is None else uniform[i]))
         for name, dm in maps.items():
             rep["per_shot"][name].append(score_shot(replace(base, flakes=with_map(model, dm)), capture, k, grid))
-        rep["folds"].append({"shot": k, **{name: dm.report["density_map"] for name, dm in maps.items()}})
 
 
 def _best_candidate(rep: dict, cands: list[str]) -> tuple[str, str]:

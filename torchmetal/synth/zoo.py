@@ -35,6 +35,9 @@ SCENES: dict[str, Scene] = {s.name: s for s in [
     Scene("dome72", size=150, shots=66, held=6, layout="dome", camera="ortho", normals="bumpy", s=0.4, alpha=40,
           seed=5),
     Scene("ggx_truth", size=256, shots=12, lobe="ggx", s=0.4, alpha=100, layout="ring", seed=6),
+    # the renderer's own GGX (Fresnel and shadowing included): the truth is in the default's candidate set
+    Scene("ggx_full_truth", size=256, shots=12, lobe="ggx_full", s=0.3, alpha=150, layout="hemisphere", normals="bumpy",
+          seed=18),
     Scene("two_materials", size=256, shots=12, texture="photo:coffee", second=(1.2, 600.0), s=0.15, alpha=15,
           layout="hemisphere", seed=7),
     Scene("highfreq_noise3", size=256, shots=12, texture="highfreq", noise=0.03, layout="ring", s=0.5, alpha=80, seed=8),

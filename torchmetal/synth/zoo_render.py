@@ -38,7 +38,8 @@ TEX_RANGE = (0.05, 0.7)
 DIFFUSE_LEVEL = 0.25
 LAYOUTS = ("hemisphere", "ring", "few", "directional", "grazing", "dome", "blind")
 CAMERAS = ("fixed", "jitter", "ortho")
-LOBES = ("phong", "blinn", "ggx")
+LOBES = ("phong", "blinn", "ggx", "ggx_full")  # ggx: the normal distribution D/D(0) alone; ggx_full: torchmetal's
+#: microfacet lobe (D̂·F̂·G₁(n·l)·G₁(n·v)/(n·v), :func:`torchmetal.lobes.ggx_lobe`), written again here in numpy
 ENCODINGS = ("srgb8", "linear16", "float")
 
 
@@ -264,6 +265,13 @@ def lobe_value(kind: str, n: np.ndarray, l: np.ndarray, v: np.ndarray, s: np.nda
         else:
             a2 = 2.0 / (alpha + 2.0)
             f = (a2 / ((c * c) * (a2 - 1.0) + 1.0) ** 2) * a2  # D / D(0) with D(0) = 1/(π a²)
+            if kind == "ggx_full":  # × Schlick's F/F0 (F0 0.04) × G₁(n·l)·G₁(n·v)/(n·v), Smith–GGX: 0 where n·v ≤ 0
+                nv = (n * v).sum(0)[None]
+                x = np.clip(1.0 - (v * h).sum(0)[None], 0.0, 1.0)
+                fres = 1.0 + (1.0 / 0.04 - 1.0) * x**5
+                nl1, nv1 = np.clip(nl[None], 0.0, 1.0), np.clip(nv, 1e-12, 1.0)
+                g1 = lambda t: 2.0 * t / (t + np.sqrt(a2 + (1.0 - a2) * t * t))  # noqa: E731
+                f = np.where(nv > 0, f * fres * g1(nl1) * g1(nv1) / nv1, 0.0)
     return np.where(lit, s * f, 0.0)
 
 

@@ -118,13 +118,6 @@ def test_sampled_residual_is_the_strided_render_residual(lobe, bumpy, maps, dull
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
 
 
-def test_max3_is_the_3x3_max_pool():
-    from torchmetal.flakes.estimate.prescreen import _max3
-
-    x = torch.randn(37, 29, generator=torch.Generator().manual_seed(3))
-    assert torch.equal(_max3(x), torch.nn.functional.max_pool2d(x[None, None], 3, stride=1, padding=1)[0, 0])
-
-
 @pytest.mark.parametrize("clipped", [False, True])
 def test_sampled_valid_is_mask_and_no_saturated_channel(clipped):
     """The mask's interior (its rim left out, torchmetal.flakes.estimate.rim) and no saturated channel."""

@@ -14,13 +14,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.flakes.estimate import regions
 from torchmetal.flakes.estimate.detect import Detection
 from torchmetal.flakes.estimate.results import Particles
 from torchmetal.flakes.estimate.shot_geometry import Geometry
+from torchmetal.flakes.model.filters import max_filter
 
 
 def _components(n: int, src: Tensor, dst: Tensor) -> tuple[Tensor, int]:
@@ -133,9 +133,7 @@ def measurable(det: Detection, radius: int = CLIP_RADIUS) -> Tensor:
     bad = ~det.valid[:, 0]
     if not bool(bad.any()):
         return torch.ones(n, h, w, dtype=torch.bool, device=bad.device)
-    k = 2 * radius + 1  # separable dilation (rows, then columns)
-    near = F.max_pool2d(bad.unsqueeze(1).to(torch.float32), (1, k), 1, (0, radius))
-    near = F.max_pool2d(near, (k, 1), 1, (radius, 0))[:, 0]
+    near = max_filter(bad.to(torch.float32), radius)
     return (near == 0).expand(n, -1, -1)
 
 
@@ -167,8 +165,8 @@ def observe(det: Detection, flake_id: Tensor, count: int, geometry: Geometry, ok
     lab = regions.patches(det.labels.unsqueeze(1).double(), a.shot, row, col, r)[:, 0]
     own = lab == (anchor_p + 1).view(-1, 1, 1).double()
     other = (lab > 0) & ~own
-    own_d = F.max_pool2d(own.double().unsqueeze(1), 3, 1, 1)[:, 0] > 0
-    ring = ~F.max_pool2d((own_d | other).double().unsqueeze(1), 3, 1, 1)[:, 0].bool()
+    own_d = max_filter(own.double(), 1) > 0
+    ring = ~(max_filter((own_d | other).double(), 1) > 0)
     bg = (sig * ring).sum((-2, -1)) / ring.sum((-2, -1)).clamp_min(1)
     flux = ((sig - bg.view(-1, 1, 1)) * own_d).sum((-2, -1))
     area = (flux / a.amp.clamp_min(1e-12)).clamp_min(0.25)

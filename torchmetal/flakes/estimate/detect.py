@@ -30,7 +30,7 @@ from torchmetal.checks import check_finite, check_float, check_shape
 from torchmetal.errors import InputError
 from torchmetal.flakes.estimate import regions
 from torchmetal.flakes.estimate.results import Particles
-from torchmetal.flakes.model.filters import box_mean
+from torchmetal.flakes.model.filters import box_mean, max_filter
 from torchmetal.io.images import linear_to_srgb
 
 _CANDIDATE = 0.85  # hysteresis seeds at 0.85·k_hi on the box high-pass; the final cut is k_hi on the ring peak
@@ -175,7 +175,7 @@ def ring_background(x: Tensor, fg: Tensor, valid: Tensor, b: Tensor, ci: Tensor,
     xp = regions.patches(x, b, ci, cj, radius)
     fp = regions.patches(fg.to(x.dtype), b, ci, cj, radius, fill=1.0)
     vp = regions.patches(valid.to(x.dtype), b, ci, cj, radius, fill=0.0)
-    fp = F.max_pool2d(fp, 3, stride=1, padding=1)
+    fp = max_filter(fp, 1)
     w = vp * (1.0 - fp)
     return (xp * w).sum((-2, -1)) / w.sum((-2, -1)).clamp_min(1.0)
 

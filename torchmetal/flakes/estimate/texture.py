@@ -22,11 +22,10 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.checks import check_shape
-from torchmetal.flakes.model.filters import box_mean
+from torchmetal.flakes.model.filters import box_mean, max_filter
 from torchmetal.geometry import direction_to, dot, surface_points
 
 if TYPE_CHECKING:
@@ -37,7 +36,7 @@ _FILL_RADII = (2, 4, 8, 16)  # neighbourhoods tried for pixels with no undetecte
 
 def grown_detections(labels: Tensor) -> Tensor:
     """(N, 1, H, W) bool: the pixels of detections ``labels`` (N, H, W) (> 0 on a particle), grown by 1 px."""
-    return F.max_pool2d((labels > 0).unsqueeze(1).float(), 3, stride=1, padding=1) > 0
+    return max_filter((labels > 0).unsqueeze(1).float(), 1) > 0
 
 
 def texture_without_glints(

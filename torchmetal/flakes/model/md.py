@@ -24,12 +24,11 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.checks import check_float
 from torchmetal.errors import InputError
-from torchmetal.flakes.model.filters import box_mean
+from torchmetal.flakes.model.filters import box_mean, max_filter
 
 
 def _as_batch(x: Tensor, name: str) -> Tensor:
@@ -66,7 +65,7 @@ def block_features(x: Tensor, threshold: Tensor, window: int) -> Tensor:
     hb, wb = h // window, w // window
     t = threshold.view(b, c, 1, 1)
     e = (x - t).clamp_min(0.0)
-    peaks = ((x >= F.max_pool2d(x, 3, stride=1, padding=1)) & (e > 0)).to(x.dtype)
+    peaks = ((x >= max_filter(x, 1)) & (e > 0)).to(x.dtype)
 
     def blocks(v: Tensor) -> Tensor:
         v = v[..., : hb * window, : wb * window]

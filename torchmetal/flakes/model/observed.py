@@ -33,6 +33,7 @@ from torch import Tensor
 
 from torchmetal.errors import MaterialError
 from torchmetal.flakes.model.field import FlakeField, field_cell, flake_field, hash_uniform
+from torchmetal.flakes.model.filters import max_filter
 from torchmetal.flakes.model.params import MAX_COLOR, FlakeModel
 from torchmetal.geometry import shading_geometry
 
@@ -232,7 +233,7 @@ def material_flake_field(model: FlakeModel, obs: ObservedFlakes | None, height: 
     if obs is None:
         return stat
     own = observed_field(obs, height, width, normals, model.glint_sigma)
-    occupied = torch.nn.functional.max_pool2d((own.weight > 0).to(normals.dtype).unsqueeze(0), 3, 1, 1)[0, 0] > 0
+    occupied = max_filter((own.weight > 0).to(normals.dtype), 1)[0] > 0
     keep, kept = _fill_keep(model, stat, obs, occupied, normals, size)
     keep = keep.unsqueeze(0)
     use_own = own.weight > 0
