@@ -174,3 +174,17 @@ def test_light_calibration_stage_records_its_decision():
     assert err(res) < err(off)
     with pytest.raises(InputError, match="light: expected one of"):
         fit_material(cap, light="flash")
+
+
+def test_the_statistics_refit_keeps_the_first_fits_clusters():
+    """The flake statistics' Huber refit tries only the first fit's cluster count, and relabels only where
+    the first fit did (the relabelling trial was 10 s of the real card's 18 s refit)."""
+    from types import SimpleNamespace
+
+    from torchmetal.pipeline import _same_clusters
+
+    assert _same_clusters(SimpleNamespace(specular="global", selection={"k": 1})) == {}
+    assert _same_clusters(SimpleNamespace(specular="maps", selection=None)) == {}
+    kept = _same_clusters(SimpleNamespace(specular="clustered", selection={"k": 4, "relabel": False}))
+    assert kept == {"clusters": (4,), "relabel": False}
+    assert _same_clusters(SimpleNamespace(specular="clustered", selection={"k": 2, "relabel": True}))["relabel"]

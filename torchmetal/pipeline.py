@@ -337,6 +337,14 @@ def stage_phong(capture: Capture, st: State) -> tuple[Capture, State]:
     return capture, st
 
 
+def _same_clusters(first: FitResult) -> dict:
+    """fit_phong options that keep ``first``'s clusters: their count, and relabelling only where it relabelled."""
+    sel = first.selection or {}
+    if first.specular != "clustered" or not sel.get("k"):
+        return {}
+    return {"clusters": (int(sel["k"]),), "relabel": bool(sel.get("relabel"))}
+
+
 def stage_flakes(capture: Capture, st: State) -> tuple[Capture, State]:
     """Detection, noise tests, the refits away from the glints and the flake statistics (:func:`_flake_stage`)."""
     o = st.opts
@@ -349,8 +357,10 @@ def stage_flakes(capture: Capture, st: State) -> tuple[Capture, State]:
     kw = {**o.fit_kwargs(), "lobe": st.first.lobe, "noise_weights": st.first.noise is not None}
     two_fits = o.robust == "auto" and o.scheme == "refine"
     # the statistics' Huber refit keeps the first fit's specular structure (the trials of clusters and gloss
-    # maps again cost more than the rest of the refit); the coating's refit below chooses it again, glints out
-    same = {**kw, "specular": st.first.specular if o.specular == "auto" else o.specular}
+    # maps again cost more than the rest of the refit): its cluster count, and relabelling only where the first
+    # fit relabelled (at full resolution it cost 10 s of the real card's 18 s refit); the coating's refit below
+    # chooses it again, glints out
+    same = {**kw, "specular": st.first.specular if o.specular == "auto" else o.specular, **_same_clusters(st.first)}
     refit = (lambda: fit_phong(capture, robust=ROBUST_GLINTS, **same)) if two_fits else None
     coat_fit = (lambda cap: fit_phong(cap, robust=None, **kw)) if two_fits else None
     st.flake_result, coat, texture = _flake_stage(capture, st.first, o.seed, refit, coat_fit)

@@ -93,6 +93,19 @@ def test_relabel_moves_edge_pixels_to_their_material(monkeypatch):
     assert int((after.spec_labels != before.spec_labels).sum()) <= 2 * moved[0]  # only the moved pixels changed
 
 
+def test_relabel_false_keeps_the_subsample_labels():
+    """relabel=False (a refit keeping an earlier fit's structure): no relabelling trial, no relabel stage,
+    and the clusters of the same K; the default tries it and, on this edge case, relabels."""
+    syn = synth(size=64, shots=10, seed=3, noise=0.005, spec_clusters=2)
+    on = fit_phong(syn.capture, specular="clustered", clusters=(2,))
+    off = fit_phong(syn.capture, specular="clustered", clusters=(2,), relabel=False)
+    assert any(h["stage"] == "relabel" for h in on.history)
+    assert not any(h["stage"] == "relabel" for h in off.history)
+    assert "relabel" not in [d["name"] for d in off.decisions] and not off.selection["relabel"]
+    assert off.selection["k"] == on.selection["k"] == 2
+    assert _mislabelled(off, syn.truth["spec_labels"]) > _mislabelled(on, syn.truth["spec_labels"])
+
+
 def test_relabel_keeps_labels_without_evidence():
     """Every pixel explained equally well by each cluster (no highlight difference): nobody moves."""
     from torchmetal.fit.clusters import relabel

@@ -114,6 +114,7 @@ def fit_phong(
     robust: str | None = None, progress: bool = False, outliers: float | None = None,
     clusters: tuple[int, ...] = (2, 3, 4), max_pixels_per_chunk: int = 4096, sub_pixels: int = 1 << 16,
     select_pixels: int = 1 << 13, seed: int = 0, lobe: str = "phong", noise_weights: bool | str = False,
+    relabel: bool = True,
 ) -> FitResult:
     """Fit the Phong model of docs/design.md §2.2 (texture d(p), s, α per channel) to a capture.
 
@@ -150,6 +151,8 @@ def fit_phong(
             is predicted better with them (the paired rule of :mod:`torchmetal.fit.decision`; a "weights"
             decision; ``fit_material``'s default). Only with scheme="refine". The residuals also hold misfit
             (see :func:`~torchmetal.fit.refine.noise_model`): the held-out shot is what tells the two apart.
+        relabel: for kept clusters, try moving pixels between them (:func:`~torchmetal.fit.clusters.relabel_pixels`,
+            kept where the held-out shot prefers it); False: never (a refit keeping an earlier fit's structure).
 
     Returns:
         :class:`FitResult`.
@@ -164,7 +167,7 @@ def fit_phong(
     _check_lobe_arg(lobe, scheme)
     kw = dict(specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers, clusters=clusters,
               chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
-              noise=noise_weights)
+              noise=noise_weights, relabel=relabel)
     run = FitRun(progress)
     try:
         res, lobe, lobe_sel = _fit_scheme(capture, run, scheme, lobe, kw)
@@ -302,11 +305,11 @@ def _fit_paper(capture, run: FitRun, *, specular: str, tol: float, max_iters: in
 
 
 def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outliers, clusters, chunk, sub_pixels,
-                select_pixels, seed, lobe="phong", decided=None, noise=False) -> FitResult:
+                select_pixels, seed, lobe="phong", decided=None, noise=False, relabel=True) -> FitResult:
     d = decided if decided is not None else subsample_decisions(
         capture, run, specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers,
         clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed, lobe=lobe,
-        noise=noise)
+        noise=noise, relabel=relabel)
     weighting = d.weighting
     noise_info = None if weighting is None or weighting.variance is None else \
         {"a": weighting.variance[0].tolist(), "b": weighting.variance[1].tolist()}

@@ -384,6 +384,7 @@ def choose_specular(
     weighting: Weighting | None,
     seed: int = 0,
     feature_sets: tuple[str, ...] = ("colour", "specular", "both"),
+    relabel: bool = True,
 ) -> Selection:
     """Fit global and K-cluster specular on all shots but ``hold``; keep global unless a clustered
     candidate lowers ``hold``'s errors beyond noise (:func:`~torchmetal.fit.decision.paired_choice`).
@@ -391,7 +392,8 @@ def choose_specular(
     ``force`` picks the lowest held-out MSE among the clustered candidates (specular="clustered");
     ``hold=None`` (too few shots) ranks them by in-sample error and always picks one. Otherwise,
     within a feature set, larger K are tried only while the last K beat global's held-out MSE
-    (on a sample without clusters that is 3 fits instead of 9).
+    (on a sample without clusters that is 3 fits instead of 9). ``relabel``: whether a clustered choice
+    tries relabelling its pixels too (:func:`relabel_pixels`).
     """
     n = int(capture.images.shape[0])
     fit_shots = [i for i in range(n) if i != hold]
@@ -414,7 +416,7 @@ def choose_specular(
     if ho is None:
         return Selection(labelers[best].k, labelers[best], -1, mse, f"{best}: lowest in-sample error (no shot to hold out)")
     return _held_out_selection(obs, ho, g, ij, labelers, best, errors, mse, hold=hold, force=force, tol=tol,
-                               max_iters=max_iters)
+                               max_iters=max_iters, relabel=relabel)
 
 
 def _scorer(capture: Capture, obs: Observations, hold: int | None, *, stride: int, dtype: torch.dtype, chunk: int,
@@ -459,7 +461,7 @@ def _cluster_candidates(obs: Observations, g: SpecFit, score: Callable[[SpecFit,
 
 def _held_out_selection(obs: Observations, ho: Observations, g: SpecFit, ij: Tensor, labelers: dict[str, Labeler],
                         best: str, errors: dict, mse: dict, *, hold: int, force: bool, tol: float,
-                        max_iters: int) -> Selection:
+                        max_iters: int, relabel: bool = True) -> Selection:
     """Global unless a clustered candidate lowers the held-out errors beyond noise (``force``: the ``best``
     candidate then); for a clustered choice, whether relabelling the pixels helps too."""
     d = paired_choice("specular clusters", errors, "global", floor=MIN_GAIN_ABS * mean_square(ho))
@@ -470,7 +472,8 @@ def _held_out_selection(obs: Observations, ho: Observations, g: SpecFit, ij: Ten
     if d.chosen == "global":
         return Selection(1, None, hold, mse, f"held-out shot {hold}: {d.reason}", decisions=[d], errors=errors["global"])
     chosen = d.chosen
-    rel = _relabel_decision(obs, ho, labelers[chosen], g, ij, chosen, errors[chosen], tol=tol, max_iters=max_iters)
+    rel = _relabel_decision(obs, ho, labelers[chosen], g, ij, chosen, errors[chosen], tol=tol,
+                            max_iters=max_iters) if relabel else None
     decisions = [d] if rel is None else [d, rel]
     relabel = rel is not None and rel.chosen == "relabel"
     if rel is not None:

@@ -77,12 +77,13 @@ class SubsampleDecisions:
 def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: float, max_iters: int, robust: str | None,
                         outliers: float | None, clusters: tuple[int, ...], chunk: int, sub_pixels: int,
                         select_pixels: int, seed: int, lobe: str = "phong", noise: bool | str = False,
-                        colour: bool = True) -> SubsampleDecisions:
+                        colour: bool = True, relabel: bool = True) -> SubsampleDecisions:
     """Steps 1–4b of the refine scheme (module docstring) on strided pixel subsamples of ``capture``
     (any object with ``images`` (N, 3, H, W) readable by :func:`~torchmetal.fit.problem.build_observations`,
     such as the tiled fit's memory-mapped capture): the same values bit for bit for the same pixels.
     ``noise``: weigh each observation by its expected variance (:func:`~torchmetal.fit.refine.noise_model`,
-    fitted to the subsample fit's residuals); "auto": where a held-out shot prefers it (:func:`_weights_decision`)."""
+    fitted to the subsample fit's residuals); "auto": where a held-out shot prefers it (:func:`_weights_decision`).
+    ``relabel``: False skips the relabelling trial of kept clusters."""
     imgs = capture.images
     dt = compute_dtype(imgs)
     n_shots, _, h, w = imgs.shape
@@ -112,7 +113,7 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
                 hold = _hold_shot(sub, glob) if n_shots >= 3 else None
                 sel = choose_specular(capture, glob, candidates=clusters, stride=sel_stride, hold=hold,
                                       force=specular == "clustered", tol=sub_tol, max_iters=max_iters, dtype=dt,
-                                      chunk=chunk, weighting=weighting, seed=seed)
+                                      chunk=chunk, weighting=weighting, seed=seed, relabel=relabel)
             run.decisions += [d.to_dict() for d in sel.decisions]
             if sel.k == 1:
                 run.skipped.append(f"specular clusters: not kept ({sel.reason})")
