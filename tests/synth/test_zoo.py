@@ -79,7 +79,7 @@ def test_full_ggx_truth_is_the_renderers_lobe():
     """The zoo's ggx_full lobe (numpy, written apart from the fit) equals torchmetal.lobes.ggx_lobe, Fresnel
     and shadowing included, on random normals, lights and views; the plain ggx lobe is its distribution alone."""
     from torchmetal.lobes import ggx_lobe
-    from torchmetal.synth.zoo_render import lobe_value
+    from torchmetal.synth.zoo_shading import lobe_value
 
     rng = np.random.default_rng(0)
 

@@ -30,9 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
+from torchmetal.synth.zoo_flakes import flake_cover, flake_glints, flake_normals, flake_pixels, make_flakes
+from torchmetal.synth.zoo_shading import WIDTH, lobe_value, sph, surface_points, towards, unit
+
 __all__ = ["Scene", "ZooCase", "make_case", "render_clean", "oracle_render", "decode"]
 
-WIDTH = 0.1  # surface size, metres (square)
 CAMERA_HEIGHT = 0.3
 TEX_RANGE = (0.05, 0.7)
 DIFFUSE_LEVEL = 0.25
@@ -157,7 +159,7 @@ def make_normals(kind: str, n: int, rng: np.random.Generator, max_slope: float =
         p = surface_points(n)
         radius = math.sqrt(2.0) * 0.5 * WIDTH / math.sin(math.radians(60.0))
         z = np.sqrt(np.clip(radius**2 - p[0] ** 2 - p[1] ** 2, 0.0, None))
-        return _unit(np.stack([p[0], p[1], z]))
+        return unit(np.stack([p[0], p[1], z]))
     if kind != "bumpy":
         raise ValueError(f"normals: expected flat, bumpy or sphere, found {kind!r}")
     h = _smooth(rng, 1, n, n, 10)[0] + 0.5 * _smooth(rng, 1, n, n, 20)[0]
@@ -168,30 +170,13 @@ def make_normals(kind: str, n: int, rng: np.random.Generator, max_slope: float =
     return nn / np.linalg.norm(nn, axis=0, keepdims=True)
 
 
-def surface_points(n: int) -> np.ndarray:
-    """(3, n, n) docs/design.md §2.1 pixel centres on the z = 0 plane."""
-    j = (np.arange(n) + 0.5) / n - 0.5
-    x = np.broadcast_to(j[None, :] * WIDTH, (n, n))
-    y = np.broadcast_to(-j[:, None] * WIDTH, (n, n))
-    return np.stack([x, y, np.zeros((n, n))])
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=0, keepdims=True)
-
-
-def _sph(elev: float, azim: float) -> np.ndarray:
-    e, a = math.radians(elev), math.radians(azim)
-    return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
-
-
 def make_layout(scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Lights (K, 4), cameras (K, 4) and a per-shot exposure factor (K,), fit shots first."""
     k = scene.shots + scene.held
     lights, cams = np.zeros((k, 4)), np.zeros((k, 4))
     for i in range(k):
         if scene.camera == "ortho":
-            cams[i] = [*_sph(85.0 + rng.uniform(-2, 2), rng.uniform(0, 360)), 0.0]
+            cams[i] = [*sph(85.0 + rng.uniform(-2, 2), rng.uniform(0, 360)), 0.0]
         else:
             jit = rng.uniform(-0.05, 0.05, 2) if scene.camera == "jitter" else np.zeros(2)
             cams[i] = [jit[0], jit[1], CAMERA_HEIGHT, 1.0]
@@ -199,7 +184,7 @@ def make_layout(scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, np.
         lay = scene.layout
         if lay == "hemisphere":
             d = rng.uniform(0.25, 0.4)
-            lights[i] = [*(d * _sph(rng.uniform(25, 80), rng.uniform(0, 360))), 1.0]
+            lights[i] = [*(d * sph(rng.uniform(25, 80), rng.uniform(0, 360))), 1.0]
         elif lay == "ring":  # mirror point on a ring of radius 0.025 around the centre
             hl = 0.25
             ang = 2 * math.pi * i / k + rng.uniform(-0.2, 0.2)
@@ -214,110 +199,27 @@ def make_layout(scene: Scene, rng: np.random.Generator) -> tuple[np.ndarray, np.
                 lxy = m + (m - cam_xy) * hl / CAMERA_HEIGHT
                 lights[i] = [lxy[0], lxy[1], hl, 1.0]
             else:
-                lights[i] = [*(0.3 * _sph(rng.uniform(20, 35), rng.uniform(0, 360))), 1.0]
+                lights[i] = [*(0.3 * sph(rng.uniform(20, 35), rng.uniform(0, 360))), 1.0]
         elif lay == "directional":
-            lights[i] = [*_sph(rng.uniform(3, 89), rng.uniform(0, 360)), 0.0]
+            lights[i] = [*sph(rng.uniform(3, 89), rng.uniform(0, 360)), 0.0]
             if i % 3 == 0:  # a third of the shots near the camera's mirror direction
-                c = cams[i, :3] if cams[i, 3] == 0 else _unit(cams[i, :3:1].reshape(3, 1))[:, 0]
+                c = cams[i, :3] if cams[i, 3] == 0 else unit(cams[i, :3:1].reshape(3, 1))[:, 0]
                 mirror = np.array([-c[0], -c[1], c[2]])
-                lights[i, :3] = _unit((mirror + rng.normal(0, 0.05, 3)).reshape(3, 1))[:, 0]
+                lights[i, :3] = unit((mirror + rng.normal(0, 0.05, 3)).reshape(3, 1))[:, 0]
                 lights[i, 2] = abs(lights[i, 2])
         elif lay == "grazing":
-            lights[i] = [*_sph(rng.uniform(5, 15), rng.uniform(0, 360)), 0.0]
+            lights[i] = [*sph(rng.uniform(5, 15), rng.uniform(0, 360)), 0.0]
         elif lay == "dome":  # rings of directional lights over the hemisphere
             ring, pos = divmod(i, 12)
             elev = 15 + 70 * (ring + 0.5) / max(1, math.ceil(k / 12))
-            lights[i] = [*_sph(elev + rng.uniform(-3, 3), 30 * pos + 15 * ring + rng.uniform(-5, 5)), 0.0]
+            lights[i] = [*sph(elev + rng.uniform(-3, 3), 30 * pos + 15 * ring + rng.uniform(-5, 5)), 0.0]
         elif lay == "blind":  # fit shots never near the mirror direction; held-out shots closer to it
             if i < scene.shots:
-                lights[i] = [*(0.3 * _sph(rng.uniform(20, 40), rng.uniform(0, 360))), 1.0]
+                lights[i] = [*(0.3 * sph(rng.uniform(20, 40), rng.uniform(0, 360))), 1.0]
             else:
-                lights[i] = [*(0.3 * _sph(rng.uniform(45, 55), rng.uniform(0, 360))), 1.0]
+                lights[i] = [*(0.3 * sph(rng.uniform(45, 55), rng.uniform(0, 360))), 1.0]
     factor = rng.uniform(0.85, 1.15, k)
     return lights, cams, factor
-
-
-def _to(points: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit direction (3, n, n) from the points to a homogeneous target, and the squared distance."""
-    if target[3] == 0:
-        d = _unit(target[:3].reshape(3, 1, 1) * np.ones_like(points))
-        return d, np.ones(points.shape[1:])
-    v = target[:3].reshape(3, 1, 1) - points
-    d2 = (v * v).sum(0)
-    return v / np.sqrt(d2), d2
-
-
-def lobe_value(kind: str, n: np.ndarray, l: np.ndarray, v: np.ndarray, s: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """(3, n, n) specular factor per unit irradiance; s, alpha (3,) or (3, n, n)."""
-    s = s.reshape(3, 1, 1) if s.ndim == 1 else s
-    alpha = alpha.reshape(3, 1, 1) if alpha.ndim == 1 else alpha
-    nl = (n * l).sum(0)
-    lit = (nl > 0)[None]
-    if kind == "phong":
-        r = 2 * nl[None] * n - l
-        c = np.clip((r * v).sum(0), 0.0, 1.0)[None]
-        f = np.power(c, alpha)
-    else:
-        h = _unit(l + v)
-        c = np.clip((n * h).sum(0), 0.0, 1.0)[None]
-        if kind == "blinn":
-            f = np.power(c, 4.0 * alpha)
-        else:
-            a2 = 2.0 / (alpha + 2.0)
-            f = (a2 / ((c * c) * (a2 - 1.0) + 1.0) ** 2) * a2  # D / D(0) with D(0) = 1/(π a²)
-            if kind == "ggx_full":  # × Schlick's F/F0 (F0 0.04) × G₁(n·l)·G₁(n·v)/(n·v), Smith–GGX: 0 where n·v ≤ 0
-                nv = (n * v).sum(0)[None]
-                x = np.clip(1.0 - (v * h).sum(0)[None], 0.0, 1.0)
-                fres = 1.0 + (1.0 / 0.04 - 1.0) * x**5
-                nl1, nv1 = np.clip(nl[None], 0.0, 1.0), np.clip(nv, 1e-12, 1.0)
-                g1 = lambda t: 2.0 * t / (t + np.sqrt(a2 + (1.0 - a2) * t * t))  # noqa: E731
-                f = np.where(nv > 0, f * fres * g1(nl1) * g1(nv1) / nv1, 0.0)
-    return np.where(lit, s * f, 0.0)
-
-
-def make_flakes(spec: dict, n: int, rng: np.random.Generator) -> dict:
-    """Flake discs: centres (F, 2) px (x right, y down), semi-axes (F, 2), angle (F,), normal (F, 3), colour (F, 3)."""
-    count = rng.poisson(spec["density"] * n * n)
-    area = spec["area_median"] * np.exp(spec.get("area_log_std", 0.35) * rng.normal(size=count))
-    lo, hi = spec.get("aspect", (0.5, 1.0))
-    aspect = rng.uniform(lo, hi, count)  # minor / major
-    major = np.sqrt(area / (math.pi * aspect))
-    theta = spec["tilt_sigma"] * np.sqrt(-2.0 * np.log(1.0 - rng.random(count)))  # Rayleigh
-    phi = rng.uniform(0, 2 * math.pi, count)
-    normal = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
-    color = np.asarray(spec.get("color", (0.9, 0.8, 0.6)))[None] * np.exp(0.1 * rng.normal(size=(count, 3)))
-    out = {"centre": rng.uniform(0, n, (count, 2)), "axes": np.stack([major, major * aspect], -1),
-           "angle": rng.uniform(0, math.pi, count), "normal": normal, "color": color, "area": area}
-    region = spec.get("region")
-    if region is None:
-        return out
-    if region != "left":
-        raise ValueError(f"flakes region: expected None or 'left', found {region!r}")
-    keep = out["centre"][:, 0] < 0.5 * n  # glitter on the left half only (x < 0): the same draws, thinned
-    return {k: v[keep] for k, v in out.items()}
-
-
-def _flake_cover(fl: dict, n: int, sub: int = 4) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per flake: pixel rows, cols and fractional coverage (sub×sub supersampling)."""
-    out = []
-    offs = (np.arange(sub) + 0.5) / sub
-    for (cx, cy), (a, b), ang in zip(fl["centre"], fl["axes"], fl["angle"]):
-        r = int(math.ceil(a)) + 1
-        x0, x1 = max(0, int(cx) - r), min(n, int(cx) + r + 1)
-        y0, y1 = max(0, int(cy) - r), min(n, int(cy) + r + 1)
-        if x0 >= x1 or y0 >= y1:
-            out.append((np.zeros(0, int), np.zeros(0, int), np.zeros(0)))
-            continue
-        ys = (np.arange(y0, y1)[:, None] + offs[None]).reshape(-1)
-        xs = (np.arange(x0, x1)[:, None] + offs[None]).reshape(-1)
-        dx, dy = xs[None, :] - cx, ys[:, None] - cy
-        ca, sa = math.cos(ang), math.sin(ang)
-        u, w = dx * ca + dy * sa, -dx * sa + dy * ca
-        inside = ((u / a) ** 2 + (w / b) ** 2 <= 1.0).astype(np.float64)
-        cov = inside.reshape(y1 - y0, sub, x1 - x0, sub).mean((1, 3))
-        rr, cc = np.nonzero(cov)
-        out.append((rr + y0, cc + x0, cov[rr, cc]))
-    return out
 
 
 # ---------------------------------------------------------------------------- rendering
@@ -341,8 +243,8 @@ def render_clean(truth: Truth, light: np.ndarray, intensity: np.ndarray, camera:
     """(3, n, n) noise-free, unclipped linear radiance of one shot."""
     n = truth.texture.shape[-1]
     p = surface_points(n)
-    l, d2 = _to(p, light)
-    v, _ = _to(p, camera)
+    l, d2 = towards(p, light)
+    v, _ = towards(p, camera)
     e = intensity.reshape(3, 1, 1) / (d2[None] if light[3] == 1 else 1.0)
     nn = truth.normals
     nl = (nn * l).sum(0)[None]
@@ -350,41 +252,8 @@ def render_clean(truth: Truth, light: np.ndarray, intensity: np.ndarray, camera:
     if specular:
         img = img + e * lobe_value(truth.lobe, nn, l, v, truth.s, truth.alpha)
     if flakes and truth.flakes is not None:
-        img = img + _flake_glints(truth, l, v, e)
+        img = img + flake_glints(truth, l, v, e)
     return img
-
-
-def _centre_pixels(fl: dict, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(F,) row and column of the pixel under each flake's centre."""
-    return (np.clip(fl["centre"][:, 1].astype(int), 0, n - 1), np.clip(fl["centre"][:, 0].astype(int), 0, n - 1))
-
-
-def flake_normals(truth: Truth) -> np.ndarray:
-    """(3, F) flake normals in the world: each flake's tilt applied around the surface normal under it."""
-    fl = truth.flakes
-    cy, cx = _centre_pixels(fl, truth.texture.shape[-1])
-    base = truth.normals[:, cy, cx]  # (3, F)
-    helper = np.where(np.abs(base[0:1]) < 0.9, np.array([[1.0], [0.0], [0.0]]), np.array([[0.0], [1.0], [0.0]]))
-    t1 = _unit(helper - (helper * base).sum(0, keepdims=True) * base)  # x on a flat sample
-    t2 = np.cross(base.T, t1.T).T  # y on a flat sample
-    local = fl["normal"].T  # (3, F) in the frame (t1, t2, n)
-    return _unit(local[0:1] * t1 + local[1:2] * t2 + local[2:3] * base)
-
-
-def _flake_glints(truth: Truth, l: np.ndarray, v: np.ndarray, e: np.ndarray) -> np.ndarray:
-    fl, spec = truth.flakes, truth.flakes["spec"]
-    n = truth.texture.shape[-1]
-    out = np.zeros((3, n, n))
-    cy, cx = _centre_pixels(fl, n)
-    h = _unit(l[:, cy, cx] + v[:, cy, cx])  # (3, F) half vector at each flake
-    cosang = np.clip((fl["world_normal"] * h).sum(0), -1.0, 1.0)
-    amp = np.exp(-np.arccos(cosang) ** 2 / (2 * spec["glint_sigma"] ** 2))  # (F,)
-    lit = (l[2, cy, cx] > 0) & (v[2, cy, cx] > 0)
-    for f, (rr, cc, cov) in enumerate(truth.cover):
-        if amp[f] < 1e-6 or not lit[f] or rr.size == 0:
-            continue
-        out[:, rr, cc] += (amp[f] * cov)[None] * fl["color"][f][:, None] * e[:, rr, cc]
-    return out
 
 
 # ---------------------------------------------------------------------------- a case
@@ -461,7 +330,7 @@ def make_truth(scene: Scene) -> Truth:
     if scene.flakes is not None:
         fl = make_flakes(scene.flakes, n, _rng(scene.seed, 2))
         fl["spec"] = dict(scene.flakes)
-        truth.flakes, truth.cover = fl, _flake_cover(fl, n)
+        truth.flakes, truth.cover = fl, flake_cover(fl, n)
         fl["world_normal"] = flake_normals(truth)  # (3, F), fixed: computed once, not per shot
     return truth
 
@@ -505,22 +374,7 @@ def make_case(scene: Scene, out_dir: str | os.PathLike) -> ZooCase:
     return ZooCase(scene=scene, capture_dir=out, truth=truth, held_lights=lights[held], held_intensities=ints[held],
                    held_cameras=cams[held], clean=clean.astype(np.float32), fit_lights=lights[:scene.shots],
                    fit_intensities=ints[:scene.shots], fit_cameras=cams[:scene.shots], truth_stats=stats,
-                   flake_pixels=_flake_pixels(truth))
-
-
-def _flake_pixels(truth: Truth) -> np.ndarray:
-    n = truth.texture.shape[-1]
-    m = np.zeros((n, n), bool)
-    for rr, cc, _ in truth.cover or []:
-        m[rr, cc] = True
-    if truth.cover:
-        g = m.copy()
-        g[1:] |= m[:-1]
-        g[:-1] |= m[1:]
-        g[:, 1:] |= g[:, :-1].copy()
-        g[:, :-1] |= g[:, 1:].copy()
-        m = g
-    return m
+                   flake_pixels=flake_pixels(truth))
 
 
 def oracle_render(case: ZooCase) -> np.ndarray:
