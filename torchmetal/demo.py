@@ -49,7 +49,7 @@ from torchmetal.metrics import psnr
 from torchmetal.onnx_export import export_onnx
 from torchmetal.phong import phong_render
 from torchmetal.renderer import MaterialRenderer
-from torchmetal.report import _num_particles, report_figure
+from torchmetal.report.page import _num_particles, report_figure
 from torchmetal.synth import synth_capture
 
 if TYPE_CHECKING:
