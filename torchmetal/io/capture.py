@@ -18,7 +18,6 @@ file, what was expected and what was found. Saving: :mod:`torchmetal.io.capture_
 from __future__ import annotations
 
 import json
-import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -28,8 +27,21 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchmetal.errors import CaptureError, InputError, TorchmetalError
+from torchmetal.errors import CaptureError
 from torchmetal.geometry import is_flat
+from torchmetal.io.capture_checks import (
+    REFLECTANCE_MAX,
+    check_camera,
+    check_exposure,
+    check_intensity,
+    check_light,
+    check_light_camera,
+    check_pixels,
+    check_size,
+    numbers,
+    shape_error,
+    short_repr,
+)
 from torchmetal.io.images import _cv2, code_table, decode_planes, read_raw, srgb_to_linear
 from torchmetal.memory import is_large, release_free_memory
 
@@ -42,148 +54,6 @@ COLOR_SPACES = ("srgb", "linear")
 _SHOT_KEYS = ("image", "light", "light_intensity", "camera")
 _TOP_KEYS = ("color_space", "surface", "shots")
 UNIT_TOL = 1e-6  # normals within this of unit length are kept bit-exact
-F32_MAX = float(np.finfo(np.float32).max)
-REFLECTANCE_MAX = 1e12  # pixel / irradiance above this is not a surface (and overflows float32 when squared)
-
-
-# ------------------------------------------------------------------------------ value checks
-
-
-def _short(x: object, limit: int = 60) -> str:
-    r = repr(x)
-    return r if len(r) <= limit else r[: limit - 3] + "..."
-
-
-def _float(v: int | float) -> float:
-    """float(v), with ±inf for an integer beyond the float range (a JSON literal of 309+ digits)."""
-    try:
-        return float(v)
-    except OverflowError:
-        return math.inf if v > 0 else -math.inf
-
-
-def _numbers(values: object, n: int, label: str, error: type[TorchmetalError] = CaptureError) -> list[float]:
-    """A JSON/list value that must be ``n`` finite numbers."""
-    ok = isinstance(values, (list, tuple)) and len(values) == n
-    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)  # type: ignore[union-attr]
-    if not ok:
-        found = f"{len(values)} values {_short(values)}" if isinstance(values, (list, tuple)) else _short(values)
-        raise error(f"{label}: expected {n} numbers, found {found}")
-    out = [_float(v) for v in values]  # type: ignore[union-attr]
-    if not all(math.isfinite(v) for v in out):
-        raise error(f"{label}: expected finite numbers, found {_short(out)}")
-    if any(abs(v) > F32_MAX for v in out):  # stored and computed in float32: inf there
-        raise error(f"{label}: expected numbers within the float32 range (|v| <= {F32_MAX:.4g}), found {_short(out)}")
-    return out
-
-
-def _check_light(v: list[float], label: str, error: type[TorchmetalError] = CaptureError) -> None:
-    x, y, z, w = v
-    if w not in (0.0, 1.0):
-        raise error(f"{label}: expected w = 1 (point light) or w = 0 (directional), found w = {w:g}")
-    if z <= 0:
-        where = "a point light above the surface plane z = 0" if w == 1 else "a direction above the horizon"
-        raise error(f"{label}: expected z > 0 ({where}), found z = {z:g}")
-
-
-def _check_camera(v: list[float], label: str, error: type[TorchmetalError] = CaptureError) -> None:
-    x, y, z, w = v
-    if w not in (0.0, 1.0):
-        raise error(f"{label}: expected w = 1 (camera position) or w = 0 (orthographic direction), found w = {w:g}")
-    if z <= 0:
-        raise error(f"{label}: expected z > 0 (camera above the surface), found z = {z:g}")
-
-
-def _check_intensity(v: list[float], label: str, error: type[TorchmetalError] = CaptureError) -> None:
-    if min(v) < 0:
-        raise error(f"{label}: expected values >= 0, found {_short(v)}")
-
-
-def check_light_camera(
-    light: Tensor, intensity: Tensor, camera: Tensor, *, labels: Sequence[str] | None = None,
-    error: type[TorchmetalError] = InputError,
-) -> None:
-    """Check B shots' lights (B, 4), intensities (B, 3) and cameras (B, 4) like a capture's.
-
-    Homogeneous w must be exactly 0 or 1, everything finite, z > 0 (lights above the surface
-    plane / horizon, cameras above the surface) and intensities >= 0. Raises ``error`` (one
-    line, naming the shot) — :class:`InputError` by default, for render inputs.
-    """
-    for name, t, width in (("light", light, 4), ("light_intensity", intensity, 3), ("camera", camera, 4)):
-        if not isinstance(t, Tensor) or t.dim() != 2 or t.shape[1] != width:
-            found = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
-            raise error(f"{name}: expected shape (B, {width}), found {found}")
-        if not t.is_floating_point():
-            raise error(f"{name}: expected a floating-point tensor, found dtype {t.dtype}")
-    if not (light.shape[0] == intensity.shape[0] == camera.shape[0]):
-        raise error(f"light/light_intensity/camera: expected the same batch size B, found "
-                    f"{light.shape[0]}, {intensity.shape[0]}, {camera.shape[0]}")
-    rows = (t.detach().cpu().double().tolist() for t in (light, intensity, camera))
-    for k, (lv, iv, cv) in enumerate(zip(*rows)):
-        label = labels[k] if labels is not None else f"shot {k}"
-        _check_light(_numbers(lv, 4, f"{label}: light", error), f"{label}: light", error)
-        _check_intensity(_numbers(iv, 3, f"{label}: light_intensity", error), f"{label}: light_intensity", error)
-        _check_camera(_numbers(cv, 4, f"{label}: camera", error), f"{label}: camera", error)
-
-
-def _check_size(size: object, label: str) -> tuple[float, float]:
-    ok = isinstance(size, (tuple, list)) and len(size) == 2
-    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(_float(v)) and v > 0 for v in size)  # type: ignore[union-attr]
-    if not ok:
-        raise CaptureError(f"{label}: expected positive finite (width, height), found {_short(size)}")
-    return float(size[0]), float(size[1])  # type: ignore[index]
-
-
-def check_pixels(t: Tensor, label: str) -> float:
-    """Finite and >= 0, in one pass (NaN propagates to min/max); details only on failure.
-    Returns the largest value (0 for an empty tensor)."""
-    if t.numel() == 0:
-        return 0.0
-    lo, hi = torch.aminmax(t)
-    lo, hi = float(lo), float(hi)
-    if math.isfinite(lo) and math.isfinite(hi) and lo >= 0:
-        return hi
-    bad = ~torch.isfinite(t)
-    if bool(bad.any()):
-        n = int(bad.sum())
-        kind = "NaN" if bool(torch.isnan(t).any()) else "Inf"
-        raise CaptureError(f"{label}: expected finite pixel values, found {n} non-finite ({kind})")
-    raise CaptureError(f"{label}: expected pixel values >= 0, found minimum {lo:.4g}")
-
-
-def _check_exposure(peaks: Sequence[float], lights: Tensor, intensities: Tensor, size: tuple[float, float],
-                    labels: Sequence[str]) -> None:
-    """Each shot's brightest pixel against the least irradiance its light gives the surface.
-
-    A pixel is irradiance × reflectance; a ratio above :data:`REFLECTANCE_MAX` is no surface but a
-    light position or intensity off by orders of magnitude (and it overflows float32 once squared
-    in a fit). E = intensity / d² (d to the farthest surface corner) for a point light, intensity
-    for a directional one. Dark shots (zero intensity or all-black images) are not checked.
-    """
-    hw, hh = size[0] / 2, size[1] / 2
-    corners = torch.tensor([[hw, hh, 0.0], [-hw, hh, 0.0], [hw, -hh, 0.0], [-hw, -hh, 0.0]], dtype=torch.float64)
-    lights, intensities = lights.detach().cpu().double(), intensities.detach().cpu().double()
-    for k, peak in enumerate(peaks):
-        top = float(intensities[k].max())
-        if peak <= 0 or top <= 0:
-            continue
-        if float(lights[k, 3]) == 1.0:
-            d2 = float(((corners - lights[k, :3]) ** 2).sum(1).max())
-            irradiance = top / d2
-        else:
-            irradiance = top
-        ratio = peak / irradiance if irradiance > 0 else math.inf
-        if ratio > REFLECTANCE_MAX:
-            raise CaptureError(
-                f"{labels[k]}: expected image values at most {REFLECTANCE_MAX:.0e} x the irradiance on the surface "
-                f"(light_intensity / distance²), found {ratio:.3g} x (brightest pixel {peak:.4g}, irradiance "
-                f"{irradiance:.4g}): the light is too far or too weak for its photo"
-            )
-
-
-def _shape_error(name: str, want: str, x: object) -> CaptureError:
-    found = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-    return CaptureError(f"Capture.{name}: expected shape {want}, found {found}")
 
 
 # ---------------------------------------------------------------------------------- Capture
@@ -224,7 +94,7 @@ class Capture:
     def __post_init__(self) -> None:
         x = self.images
         if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[1] != 3:
-            raise _shape_error("images", "(N, 3, H, W)", x)
+            raise shape_error("images", "(N, 3, H, W)", x)
         n, _, h, w = x.shape
         if self.normals is None:  # flat: one (3,) normal seen as (3, H, W) — no per-pixel storage
             self.normals = torch.tensor([0.0, 0.0, 1.0], dtype=x.dtype, device=x.device).view(3, 1, 1).expand(3, h, w)
@@ -235,7 +105,7 @@ class Capture:
         if not self.names:
             self.names = [f"images/{k:03d}.png" for k in range(n)]
         self.names = list(self.names)
-        self.size = _check_size(self.size, "Capture.size")
+        self.size = check_size(self.size, "Capture.size")
         self.validate()
 
     # -- shape and value checks -------------------------------------------------------------
@@ -244,7 +114,7 @@ class Capture:
         """Check shapes, dtypes and values; raises :class:`CaptureError`. Returns ``self``."""
         x = self.images
         if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[1] != 3 or x.shape[0] < 1:
-            raise _shape_error("images", "(N >= 1, 3, H, W)", x)
+            raise shape_error("images", "(N >= 1, 3, H, W)", x)
         if not x.is_floating_point():
             raise CaptureError(f"Capture.images: expected a floating-point tensor, found dtype {x.dtype}")
         n, _, h, w = x.shape
@@ -258,7 +128,7 @@ class Capture:
         for name, (shape, dtype) in shapes.items():
             t = getattr(self, name)
             if not isinstance(t, Tensor) or tuple(t.shape) != shape:
-                raise _shape_error(name, str(shape), t)
+                raise shape_error(name, str(shape), t)
             if dtype is None and not t.is_floating_point():
                 raise CaptureError(f"Capture.{name}: expected a floating-point tensor, found dtype {t.dtype}")
             if dtype is not None and t.dtype != dtype:
@@ -281,7 +151,7 @@ class Capture:
             raise CaptureError(f"Capture.normals: expected unit vectors, found a length off by {worst:.3g}")
         labels = [f"Capture shot {k} ({self.names[k]})" for k in range(n)]
         check_light_camera(self.lights, self.intensities, self.cameras, error=CaptureError, labels=labels)
-        _check_exposure(peaks, self.lights, self.intensities, self.size, labels)
+        check_exposure(peaks, self.lights, self.intensities, self.size, labels)
         return self
 
     # -- views ------------------------------------------------------------------------------
@@ -374,24 +244,24 @@ def parse_meta(meta: object, label: str) -> tuple[str, tuple[float, float], str 
     if "format" not in meta:
         raise CaptureError(f"{label}: expected \"format\": {FORMAT!r}, found no format key")
     if meta["format"] != FORMAT:
-        raise CaptureError(f"{label}: expected format {FORMAT!r}, found {_short(meta['format'])}")
+        raise CaptureError(f"{label}: expected format {FORMAT!r}, found {short_repr(meta['format'])}")
     if meta.get("version") != VERSION or isinstance(meta.get("version"), bool):
-        raise CaptureError(f"{label}: expected version {VERSION}, found {_short(meta.get('version'))} (unsupported)")
+        raise CaptureError(f"{label}: expected version {VERSION}, found {short_repr(meta.get('version'))} (unsupported)")
     missing = [k for k in _TOP_KEYS if k not in meta]
     if missing:
         raise CaptureError(f"{label}: expected keys {list(_TOP_KEYS)}, missing {missing}")
     cs = meta["color_space"]
     if cs not in COLOR_SPACES:
-        raise CaptureError(f"{label}: color_space: expected one of {list(COLOR_SPACES)}, found {_short(cs)}")
+        raise CaptureError(f"{label}: color_space: expected one of {list(COLOR_SPACES)}, found {short_repr(cs)}")
     surf = meta["surface"]
     if not isinstance(surf, dict) or "width" not in surf or "height" not in surf:
-        raise CaptureError(f"{label}: surface: expected {{\"width\": w, \"height\": h}}, found {_short(surf)}")
-    size = _check_size((surf["width"], surf["height"]), f"{label}: surface width/height")
+        raise CaptureError(f"{label}: surface: expected {{\"width\": w, \"height\": h}}, found {short_repr(surf)}")
+    size = check_size((surf["width"], surf["height"]), f"{label}: surface width/height")
     opt: dict[str, str | None] = {}
     for key in ("normals", "mask", "saturated"):
         v = meta.get(key)
         if v is not None and (not isinstance(v, str) or not v):
-            raise CaptureError(f"{label}: {key}: expected a file name or null, found {_short(v)}")
+            raise CaptureError(f"{label}: {key}: expected a file name or null, found {short_repr(v)}")
         opt[key] = v
     raw = meta["shots"]
     if not isinstance(raw, list):
@@ -407,13 +277,13 @@ def parse_meta(meta: object, label: str) -> tuple[str, tuple[float, float], str 
         if lost:
             raise CaptureError(f"{where}: expected keys {list(_SHOT_KEYS)}, missing {lost}")
         if not isinstance(s["image"], str) or not s["image"]:
-            raise CaptureError(f"{where}.image: expected a file name, found {_short(s['image'])}")
-        light = _numbers(s["light"], 4, f"{where}.light")
-        _check_light(light, f"{where}.light")
-        inten = _numbers(s["light_intensity"], 3, f"{where}.light_intensity")
-        _check_intensity(inten, f"{where}.light_intensity")
-        cam = _numbers(s["camera"], 4, f"{where}.camera")
-        _check_camera(cam, f"{where}.camera")
+            raise CaptureError(f"{where}.image: expected a file name, found {short_repr(s['image'])}")
+        light = numbers(s["light"], 4, f"{where}.light")
+        check_light(light, f"{where}.light")
+        inten = numbers(s["light_intensity"], 3, f"{where}.light_intensity")
+        check_intensity(inten, f"{where}.light_intensity")
+        cam = numbers(s["camera"], 4, f"{where}.camera")
+        check_camera(cam, f"{where}.camera")
         shots.append(_Shot(s["image"], light, inten, cam))
     return cs, size, opt["normals"], opt["mask"], opt["saturated"], shots
 
@@ -544,7 +414,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     labels = [f"{meta_file}: shots[{k}] ({s.image})" for k, s in enumerate(shots)]
     # again in float32 (a z of 1e-300 is 0 there), and each photo against its light, naming this file
     check_light_camera(lights, intensities, cameras, error=CaptureError, labels=labels)
-    _check_exposure(peaks, lights, intensities, size, labels)
+    check_exposure(peaks, lights, intensities, size, labels)
     cap = Capture(
         images=images, normals=normals, mask=mask, lights=lights, intensities=intensities,
         cameras=cameras, size=size, saturated=saturated,
