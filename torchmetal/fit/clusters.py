@@ -416,7 +416,7 @@ def choose_specular(
     if ho is None:
         return Selection(labelers[best].k, labelers[best], -1, mse, f"{best}: lowest in-sample error (no shot to hold out)")
     return _held_out_selection(obs, ho, g, ij, labelers, best, errors, mse, hold=hold, force=force, tol=tol,
-                               max_iters=max_iters, relabel=relabel)
+                               max_iters=max_iters, try_relabel=relabel)
 
 
 def _scorer(capture: Capture, obs: Observations, hold: int | None, *, stride: int, dtype: torch.dtype, chunk: int,
@@ -461,7 +461,7 @@ def _cluster_candidates(obs: Observations, g: SpecFit, score: Callable[[SpecFit,
 
 def _held_out_selection(obs: Observations, ho: Observations, g: SpecFit, ij: Tensor, labelers: dict[str, Labeler],
                         best: str, errors: dict, mse: dict, *, hold: int, force: bool, tol: float,
-                        max_iters: int, relabel: bool = True) -> Selection:
+                        max_iters: int, try_relabel: bool = True) -> Selection:
     """Global unless a clustered candidate lowers the held-out errors beyond noise (``force``: the ``best``
     candidate then); for a clustered choice, whether relabelling the pixels helps too."""
     d = paired_choice("specular clusters", errors, "global", floor=MIN_GAIN_ABS * mean_square(ho))
@@ -473,7 +473,7 @@ def _held_out_selection(obs: Observations, ho: Observations, g: SpecFit, ij: Ten
         return Selection(1, None, hold, mse, f"held-out shot {hold}: {d.reason}", decisions=[d], errors=errors["global"])
     chosen = d.chosen
     rel = _relabel_decision(obs, ho, labelers[chosen], g, ij, chosen, errors[chosen], tol=tol,
-                            max_iters=max_iters) if relabel else None
+                            max_iters=max_iters) if try_relabel else None
     decisions = [d] if rel is None else [d, rel]
     relabel = rel is not None and rel.chosen == "relabel"
     if rel is not None:
