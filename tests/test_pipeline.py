@@ -188,3 +188,23 @@ def test_the_statistics_refit_keeps_the_first_fits_clusters():
     kept = _same_clusters(SimpleNamespace(specular="clustered", selection={"k": 4, "relabel": False}))
     assert kept == {"clusters": (4,), "relabel": False}
     assert _same_clusters(SimpleNamespace(specular="clustered", selection={"k": 2, "relabel": True}))["relabel"]
+
+
+def test_glints_with_a_small_share_of_the_residual_leave_the_coating_fit_alone(monkeypatch):
+    """Detections holding under REFIT_ENERGY_SHARE of the first fit's squared residual cannot steer it: the
+    coating is the first fit (its texture re-solved under them), as the report says; above it, refitted."""
+    import torchmetal.pipeline as P
+
+    cap = _capture(0, "procedural", False, "ring", flake_seed=20).capture.subset(list(range(8)))
+    refitted = fit_material(cap, flakes="on", seed=0)
+    share = refitted.flakes.report["glint_energy_share"]
+    assert share >= P.REFIT_ENERGY_SHARE  # synthetic glitter: a large share of the misfit
+    assert any("refitted away from the detected glints" in s for s in refitted.material.report["skipped"])
+    monkeypatch.setattr(P, "REFIT_ENERGY_SHARE", 1.01)
+    kept = fit_material(cap, flakes="on", seed=0)
+    assert kept.flakes.report["glint_energy_share"] == share
+    assert any("not refitted away" in s for s in kept.material.report["skipped"])
+    first = fit_material(cap, flakes="off", seed=0).fit
+    assert torch.equal(kept.fit.s, first.s) and torch.equal(kept.fit.alpha, first.alpha)
+    assert not torch.equal(kept.fit.texture, first.texture)  # re-solved under the detections
+    assert kept.flakes.model.to_dict() == refitted.flakes.model.to_dict()  # the statistics' fit is the same

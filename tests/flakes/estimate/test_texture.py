@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -118,3 +119,22 @@ class TestTextureWithoutGlints:
             texture_without_glints(cap, tex, phong, torch.zeros(2, 128, 128, dtype=torch.int64))
         with pytest.raises(InputError, match="texture"):
             texture_without_glints(cap, tex[:, :10], phong, torch.zeros(8, 128, 128, dtype=torch.int64))
+
+
+def test_glint_energy_share_counts_the_grown_detections_over_valid_observations():
+    from torchmetal.flakes.estimate.texture import glint_energy_share
+    from torchmetal.synth import synth_capture
+
+    cap = synth_capture(size=16, shots=2, seed=0, noise=0.0, exposure=0.3).capture
+    assert bool(cap.mask.all()) and not bool(cap.saturated.any())
+    phong = cap.images.clone()
+    phong[0, :, 5, 5] -= 0.5  # one glint: residual 0.5 in each channel
+    phong[1] -= 0.01  # misfit everywhere in the other shot
+    labels = torch.zeros(2, 16, 16, dtype=torch.int64)
+    labels[0, 5, 5] = 1
+    on, total = 3 * 0.25, 3 * 0.25 + 3 * 16 * 16 * 1e-4
+    assert glint_energy_share(cap, phong, labels) == pytest.approx(on / total, rel=1e-5)
+    sat = cap.saturated.clone()
+    sat[0, :, 5, 5] = True  # a saturated observation is not counted
+    assert glint_energy_share(replace(cap, saturated=sat), phong, labels) == pytest.approx(0.0, abs=1e-9)
+    assert glint_energy_share(cap, cap.images, labels) == 0.0  # no residual

@@ -39,6 +39,24 @@ def grown_detections(labels: Tensor) -> Tensor:
     return max_filter((labels > 0).unsqueeze(1).float(), 1) > 0
 
 
+def glint_energy_share(capture: Capture, phong_images: Tensor, labels: Tensor) -> float:
+    """Share of a fit's squared residual (photo − ``phong_images`` (N, 3, H, W), mask pixels, unsaturated
+    observations, channels summed) on the detections ``labels`` (N, H, W), grown by 1 px as
+    :func:`grown_detections`: how much the glints can weigh in a least-squares fit. 0 without residual."""
+    n, _, h, w = capture.images.shape
+    check_shape(phong_images, (n, 3, h, w), "phong_images")
+    check_shape(labels, (n, h, w), "labels")
+    mask = capture.mask.reshape(1, h, w)
+    on = total = 0.0
+    for k in range(n):  # a shot at a time: no (N, 3, H, W) temporary
+        r = capture.images[k].float() - phong_images[k].float()
+        ok = mask & ~capture.saturated[k] if capture.saturated is not None else mask.expand(3, h, w)
+        e = torch.where(ok, r * r, torch.zeros_like(r)).sum(0)  # (H, W)
+        total += float(e.sum(dtype=torch.float64))
+        on += float(e[grown_detections(labels[k : k + 1])[0, 0]].sum(dtype=torch.float64))
+    return on / total if total > 0 else 0.0
+
+
 def texture_without_glints(
     capture: Capture, texture: Tensor, phong_images: Tensor, labels: Tensor, *, chunk: int = 4, guard: bool = True
 ) -> tuple[Tensor, Tensor, Tensor]:
