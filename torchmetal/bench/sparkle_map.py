@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchmetal.flakes.density_choice import shot_valid, sparkle_counts
+from torchmetal.flakes.choice import shot_valid
+from torchmetal.flakes.density_choice import sparkle_counts
 from torchmetal.io.capture import load_capture
 from torchmetal.io.shared_data import shared_data_dir
 from torchmetal.pipeline import fit_material

@@ -71,12 +71,17 @@ def render_held(material: Material, capture: Capture, shots: list[int]) -> torch
                                           capture.cameras[shots].float())
 
 
+def shot_valid(capture: Capture, k: int) -> torch.Tensor:
+    """(H, W) bool: shot ``k``'s unsaturated pixels in the mask."""
+    return (capture.mask & ~capture.saturated[k].any(0, keepdim=True)).reshape(capture.images.shape[-2:])
+
+
 def _scores(material, capture, shots: list[int]) -> list[dict]:
     """PSNR (dB, linear, peak 1) and MD of the material's render of each of ``shots`` against its photo."""
     out = []
     for k, pred in zip(shots, render_held(material, capture, shots)):
         photo = capture.images[k].float()
-        valid = (capture.mask & ~capture.saturated[k].any(0, keepdim=True)).expand_as(photo)
+        valid = shot_valid(capture, k).expand_as(photo)
         out.append({"psnr": float(psnr(pred, photo, mask=valid)), "md": float(md(pred, photo, window=MD_WINDOW))})
     return out
 

@@ -27,7 +27,15 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.decision import Decision
-from torchmetal.flakes.choice import HELD, MD_WINDOW, held_shots, mean_score, observed_without, render_held
+from torchmetal.flakes.choice import (
+    HELD,
+    MD_WINDOW,
+    held_shots,
+    mean_score,
+    observed_without,
+    render_held,
+    shot_valid,
+)
 from torchmetal.flakes.estimate.density_map import DETECT_MODES, estimate_map, with_map
 from torchmetal.flakes.model.field import map_blocks
 from torchmetal.flakes.model.filters import box_mean, max_filter
@@ -68,11 +76,6 @@ def sparkle_counts(pred: Tensor, photo: Tensor, grid: tuple[int, int], valid: Te
 def block_error(pred: Tensor, obs: Tensor) -> float:
     """Mean |log((pred + 1)/(obs + 1))| over the blocks."""
     return float(torch.log((pred + 1.0) / (obs + 1.0)).abs().mean())
-
-
-def shot_valid(capture: Capture, k: int) -> Tensor:
-    """(H, W) bool: shot ``k``'s unsaturated pixels in the mask."""
-    return (capture.mask & ~capture.saturated[k].any(0, keepdim=True)).reshape(capture.images.shape[-2:])
 
 
 def score_shot(material: Material, capture: Capture, k: int, grid: tuple[int, int], pred: Tensor | None = None) -> dict:
