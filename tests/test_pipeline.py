@@ -208,3 +208,27 @@ def test_glints_with_a_small_share_of_the_residual_leave_the_coating_fit_alone(m
     assert torch.equal(kept.fit.s, first.s) and torch.equal(kept.fit.alpha, first.alpha)
     assert not torch.equal(kept.fit.texture, first.texture)  # re-solved under the detections
     assert kept.flakes.model.to_dict() == refitted.flakes.model.to_dict()  # the statistics' fit is the same
+
+
+def test_one_shot_plan_for_every_choice_on_left_out_shots(monkeypatch):
+    """The capture's shots are planned once: the flake stage's refits hold out the first fit's shots, and
+    every flake choice holds the plan's flake shots (the report's "shot_plan")."""
+    import torchmetal.pipeline as P
+
+    plans = []
+    real = P.fit_phong
+
+    def spy(*a, **kw):
+        plans.append(kw.get("plan"))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(P, "fit_phong", spy)
+    cap = _capture(0, "procedural", False, "ring", flake_seed=20).capture.subset(list(range(8)))
+    res = fit_material(cap, flakes="auto", seed=0)
+    first_plan = res.material.report["shot_plan"]
+    assert plans[0] is None and len(plans) >= 2  # the first fit plans; the refits are given its plan
+    assert all(p is not None and list(p.order) == first_plan["order"] for p in plans[1:])
+    assert sorted(first_plan["order"]) == list(range(8)) and first_plan["flakes"]
+    rep = res.flakes.report
+    assert rep["observed_choice"]["held"] == rep["flakes_choice"]["held"] == first_plan["flakes"]
+    assert [f["shot"] for f in rep["density_map_choice"]["folds"]] == first_plan["flakes"]  # tried, kept or not

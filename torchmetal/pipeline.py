@@ -29,6 +29,8 @@ import torch
 
 from torchmetal.errors import InputError
 from torchmetal.fit import FitResult, fit_phong
+from torchmetal.fit.shot_plan import ShotPlan, flake_holds
+from torchmetal.flakes.choice import HELD as FLAKE_HOLDS
 from torchmetal.flakes.choice import choose_observed, keep_flakes
 from torchmetal.flakes.density_choice import choose_density_map
 from torchmetal.flakes.estimate.lobe_core import drop_core
@@ -84,6 +86,8 @@ def _without_glints(capture, labels: torch.Tensor):
 #: (least squares). Measured: the zoo's flake scenes 20–37 %, the shared real captures 0.6 % (card) and 1.1 %
 #: (gold paper), where that refit cost 5.6 s of ~45 s
 REFIT_ENERGY_SHARE = 0.05
+#: the first fit's renders are kept through the statistics' refit up to this size (1024² × 48 shots)
+KEEP_RENDERS_BYTES = 576 << 20
 FLAKE_CHOICES = ("observed_choice", "flakes_choice", "density_map_choice")  # flake report entries holding a decision
 FIRST_FIT_CHOICES = ("lobe", "weights")  # made by the first fit alone: the flake stage's refits keep them
 
@@ -161,6 +165,9 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     # the statistics detect where the detections are glints, not misfit (null_test.glint_snr)
     k_hi = glint_snr(counts, det.k_hi)
     first = fit
+    # its renders (N, 3, H, W) are kept for the coating below rather than rendered again (1.6 s at 1024² × 7),
+    # up to KEEP_RENDERS_BYTES: beyond, a second copy of the images through the refit costs more than the render
+    first_images = phong_images if phong_images.numel() * 4 <= KEEP_RENDERS_BYTES else None
     if refit is not None:
         fit = refit()
         phong_images = render_shots(fit, capture)
@@ -173,7 +180,7 @@ def _flake_stage(capture, fit, seed: int, refit=None, coat_fit=None):
     result.report["detection_snr"] = k_hi
     coat = first
     if coat_fit is not None and result.model is not None:  # the coating: least squares away from the glints
-        coat_images = render_shots(first, capture)
+        coat_images = render_shots(first, capture) if first_images is None else first_images
         # glints with a small share of the first fit's squared residual cannot steer its least squares
         share = glint_energy_share(capture, coat_images, det.labels)
         result.report["glint_energy_share"] = share
@@ -315,13 +322,15 @@ class State:
     material: Material | None = None
     stage_times: dict = field(default_factory=dict)
     skipped: list = field(default_factory=list)
+    plan: ShotPlan | None = None  # the shots every choice on left-out shots held out (torchmetal.fit.shot_plan)
 
     def report(self, fit: FitResult, skipped: list) -> dict:
         """The material report's pipeline entries for ``fit`` (the stage times dict is shared and grows)."""
+        plan = self.plan if self.plan is not None else self.first.shot_plan
         return {"stage_times": self.stage_times, "skipped": skipped, "status": fit.status,
                 "iterations": fit.iterations, "rmse": fit.rmse, "normals": self.normals_report,
                 "flakes": None if self.flake_result is None else self.flake_result.report, "lobe": fit.lobe,
-                "lobe_selection": self.first.lobe_selection}
+                "lobe_selection": self.first.lobe_selection, "shot_plan": None if plan is None else plan.to_dict()}
 
 
 def stage_normals(capture: Capture, st: State) -> tuple[Capture, State]:
@@ -365,8 +374,9 @@ def stage_flakes(capture: Capture, st: State) -> tuple[Capture, State]:
         st.stage_times["flakes"] = 0.0
         return capture, st
     t = time.perf_counter()
-    # refits keep the lobe and the weights the first fit chose
-    kw = {**o.fit_kwargs(), "lobe": st.first.lobe, "noise_weights": st.first.noise is not None}
+    # refits keep the lobe and the weights the first fit chose, and hold out the same shots
+    kw = {**o.fit_kwargs(), "lobe": st.first.lobe, "noise_weights": st.first.noise is not None,
+          "plan": st.first.shot_plan}
     two_fits = o.robust == "auto" and o.scheme == "refine"
     # the statistics' Huber refit keeps the first fit's specular structure (the trials of clusters and gloss
     # maps again cost more than the rest of the refit): its cluster count, and relabelling only where the first
@@ -387,6 +397,9 @@ def stage_flakes(capture: Capture, st: State) -> tuple[Capture, State]:
                               f"squared residual, under {REFIT_ENERGY_SHARE:.0%}): texture re-solved under them; the "
                               f"flake statistics use a {ROBUST_GLINTS}-weighted refit")
         st.fit = replace(coat, texture=texture)  # the sparkles now carry the glints
+        fr = st.flake_result  # the flake choices hold out the shots with the most glints of a flake
+        holds = flake_holds(fr.particles.shot, fr.flake_id, capture.num_shots, FLAKE_HOLDS)
+        st.plan = (st.first.shot_plan or ShotPlan(())).with_flakes(holds)
     else:
         st.skipped.append(f"flakes: {st.flake_result.report.get('skipped', 'detections consistent with noise')}")
     return capture, st
@@ -409,7 +422,7 @@ def stage_observed(capture: Capture, st: State) -> tuple[Capture, State]:
     if mode == "on":
         m.observed_flakes = measure_observed(capture, fr.particles, fr.flake_id, m.flakes)
     else:
-        m.observed_flakes, fr.report["observed_choice"] = choose_observed(capture, m, fr)
+        m.observed_flakes, fr.report["observed_choice"] = choose_observed(capture, m, fr, shots=list(st.plan.flakes))
     st.stage_times["flakes.observed"] = time.perf_counter() - t
     return capture, st
 
@@ -422,7 +435,8 @@ def stage_keep(capture: Capture, st: State) -> tuple[Capture, State]:
         return capture, st
     t = time.perf_counter()
     plain = st.first.to_material(report_extra=st.report(st.first, list(st.first.skipped)))
-    keep, fr.report["flakes_choice"] = keep_flakes(capture, st.material, plain, fr, fr.report.get("observed_choice"))
+    keep, fr.report["flakes_choice"] = keep_flakes(capture, st.material, plain, fr, fr.report.get("observed_choice"),
+                                                   shots=list(st.plan.flakes))
     st.stage_times["flakes.choice"] = time.perf_counter() - t
     if not keep:
         fr.report["skipped"] = f"detections found, but not kept: {fr.report['flakes_choice']['reason']}"
@@ -439,7 +453,7 @@ def stage_density(capture: Capture, st: State) -> tuple[Capture, State]:
     if m.flakes is None or fr is None:
         return capture, st
     t = time.perf_counter()
-    m.flakes, fr.report["density_map_choice"] = choose_density_map(capture, m, fr)
+    m.flakes, fr.report["density_map_choice"] = choose_density_map(capture, m, fr, shots=list(st.plan.flakes))
     st.stage_times["flakes.density_map"] = time.perf_counter() - t
     return capture, st
 

@@ -56,3 +56,21 @@ def test_too_few_shots_stay_flat(bumpy):
 def test_every_fold_leaves_the_estimate_three_shots(bumpy, n):
     mode, d = choose_normals(replace(bumpy, normals=None).subset(list(range(n))))
     assert mode in ("flat", "estimate") and all(n - len(g) >= 3 for g in d.holds) and d.holds
+
+
+def test_the_test_stops_after_a_group_where_the_estimate_is_already_worse_beyond_noise(bumpy, monkeypatch):
+    import torchmetal.normals.choice as nc
+
+    flat = synth_capture(size=64, shots=8, seed=4, noise=0.003).capture
+    real = nc.estimate_normals
+
+    def tilted(train, **kw):  # normals 0.5 rad off: every left-out shot is predicted worse
+        est = real(train, **kw)
+        n = torch.stack([torch.full_like(est.normals[0], 0.48), torch.zeros_like(est.normals[0]),
+                         torch.full_like(est.normals[0], 0.88)])
+        return replace(est, normals=n / n.norm(dim=0, keepdim=True))
+
+    monkeypatch.setattr(nc, "estimate_normals", tilted)
+    mode, d = choose_normals(flat)
+    assert mode == "flat" and d.z["estimate"] < -4
+    assert len(d.holds) == 1 and "stopped after 1 of 3" in d.reason  # the other groups were not fitted

@@ -54,6 +54,7 @@ from torchmetal.memory import is_large, release_free_memory
 if TYPE_CHECKING:
     from torchmetal.fit.decisions import SubsampleDecisions
     from torchmetal.fit.lobe_choice import LobeSelection
+    from torchmetal.fit.shot_plan import ShotPlan
     from torchmetal.io.capture import Capture
 
 SCHEMES = ("paper", "refine")
@@ -114,7 +115,7 @@ def fit_phong(
     robust: str | None = None, progress: bool = False, outliers: float | None = None,
     clusters: tuple[int, ...] = (2, 3, 4), max_pixels_per_chunk: int = 4096, sub_pixels: int = 1 << 16,
     select_pixels: int = 1 << 13, seed: int = 0, lobe: str = "phong", noise_weights: bool | str = False,
-    relabel: bool = True,
+    relabel: bool = True, plan: ShotPlan | None = None,
 ) -> FitResult:
     """Fit the Phong model of docs/design.md §2.2 (texture d(p), s, α per channel) to a capture.
 
@@ -153,6 +154,8 @@ def fit_phong(
             (see :func:`~torchmetal.fit.refine.noise_model`): the held-out shot is what tells the two apart.
         relabel: for kept clusters, try moving pixels between them (:func:`~torchmetal.fit.clusters.relabel_pixels`,
             kept where the held-out shot prefers it); False: never (a refit keeping an earlier fit's structure).
+        plan: the shots the choices leave out (:mod:`torchmetal.fit.shot_plan`), e.g. an earlier fit's
+            ``shot_plan`` for a refit of the same capture; None: planned from this fit's first subsample fit.
 
     Returns:
         :class:`FitResult`.
@@ -167,7 +170,7 @@ def fit_phong(
     _check_lobe_arg(lobe, scheme)
     kw = dict(specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers, clusters=clusters,
               chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
-              noise=noise_weights, relabel=relabel)
+              noise=noise_weights, relabel=relabel, plan=plan)
     run = FitRun(progress)
     try:
         res, lobe, lobe_sel = _fit_scheme(capture, run, scheme, lobe, kw)
@@ -218,6 +221,7 @@ def _fit_refine_lobe(capture: Capture, run: FitRun, lobe: str, kw: dict) -> tupl
         lobe, lobe_sel = _choose_lobe(capture, run, decided, tol=kw["tol"], max_iters=kw["max_iters"],
                                       select_pixels=kw["select_pixels"], chunk=kw["chunk"])
         if lobe != "phong":
+            kw = {**kw, "plan": decided.plan}  # the same shots held out
             decided = None  # the decisions again, with the chosen lobe (Phong's notes no longer apply)
             del run.skipped[n_skipped:]
             run.decisions[n_decided:] = run.decisions[-1:]  # the lobe's own record stays
@@ -233,7 +237,7 @@ def _choose_lobe(capture, run: FitRun, d, *, tol, max_iters, select_pixels, chun
     with run.stage("lobe"):
         sel = choose_lobe(capture, stride=grid_stride(h, w, select_pixels), tol=max(tol, 1e-4), max_iters=max_iters,
                           dtype=compute_dtype(capture.images), chunk=chunk,
-                          labeler=d.labeler if d.spec is not None else None)
+                          labeler=d.labeler if d.spec is not None else None, plan=d.plan)
     if sel.decision is not None:
         run.decisions.append(sel.decision)
     return sel.lobe, sel
@@ -244,7 +248,7 @@ def _result(capture, run: FitRun, texture: Tensor, s: Tensor, alpha: Tensor, **k
     return FitResult(
         texture=texture, s=s.to(dt), alpha=alpha.to(dt), normals=capture.normals.to(dt), size=tuple(float(v) for v in capture.size),
         history=run.history, stage_times=run.times, iterations=run.iterations, skipped=run.skipped,
-        decisions=run.decisions, flat=is_flat(capture.normals), **kw,
+        decisions=run.decisions, flat=is_flat(capture.normals), shot_plan=run.plan, **kw,
     )
 
 
@@ -305,11 +309,12 @@ def _fit_paper(capture, run: FitRun, *, specular: str, tol: float, max_iters: in
 
 
 def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outliers, clusters, chunk, sub_pixels,
-                select_pixels, seed, lobe="phong", decided=None, noise=False, relabel=True) -> FitResult:
+                select_pixels, seed, lobe="phong", decided=None, noise=False, relabel=True, plan=None) -> FitResult:
     d = decided if decided is not None else subsample_decisions(
         capture, run, specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers,
         clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed, lobe=lobe,
-        noise=noise, relabel=relabel)
+        noise=noise, relabel=relabel, plan=plan)
+    run.plan = d.plan
     weighting = d.weighting
     noise_info = None if weighting is None or weighting.variance is None else \
         {"a": weighting.variance[0].tolist(), "b": weighting.variance[1].tolist()}

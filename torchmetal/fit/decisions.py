@@ -27,7 +27,7 @@ from torchmetal.fit.clusters import (
 from torchmetal.fit.colour import choose_colour
 from torchmetal.fit.decision import MIN_GAIN_ABS, paired_choice
 from torchmetal.fit.gloss import choose_maps
-from torchmetal.fit.lobe_choice import LOBE_GRID, specular_energy
+from torchmetal.fit.lobe_choice import LOBE_GRID
 from torchmetal.fit.paper import paper_scheme
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, compute_dtype, grid_stride
 from torchmetal.fit.refine import (
@@ -40,6 +40,7 @@ from torchmetal.fit.refine import (
     texture_map,
 )
 from torchmetal.fit.run import FitRun
+from torchmetal.fit.shot_plan import ShotPlan, shot_plan
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -55,11 +56,6 @@ def _sigma_floor(capture) -> float:
     return SIGMA_FLOOR * float(capture.images.detach().abs().amax().clamp_min(1e-30))
 
 
-def _hold_shot(obs: Observations, fit: SpecFit) -> int:
-    """The shot whose observations carry the most specular energy (the most telling to hold out)."""
-    return int(specular_energy(obs, fit).argmax())
-
-
 @dataclass
 class SubsampleDecisions:
     """What the refine scheme decides on strided subsamples (steps 1–4b), before the full-resolution solve."""
@@ -72,18 +68,20 @@ class SubsampleDecisions:
     maps_info: dict | None
     weighting: Weighting | None  # robust weights / outlier masks for the full-resolution observations
     white: bool = False  # one s for the three channels (:mod:`torchmetal.fit.colour`)
+    plan: ShotPlan | None = None  # the shots the choices held out (None: no specular fit to plan by)
 
 
 def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: float, max_iters: int, robust: str | None,
                         outliers: float | None, clusters: tuple[int, ...], chunk: int, sub_pixels: int,
                         select_pixels: int, seed: int, lobe: str = "phong", noise: bool | str = False,
-                        colour: bool = True, relabel: bool = True) -> SubsampleDecisions:
+                        colour: bool = True, relabel: bool = True, plan: ShotPlan | None = None) -> SubsampleDecisions:
     """Steps 1–4b of the refine scheme (module docstring) on strided pixel subsamples of ``capture``
     (any object with ``images`` (N, 3, H, W) readable by :func:`~torchmetal.fit.problem.build_observations`,
     such as the tiled fit's memory-mapped capture): the same values bit for bit for the same pixels.
     ``noise``: weigh each observation by its expected variance (:func:`~torchmetal.fit.refine.noise_model`,
     fitted to the subsample fit's residuals); "auto": where a held-out shot prefers it (:func:`_weights_decision`).
-    ``relabel``: False skips the relabelling trial of kept clusters."""
+    ``relabel``: False skips the relabelling trial of kept clusters. ``plan``: the shots to hold out
+    (:mod:`torchmetal.fit.shot_plan`; None: planned from this capture's first subsample fit)."""
     imgs = capture.images
     dt = compute_dtype(imgs)
     n_shots, _, h, w = imgs.shape
@@ -92,15 +90,17 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
     sub_tol = max(tol, 1e-4)
     grids = _Grids(stride, sel_stride, dt, chunk, lobe)
     sub, glob = _initial_fit(capture, run, grids, specular=specular, tol=tol, sub_tol=sub_tol, max_iters=max_iters)
+    if plan is None and glob is not None:
+        plan = shot_plan(sub, glob)
     weighting = None
     if noise == "auto":
         sub, glob, weighting = _weights_decision(capture, run, grids, sub, glob, robust=robust, outliers=outliers,
-                                                 sub_tol=sub_tol, max_iters=max_iters)
+                                                 sub_tol=sub_tol, max_iters=max_iters, plan=plan)
     elif outliers is not None or robust is not None or noise:
         sub, glob, weighting = _weighted_refit(capture, run, grids, sub, glob, robust=robust, outliers=outliers,
                                                noise=noise, sub_tol=sub_tol, max_iters=max_iters)
-    glob, s_fixed = _highlight_evidence(capture, run, grids, sub, glob, sub_tol=sub_tol, max_iters=max_iters,
-                                        weighting=weighting)
+    glob, s_fixed = _highlight_evidence(capture, run, grids, glob, sub_tol=sub_tol, max_iters=max_iters,
+                                        weighting=weighting, plan=plan)
     # 4. global vs clustered
     sel: Selection | None = None
     if glob is not None and specular in ("auto", "clustered"):
@@ -109,8 +109,8 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
         elif s_fixed is not None and specular == "auto":
             run.skipped.append("specular clusters: not tried (some channels show no highlight)")
         else:
+            hold = plan.hold if n_shots >= 3 else None
             with run.stage("select"):
-                hold = _hold_shot(sub, glob) if n_shots >= 3 else None
                 sel = choose_specular(capture, glob, candidates=clusters, stride=sel_stride, hold=hold,
                                       force=specular == "clustered", tol=sub_tol, max_iters=max_iters, dtype=dt,
                                       chunk=chunk, weighting=weighting, seed=seed, relabel=relabel)
@@ -119,7 +119,7 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
                 run.skipped.append(f"specular clusters: not kept ({sel.reason})")
     labeler: Labeler | None = sel.labeler if sel is not None and sel.k > 1 else None
     # 4b. gloss maps (from the global fit): forced, or kept when they beat global/clustered on the held-out shot
-    use_maps, maps_info = _maps_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, sub=sub,
+    use_maps, maps_info = _maps_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, plan=plan,
                                          sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
                                          weighting=weighting, lobe=lobe)
     if maps_info is not None and maps_info.get("decision") is not None:
@@ -127,7 +127,7 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
     if use_maps:
         labeler = None
     white = colour and _colour_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, use_maps=use_maps,
-                                        labeler=labeler, sub=sub, grids=grids, tol=sub_tol, max_iters=max_iters,
+                                        labeler=labeler, plan=plan, grids=grids, tol=sub_tol, max_iters=max_iters,
                                         weighting=weighting)
     if labeler is not None:
         with run.stage("refine"):
@@ -136,7 +136,7 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
             spec = fit_clustered(sub, labeler, glob, tol=sub_tol, max_iters=max_iters)
     else:
         spec = glob
-    return SubsampleDecisions(spec, labeler, s_fixed, sel, use_maps, maps_info, weighting, white)
+    return SubsampleDecisions(spec, labeler, s_fixed, sel, use_maps, maps_info, weighting, white, plan)
 
 
 @dataclass(frozen=True)
@@ -208,7 +208,7 @@ def _weighted_refit(capture, run: FitRun, g: _Grids, sub: Observations, glob: Sp
 
 
 def _weights_decision(capture, run: FitRun, g: _Grids, sub: Observations, glob: SpecFit | None, *, robust, outliers,
-                      sub_tol, max_iters) -> tuple[Observations, SpecFit | None, Weighting | None]:
+                      sub_tol, max_iters, plan: ShotPlan | None) -> tuple[Observations, SpecFit | None, Weighting | None]:
     """2a. Uniform or noise weights (each observation by the inverse of its expected variance,
     :func:`~torchmetal.fit.refine.noise_model`), on the shot with the most specular energy left out of both
     fits and scored unweighted by the paired rule; uniform is the reference. Without a specular fit or with
@@ -225,7 +225,7 @@ def _weights_decision(capture, run: FitRun, g: _Grids, sub: Observations, glob: 
                                max_iters=max_iters)
     if weighted[1] is None:
         return plain
-    hold = _hold_shot(sub, glob)
+    hold = plan.hold
     with run.stage("select"):
         errors = {}
         for name, (_, fit, weighting) in (("uniform", plain), ("noise", weighted)):
@@ -241,8 +241,8 @@ def _weights_decision(capture, run: FitRun, g: _Grids, sub: Observations, glob: 
     return weighted if d.chosen == "noise" else plain
 
 
-def _highlight_evidence(capture, run: FitRun, g: _Grids, sub: Observations, glob: SpecFit | None, *, sub_tol, max_iters,
-                        weighting) -> tuple[SpecFit | None, Tensor | None]:
+def _highlight_evidence(capture, run: FitRun, g: _Grids, glob: SpecFit | None, *, sub_tol, max_iters,
+                        weighting, plan: ShotPlan | None) -> tuple[SpecFit | None, Tensor | None]:
     """3: highlight evidence, in sample, then on a held-out shot (a sharp lobe can fit noise).
     Returns (the global fit, None without evidence; ``s_fixed`` (1, 3): 0 in channels without evidence)."""
     if glob is None:
@@ -257,7 +257,7 @@ def _highlight_evidence(capture, run: FitRun, g: _Grids, sub: Observations, glob
                   f"({float(glob.explained().max()):.1%} of the diffuse-only residual)")
     elif n_shots >= 3:
         with run.stage("select"):
-            ev_decision = heldout_evidence(capture, glob, stride=g.sel_stride, hold=_hold_shot(sub, glob), tol=sub_tol,
+            ev_decision = heldout_evidence(capture, glob, stride=g.sel_stride, hold=plan.hold, tol=sub_tol,
                                            max_iters=max_iters, dtype=g.dtype, chunk=g.chunk, weighting=weighting)
         run.decisions.append(ev_decision.to_dict())
         if ev_decision.chosen != "specular":
@@ -273,7 +273,7 @@ def _highlight_evidence(capture, run: FitRun, g: _Grids, sub: Observations, glob
 
 
 def _colour_decision(capture: Capture, run: FitRun, glob: SpecFit | None, sel: Selection | None, *, specular: str,
-                     s_fixed: Tensor | None, use_maps: bool, labeler: Labeler | None, sub: Observations, grids: _Grids,
+                     s_fixed: Tensor | None, use_maps: bool, labeler: Labeler | None, plan: ShotPlan | None, grids: _Grids,
                      tol: float, max_iters: int, weighting: Weighting | None) -> bool:
     """4c. White specular (one s for the three channels) against per-channel s on the selection's held-out
     shot (:func:`~torchmetal.fit.colour.choose_colour`): tried for a global lobe of specular="auto" with
@@ -281,7 +281,7 @@ def _colour_decision(capture: Capture, run: FitRun, glob: SpecFit | None, sel: S
     n_shots = int(capture.images.shape[0])
     if glob is None or specular != "auto" or use_maps or labeler is not None or s_fixed is not None or n_shots < 3:
         return False
-    hold = sel.hold if sel is not None and sel.hold >= 0 else _hold_shot(sub, glob)
+    hold = sel.hold if sel is not None and sel.hold >= 0 else plan.hold
     with run.stage("select"):
         d = choose_colour(capture, glob, stride=grids.sel_stride, hold=hold, tol=tol, max_iters=max_iters,
                           dtype=grids.dtype, chunk=grids.chunk, weighting=weighting)
@@ -289,7 +289,7 @@ def _colour_decision(capture: Capture, run: FitRun, glob: SpecFit | None, sel: S
     return d.chosen == "white"
 
 
-def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, sub, sel_stride, tol, max_iters, dt, chunk,
+def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, plan, sel_stride, tol, max_iters, dt, chunk,
                    weighting, lobe) -> tuple[bool, dict | None]:
     """Whether the full-resolution fit gets gloss maps (and the held-out evidence behind it).
 
@@ -311,7 +311,7 @@ def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, sub, s
         run.skipped.append("gloss maps: not tried (clustered specular kept)")
         return False, None
     have_sel = sel is not None and sel.hold >= 0 and sel.errors is not None
-    hold = sel.hold if have_sel else _hold_shot(sub, glob)
+    hold = sel.hold if have_sel else plan.hold
     base_errors = sel.errors if have_sel else None  # the kept candidate's errors on the same held-out shot
     with run.stage("select"):
         ms = choose_maps(capture, Reference(glob.s, glob.alpha), stride=sel_stride, hold=hold, force=specular == "maps",

@@ -1,7 +1,8 @@
 """``lobe="auto"``: pick the specular lobe (phong, blinn, ggx) on shots left out of the fit.
 
-On the selection subsample (the same strided pixel grid as the cluster choice), a global Phong
-fit on all shots ranks the shots by predicted specular energy; the ``holds`` most telling ones
+On the selection subsample (the same strided pixel grid as the cluster choice), the capture's shot plan
+(:mod:`torchmetal.fit.shot_plan`; without one, a global Phong fit on all shots) ranks the shots by
+predicted specular energy; the ``holds`` most telling ones
 (every shot, up to 12) are left out, in up to ``FOLDS`` groups dealt round-robin down that ranking (one shot
 per group for up to 6 of them). For each candidate lobe: a coarse α grid on all shots, then per group the
 variable-projection LM (:func:`~torchmetal.fit.refine.fit_specular`) on the other shots from that start,
@@ -23,9 +24,9 @@ from torch import Tensor
 
 from torchmetal.fit.clusters import evidence, heldout_errors
 from torchmetal.fit.decision import MIN_GAIN, Z_MIN, heldout_psnr, paired_choice
-from torchmetal.fit.lobes import lobe_factor
 from torchmetal.fit.problem import Observations, build_observations
-from torchmetal.fit.refine import SpecFit, chunk_terms, fit_specular, grid_beta, texture_map
+from torchmetal.fit.refine import SpecFit, fit_specular, grid_beta, texture_map
+from torchmetal.fit.shot_plan import ShotPlan, shot_plan
 from torchmetal.lobes import LOBES
 
 if TYPE_CHECKING:
@@ -62,25 +63,17 @@ def fit_lobe(obs: Observations, *, tol: float, max_iters: int, grid: tuple[float
     return fit_specular(obs, grid_beta(obs, k, grid=grid), tol=tol, max_iters=max_iters)
 
 
-def specular_energy(obs: Observations, fit: SpecFit) -> Tensor:
-    """(N,) float64 Σ w·(s·b)² per shot: how much of each shot the specular term predicts."""
-    energy = torch.zeros(obs.num_shots, dtype=torch.float64, device=obs.device)
-    for j, _, (_, _, u, L, w, inten), s3, a3 in chunk_terms(obs, fit.s, fit.alpha, obs.labels):
-        b = s3 * inten * u * lobe_factor(L, a3, obs.geo_chunk(j), obs.lobe)
-        energy += (w * b * b).sum((1, 2)).double()
-    return energy
-
-
 def choose_lobe(
     capture: Capture, *, stride: int, tol: float, max_iters: int, dtype: torch.dtype, chunk: int,
     candidates: tuple[str, ...] = LOBES, holds: int = HOLDS, folds: int = FOLDS, min_gain: float = MIN_GAIN,
-    z_min: float = Z_MIN, labeler: Callable[[Tensor, Tensor], Tensor] | None = None,
+    z_min: float = Z_MIN, labeler: Callable[[Tensor, Tensor], Tensor] | None = None, plan: ShotPlan | None = None,
 ) -> LobeSelection:
     """Fit each candidate lobe on all shots but a group (in turn, ``holds`` shots in ``folds`` groups) on a
     pixel grid of ``stride``; keep the lowest held-out MSE, Phong unless beaten beyond noise (module docstring).
     With ``labeler`` (:class:`~torchmetal.fit.clusters.Labeler`, the kept specular clusters) every lobe is
     fitted per cluster: the lobes compete on the specular structure the fit will use (one global lobe
-    averaged over two Phong materials looks like GGX's tail)."""
+    averaged over two Phong materials looks like GGX's tail). With ``plan`` (:mod:`torchmetal.fit.shot_plan`, the
+    capture's), its first ``holds`` shots are left out; without, the ranking of the base lobe's own fit."""
     n = int(capture.images.shape[0])
     if n < 3:
         return LobeSelection("phong", reason=f"a held-out test needs >= 3 shots, found {n}: phong (docs/design.md §2.2)")
@@ -89,10 +82,10 @@ def choose_lobe(
     base = fit_lobe(every, tol=tol, max_iters=max_iters, k=k)
     if not bool(evidence(base).any()):
         return LobeSelection("phong", reason="no highlight evidence: the lobe shape is not observable; phong (docs/design.md §2.2)")
-    order = torch.argsort(specular_energy(every, base), descending=True).tolist()
+    if plan is None:
+        plan = shot_plan(every, base)
     del every
-    held = order[: max(1, min(holds, n))]
-    groups = [held[g::folds] for g in range(min(folds, len(held)))]
+    held, groups = plan.holds(holds), plan.groups(holds, folds)
     sel = LobeSelection("phong", holds=held, clusters=k)
     errors: dict[str, Tensor] = {}
     for lobe in candidates:

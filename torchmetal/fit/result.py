@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
@@ -18,6 +19,9 @@ from torchmetal.geometry import shading_geometry, surface_points
 from torchmetal.lobes import LobeModel, lobe_render, lobe_shading
 from torchmetal.material import Material
 from torchmetal.phong import PhongModel
+
+if TYPE_CHECKING:
+    from torchmetal.fit.shot_plan import ShotPlan
 
 
 class IterationCounts(dict):
@@ -94,6 +98,8 @@ class FitResult:
             on left-out shots (specular evidence, clusters, relabelling, gloss maps, lobe), in order.
         noise: the noise model the least squares were weighted by, {"a": [3], "b": [3]} (variance
             a + b·ŷ per channel, :func:`~torchmetal.fit.refine.noise_model`), or None (unweighted).
+        shot_plan: the shots those choices left out (:class:`~torchmetal.fit.shot_plan.ShotPlan`; None
+            without a specular fit to plan by); a refit of the same capture is given it.
     """
 
     texture: Tensor
@@ -121,6 +127,7 @@ class FitResult:
     maps_selection: dict | None = None
     noise: dict | None = None
     decisions: list[dict] = field(default_factory=list)
+    shot_plan: ShotPlan | None = None
 
     @property
     def clustered(self) -> bool:
@@ -162,6 +169,7 @@ class FitResult:
             "lobe": self.lobe, "lobe_selection": self.lobe_selection,
             "maps_selection": self.maps_selection, "noise": self.noise,
             "decisions": list(self.decisions),
+            "shot_plan": None if self.shot_plan is None else self.shot_plan.to_dict(),
         }
 
     def to_material(self, report_extra: dict | None = None) -> Material:

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from torchmetal.fit.decision import Decision
+from torchmetal.fit.shot_plan import flake_holds
 from torchmetal.flakes.estimate.observed_flakes import observed_flakes
 from torchmetal.metrics import md, psnr
 from torchmetal.renderer import MaterialRenderer
@@ -43,11 +44,9 @@ MD_WINDOW = 16  # MD's block (px) in the left-out scores: smaller images cannot 
 
 
 def held_shots(particles: Particles, flake_id: torch.Tensor, num_shots: int, count: int) -> list[int]:
-    """Up to ``count`` shots with the most associated detections (ties: the lower index)."""
-    shots = particles.shot[flake_id >= 0]
-    per = torch.bincount(shots, minlength=num_shots)
-    order = sorted(range(num_shots), key=lambda k: (-int(per[k]), k))
-    return [k for k in order[:count] if int(per[k]) > 0]
+    """Up to ``count`` shots with the most associated detections (ties: the lower index):
+    :func:`~torchmetal.fit.shot_plan.flake_holds` of the particles."""
+    return flake_holds(particles.shot, flake_id, num_shots, count)
 
 
 def observed_without(capture: Capture, particles: Particles, flake_id: torch.Tensor, model: FlakeModel,
@@ -91,13 +90,15 @@ def mean_score(rows: list[dict], key: str) -> float:
     return sum(r[key] for r in rows) / len(rows)
 
 
-def choose_observed(capture: Capture, material: Material, flake_result: FlakeStageResult | None, *, held: int = HELD) -> tuple[object, dict]:
+def choose_observed(capture: Capture, material: Material, flake_result: FlakeStageResult | None, *, held: int = HELD,
+                    shots: list[int] | None = None) -> tuple[object, dict]:
     """The observed flakes of ``flake_result`` if left-out shots prefer them, else None.
 
     Args:
         capture: the fitted capture; material: the material with its statistical flake model
             (``material.flakes``) and no observed flakes; flake_result: the flake stage's result.
-        held: how many shots to leave out.
+        held: how many shots to leave out; shots: which (the capture's shot plan,
+            :mod:`torchmetal.fit.shot_plan`; None: the ``held`` with most associated detections).
 
     Returns:
         (ObservedFlakes measured from every shot, or None; report {"held": [...], "observed": [...],
@@ -114,7 +115,7 @@ def choose_observed(capture: Capture, material: Material, flake_result: FlakeSta
     if capture.num_shots < 3:
         report["reason"] = f"{capture.num_shots} shots: none to leave out of the observed flakes"
         return None, report
-    for k in held_shots(parts, fid, capture.num_shots, held):
+    for k in held_shots(parts, fid, capture.num_shots, held) if shots is None else shots:
         obs = observed_without(capture, parts, fid, model, k)
         if obs is None:
             continue
@@ -139,7 +140,7 @@ def choose_observed(capture: Capture, material: Material, flake_result: FlakeSta
 
 def keep_flakes(capture: Capture, material: Material, plain: Material, flake_result: FlakeStageResult | None,
                 observed_report: dict | None = None, *,
-                held: int = HELD) -> tuple[bool, dict]:
+                held: int = HELD, shots: list[int] | None = None) -> tuple[bool, dict]:
     """Flakes or none? The flake material is kept when the left-out shots' sparkle statistics are no
     further from the photos with it than with the flake-free material (mean MD, the paper's metric).
 
@@ -156,7 +157,7 @@ def keep_flakes(capture: Capture, material: Material, plain: Material, flake_res
             flakes (or None); plain: the flake-free material (the first fit, as ``flakes="off"``);
         flake_result: the flake stage's result; observed_report: :func:`choose_observed`'s report
             (its left-out scores of the kept candidate are reused), or None.
-        held: how many shots to leave out.
+        held: how many shots to leave out; shots: which (as :func:`choose_observed`).
 
     Returns:
         (keep, report {"held", "flakes", "none", "kept", "reason"}).
@@ -174,7 +175,7 @@ def keep_flakes(capture: Capture, material: Material, plain: Material, flake_res
         if fid is None or not bool((fid >= 0).any()):
             rep["reason"] = "no associated detections to choose left-out shots by: kept"
             return True, rep
-        for k in held_shots(flake_result.particles, fid, capture.num_shots, held):
+        for k in held_shots(flake_result.particles, fid, capture.num_shots, held) if shots is None else shots:
             cand = material
             if material.observed_flakes is not None and capture.num_shots >= 3:
                 cand = replace(material, observed_flakes=observed_without(

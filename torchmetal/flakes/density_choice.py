@@ -89,7 +89,7 @@ def score_shot(material: Material, capture: Capture, k: int, grid: tuple[int, in
 
 
 def choose_density_map(capture: Capture, material: Material, flake_result: FlakeStageResult | None, *,
-                       held: int = HELD) -> tuple[FlakeModel | None, dict]:
+                       held: int = HELD, shots: list[int] | None = None) -> tuple[FlakeModel | None, dict]:
     """``material.flakes`` with a density map when left-out shots prefer it, else unchanged.
 
     The candidates are the uniform model and a map per detectability mode
@@ -98,7 +98,8 @@ def choose_density_map(capture: Capture, material: Material, flake_result: Flake
     Args:
         capture: the fitted capture; material: the material with its kept flake model (and observed
             flakes, or None); flake_result: the flake stage's result (particles, flake_id).
-        held: how many shots to leave out.
+        held: how many shots to leave out; shots: which (the capture's shot plan,
+            :mod:`torchmetal.fit.shot_plan`; None: the ``held`` with most associated detections).
 
     Returns:
         (FlakeModel or None, report {"candidates", "held", "per_shot" {candidate: [score_shot dicts]},
@@ -115,7 +116,8 @@ def choose_density_map(capture: Capture, material: Material, flake_result: Flake
         rep["reason"] = reason
         return model, rep
     parts = flake_result.particles
-    _score_folds(rep, capture, material, parts, fid, held)
+    _score_folds(rep, capture, material, parts, fid,
+                 held_shots(parts, fid, capture.num_shots, held) if shots is None else shots)
     if not rep["held"]:
         rep["reason"] = "no left-out shot gave a non-uniform map (too few flakes, one block, or Poisson-like counts)"
         return model, rep
@@ -148,12 +150,13 @@ def _not_applicable(capture: Capture, model: FlakeModel | None, fid: Tensor | No
     return None
 
 
-def _score_folds(rep: dict, capture: Capture, material: Material, parts: Particles, fid: Tensor, held: int) -> None:
-    """Score every candidate on each left-out shot (its maps estimated from the other shots) into ``rep``."""
+def _score_folds(rep: dict, capture: Capture, material: Material, parts: Particles, fid: Tensor,
+                 shots: list[int]) -> None:
+    """Score every candidate on each left-out shot of ``shots`` (its maps estimated from the other shots) into ``rep``."""
     model = material.flakes
     rep["folds"] = []
     folds = []
-    for k in held_shots(parts, fid, capture.num_shots, held):
+    for k in shots:
         others = [i for i in range(capture.num_shots) if i != k]
         maps = {f"map:{m}": estimate_map(capture, model, parts, fid, others, mode=m) for m in DETECT_MODES}
         if any(dm is None or dm.uniform for dm in maps.values()):

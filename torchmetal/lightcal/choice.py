@@ -28,9 +28,10 @@ from torch import Tensor
 from torchmetal.errors import InputError
 from torchmetal.fit.api import fit_phong
 from torchmetal.fit.decision import Decision, paired_choice
+from torchmetal.fit.shot_plan import shot_groups
 from torchmetal.lightcal.estimate import calibrate
 from torchmetal.lightcal.model import LightCalibration
-from torchmetal.normals.choice import rendered_pixel_errors, shot_groups, strided_capture
+from torchmetal.normals.choice import rendered_pixel_errors, strided_capture
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
