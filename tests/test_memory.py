@@ -3,17 +3,19 @@
 import sys
 from types import SimpleNamespace
 
+import pytest
 import torch
 
-from torchmetal.memory import LARGE_BYTES, is_large, release_free_memory
+from torchmetal.memory import LARGE_BYTES, STREAM_BYTES, is_large, release_free_memory, streams_geometry
 
 
-def test_large_is_float32_images_above_the_threshold():
+@pytest.mark.parametrize("test,limit", [(is_large, LARGE_BYTES), (streams_geometry, STREAM_BYTES)])
+def test_thresholds_are_on_float32_images(test, limit):
     side = 256
-    shots = LARGE_BYTES // (3 * side * side * 4)  # exactly at the threshold: not large
+    shots = limit // (3 * side * side * 4)  # exactly at the threshold: not over
     at = SimpleNamespace(images=torch.empty(shots, 3, side, side, dtype=torch.float16))
     over = SimpleNamespace(images=torch.empty(shots + 1, 3, side, side, dtype=torch.float16))
-    assert not is_large(at) and is_large(over)  # counted as float32 whatever the stored dtype
+    assert not test(at) and test(over)  # counted as float32 whatever the stored dtype
 
 
 def test_release_returns_pages_on_glibc_and_is_harmless_elsewhere():

@@ -19,14 +19,21 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:  # annotations only: torchmetal.io.capture imports this module
     from torchmetal.io.capture import Capture
 
-#: a capture whose float32 images exceed this is "large": its full-resolution fit streams the
-#: geometry (:mod:`torchmetal.fit.grid_terms`) and freed heap pages go back to the OS between stages.
+#: a capture whose float32 images exceed this is "large": freed heap pages go back to the OS between stages.
 LARGE_BYTES = 64 << 20
+#: a capture whose float32 images exceed this streams its full-resolution fit's geometry
+#: (:mod:`torchmetal.fit.grid_terms`): stored, it weighs 1.25× the images (1024² × 10 shots: 157 MiB)
+STREAM_BYTES = 128 << 20
 
 
 def is_large(capture: Capture) -> bool:
     """Whether the capture's float32 images exceed :data:`LARGE_BYTES`."""
     return capture.images.numel() * 4 > LARGE_BYTES
+
+
+def streams_geometry(capture: Capture) -> bool:
+    """Whether the capture's float32 images exceed :data:`STREAM_BYTES`."""
+    return capture.images.numel() * 4 > STREAM_BYTES
 
 
 @functools.lru_cache(maxsize=1)

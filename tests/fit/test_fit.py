@@ -324,7 +324,7 @@ def test_leave_one_out_with_any_fit_scores_each_left_out_shot():
 
 @pytest.mark.parametrize("case", ["clustered", "maps", "ggx_bumpy", "robust"])
 def test_streamed_full_resolution_pass_gives_the_same_fit(monkeypatch, case):
-    """A large capture streams its full-resolution geometry (torchmetal.memory.is_large): the fit is
+    """A large capture streams its full-resolution geometry (torchmetal.memory.streams_geometry): the fit is
     the one the stored geometry gives, bit for bit, through clusters and relabelling, gloss maps,
     GGX with normal maps, and robust weights."""
     import torchmetal.fit.api as api
@@ -333,7 +333,7 @@ def test_streamed_full_resolution_pass_gives_the_same_fit(monkeypatch, case):
           "robust": dict(robust="huber")}[case]
     r = synth(size=40, shots=8, seed=21, spec_clusters=2 if case == "clustered" else 1, bumpy=case == "ggx_bumpy")
     stored = fit_phong(r.capture, **kw)
-    monkeypatch.setattr(api, "is_large", lambda capture: True)
+    monkeypatch.setattr(api, "streams_geometry", lambda capture: True)
     seen = []
     build = api.build_observations
     monkeypatch.setattr(api, "build_observations", lambda *a, **k: seen.append(k.get("stream")) or build(*a, **k))

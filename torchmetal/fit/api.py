@@ -49,7 +49,7 @@ from torchmetal.fit.result import FitResult
 from torchmetal.fit.run import FitRun
 from torchmetal.geometry import is_flat
 from torchmetal.lobes import LOBES, check_lobe
-from torchmetal.memory import is_large, release_free_memory
+from torchmetal.memory import release_free_memory, streams_geometry
 
 if TYPE_CHECKING:
     from torchmetal.fit.decisions import SubsampleDecisions
@@ -345,9 +345,9 @@ def _full_observations(capture, run: FitRun, d: SubsampleDecisions, *, lobe: str
                        chunk: int) -> Observations:
     """5. full resolution: the observations at the subsample's solution ``d`` (weights, labels, first stats).
 
-    A large capture streams the geometry (stored, it would weigh 1.25× the images): one geometry
-    evaluation more per pass over the pixels (1024² × 8: +0.14 s on a 0.16 s pass, −0.05 s on the
-    build); a small one stores it (the memory is not worth that time).
+    A capture over :data:`~torchmetal.memory.STREAM_BYTES` streams the geometry (stored, it would weigh
+    1.25× the images): one geometry evaluation more per pass over the pixels (1024² × 8: +0.14 s on a
+    0.16 s pass, −0.05 s on the build); a smaller one stores it (the memory is not worth that time).
     """
     imgs = capture.images
     spec, weighting = d.spec, d.weighting
@@ -357,7 +357,7 @@ def _full_observations(capture, run: FitRun, d: SubsampleDecisions, *, lobe: str
             ref = Reference(torch.zeros(1, 3, dtype=torch.float64, device=imgs.device),
                             torch.ones(1, 3, dtype=torch.float64, device=imgs.device))
         full = build_observations(capture, lobe=lobe, dtype=dt, chunk=chunk, ref=ref, weighting=weighting, labeler=d.labeler,
-                                  with_stats=spec is not None, want_tmin=d.use_maps, stream=is_large(capture))
+                                  with_stats=spec is not None, want_tmin=d.use_maps, stream=streams_geometry(capture))
     return full
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -349,35 +350,45 @@ def _load_saturated(f: Path, n: int, h: int, w: int) -> Tensor:
 
 
 def _read_images(root: Path, shots: list[_Shot], color_space: str) -> tuple[Tensor, Tensor, list[float]]:
-    """The shots' images (N, 3, H, W) float32 linear, read one at a time, their saturation (N, 3, H, W) bool and
-    each shot's brightest linear value."""
+    """The shots' images (N, 3, H, W) float32 linear, their saturation (N, 3, H, W) bool and each shot's
+    brightest linear value. The files are decoded one ahead, in a thread (the decoders release the GIL), while
+    the previous one is converted: at most two raw images are held."""
     n = len(shots)
-    first = read_raw(root / shots[0].image)
-    h, w = first.shape[:2]
-    images = torch.empty((n, 3, h, w), dtype=torch.float32)  # the only full-size allocation
-    saturated = torch.empty((n, 3, h, w), dtype=torch.bool)
-    images_np, saturated_np = images.numpy(), saturated.numpy()  # shared memory views
-    peaks: list[float] = []  # each shot's brightest linear value
-    for k, shot in enumerate(shots):
-        f = root / shot.image
-        raw = first if k == 0 else read_raw(f)
-        if raw.shape[:2] != (h, w):
-            raise CaptureError(
-                f"{f}: expected size {w}x{h} (width x height, as {shots[0].image}), found {raw.shape[1]}x{raw.shape[0]}"
-            )
-        is_float = raw.dtype.kind == "f"
-        # integer codes go through the lookup table (sRGB included); floats are checked as stored
-        decode_planes(raw, images_np[k], saturated_np[k], srgb=color_space == "srgb" and not is_float)
-        if is_float:  # integer files are finite and >= 0 by construction
-            peaks.append(check_pixels(images[k], str(f)))
-            if color_space == "srgb":
-                images[k] = srgb_to_linear(images[k])
-                peaks[-1] = float(srgb_to_linear(torch.tensor(peaks[-1], dtype=torch.float64)))
-        else:  # the tables increase with the code: the brightest pixel is the largest code's value
-            peaks.append(float(code_table(8 if raw.dtype == np.uint8 else 16, color_space == "srgb")[raw.max()]))
-        del raw
-    del first
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ahead = pool.submit(read_raw, root / shots[0].image)
+        first = ahead.result()
+        h, w = first.shape[:2]
+        images = torch.empty((n, 3, h, w), dtype=torch.float32)  # the only full-size allocation
+        saturated = torch.empty((n, 3, h, w), dtype=torch.bool)
+        images_np, saturated_np = images.numpy(), saturated.numpy()  # shared memory views
+        peaks: list[float] = []  # each shot's brightest linear value
+        for k, shot in enumerate(shots):
+            f = root / shot.image
+            raw = first if k == 0 else ahead.result()
+            ahead = pool.submit(read_raw, root / shots[k + 1].image) if k + 1 < n else None
+            if raw.shape[:2] != (h, w):
+                raise CaptureError(
+                    f"{f}: expected size {w}x{h} (width x height, as {shots[0].image}), found {raw.shape[1]}x{raw.shape[0]}"
+                )
+            peaks.append(_decode_shot(raw, images, saturated, images_np, saturated_np, k, f, color_space))
+            del raw
+        del first
     return images, saturated, peaks
+
+
+def _decode_shot(raw: np.ndarray, images: Tensor, saturated: Tensor, images_np: np.ndarray, saturated_np: np.ndarray,
+                 k: int, f: Path, color_space: str) -> float:
+    """Shot ``k``'s raw file values into ``images[k]`` (linear) and ``saturated[k]``; returns its brightest linear value."""
+    is_float = raw.dtype.kind == "f"
+    # integer codes go through the lookup table (sRGB included); floats are checked as stored
+    decode_planes(raw, images_np[k], saturated_np[k], srgb=color_space == "srgb" and not is_float)
+    if not is_float:  # the tables increase with the code: the brightest pixel is the largest code's value
+        return float(code_table(8 if raw.dtype == np.uint8 else 16, color_space == "srgb")[raw.max()])
+    peak = check_pixels(images[k], str(f))  # integer files are finite and >= 0 by construction
+    if color_space == "srgb":
+        images[k] = srgb_to_linear(images[k])
+        peak = float(srgb_to_linear(torch.tensor(peak, dtype=torch.float64)))
+    return peak
 
 
 def load_capture(path: str | os.PathLike) -> Capture:
