@@ -232,3 +232,26 @@ def test_one_shot_plan_for_every_choice_on_left_out_shots(monkeypatch):
     rep = res.flakes.report
     assert rep["observed_choice"]["held"] == rep["flakes_choice"]["held"] == first_plan["flakes"]
     assert [f["shot"] for f in rep["density_map_choice"]["folds"]] == first_plan["flakes"]  # tried, kept or not
+
+
+def test_the_density_choice_reuses_the_observed_choices_renders(monkeypatch, tmp_path):
+    """The statistical flake material's renders of the plan's flake shots, made by the observed-flakes choice,
+    are the density-map choice's uniform candidate: the same scores, without rendering them again."""
+    import torchmetal.flakes.density_choice as dc
+    import torchmetal.pipeline as P
+    from torchmetal.io.capture import load_capture
+    from torchmetal.synth.zoo import SCENES, make_case
+
+    cap = load_capture(make_case(SCENES["flakes_half"], tmp_path / "half").capture_dir)  # glitter on one half
+    calls = []
+    real_render = dc.render_held
+    monkeypatch.setattr(dc, "render_held", lambda m, c, shots: calls.append(list(shots)) or real_render(m, c, shots))
+    shared = fit_material(cap, flakes="auto", seed=0)
+    n_shared, calls[:] = len(calls), []
+    real_choice = P.choose_density_map
+    monkeypatch.setattr(P, "choose_density_map", lambda *a, **kw: real_choice(*a, **{**kw, "renders": None}))
+    alone = fit_material(cap, flakes="auto", seed=0)
+    a, b = shared.flakes.report["density_map_choice"], alone.flakes.report["density_map_choice"]
+    assert a["held"] and shared.material.observed_flakes is None  # the uniform candidate was scored
+    assert a["per_shot"] == b["per_shot"] and a["winner"] == b["winner"]
+    assert n_shared < len(calls)  # the left-out shots' uniform renders came from the observed choice

@@ -323,6 +323,7 @@ class State:
     stage_times: dict = field(default_factory=dict)
     skipped: list = field(default_factory=list)
     plan: ShotPlan | None = None  # the shots every choice on left-out shots held out (torchmetal.fit.shot_plan)
+    held_renders: dict = field(default_factory=dict)  # the statistical flake material's renders of the plan's flake shots
 
     def report(self, fit: FitResult, skipped: list) -> dict:
         """The material report's pipeline entries for ``fit`` (the stage times dict is shared and grows)."""
@@ -422,7 +423,8 @@ def stage_observed(capture: Capture, st: State) -> tuple[Capture, State]:
     if mode == "on":
         m.observed_flakes = measure_observed(capture, fr.particles, fr.flake_id, m.flakes)
     else:
-        m.observed_flakes, fr.report["observed_choice"] = choose_observed(capture, m, fr, shots=list(st.plan.flakes))
+        m.observed_flakes, fr.report["observed_choice"] = choose_observed(capture, m, fr, shots=list(st.plan.flakes),
+                                                                          renders=st.held_renders)
     st.stage_times["flakes.observed"] = time.perf_counter() - t
     return capture, st
 
@@ -453,7 +455,11 @@ def stage_density(capture: Capture, st: State) -> tuple[Capture, State]:
     if m.flakes is None or fr is None:
         return capture, st
     t = time.perf_counter()
-    m.flakes, fr.report["density_map_choice"] = choose_density_map(capture, m, fr, shots=list(st.plan.flakes))
+    # the observed choice's renders are this material's only while it has no observed flakes
+    renders = st.held_renders if m.observed_flakes is None else None
+    m.flakes, fr.report["density_map_choice"] = choose_density_map(capture, m, fr, shots=list(st.plan.flakes),
+                                                                   renders=renders)
+    st.held_renders = {}
     st.stage_times["flakes.density_map"] = time.perf_counter() - t
     return capture, st
 

@@ -75,10 +75,13 @@ def shot_valid(capture: Capture, k: int) -> torch.Tensor:
     return (capture.mask & ~capture.saturated[k].any(0, keepdim=True)).reshape(capture.images.shape[-2:])
 
 
-def _scores(material, capture, shots: list[int]) -> list[dict]:
-    """PSNR (dB, linear, peak 1) and MD of the material's render of each of ``shots`` against its photo."""
+def _scores(material, capture, shots: list[int], renders: dict | None = None) -> list[dict]:
+    """PSNR (dB, linear, peak 1) and MD of the material's render of each of ``shots`` against its photo;
+    ``renders``, when given, receives each shot's render (shot → (3, H, W))."""
     out = []
     for k, pred in zip(shots, render_held(material, capture, shots)):
+        if renders is not None:
+            renders[k] = pred
         photo = capture.images[k].float()
         valid = shot_valid(capture, k).expand_as(photo)
         out.append({"psnr": float(psnr(pred, photo, mask=valid)), "md": float(md(pred, photo, window=MD_WINDOW))})
@@ -91,7 +94,7 @@ def mean_score(rows: list[dict], key: str) -> float:
 
 
 def choose_observed(capture: Capture, material: Material, flake_result: FlakeStageResult | None, *, held: int = HELD,
-                    shots: list[int] | None = None) -> tuple[object, dict]:
+                    shots: list[int] | None = None, renders: dict | None = None) -> tuple[object, dict]:
     """The observed flakes of ``flake_result`` if left-out shots prefer them, else None.
 
     Args:
@@ -99,6 +102,8 @@ def choose_observed(capture: Capture, material: Material, flake_result: FlakeSta
             (``material.flakes``) and no observed flakes; flake_result: the flake stage's result.
         held: how many shots to leave out; shots: which (the capture's shot plan,
             :mod:`torchmetal.fit.shot_plan`; None: the ``held`` with most associated detections).
+        renders: when given, receives the statistical material's render of each left-out shot (shot →
+            (3, H, W)), which :func:`~torchmetal.flakes.density_choice.choose_density_map` can reuse.
 
     Returns:
         (ObservedFlakes measured from every shot, or None; report {"held": [...], "observed": [...],
@@ -121,7 +126,7 @@ def choose_observed(capture: Capture, material: Material, flake_result: FlakeSta
             continue
         report["held"].append(k)
         report["observed"] += _scores(replace(material, observed_flakes=obs), capture, [k])
-    report["statistical"] = _scores(material, capture, report["held"]) if report["held"] else []
+    report["statistical"] = _scores(material, capture, report["held"], renders) if report["held"] else []
     if not report["held"]:
         report["reason"] = "no left-out shot keeps associated detections in the others"
         return None, report

@@ -89,7 +89,8 @@ def score_shot(material: Material, capture: Capture, k: int, grid: tuple[int, in
 
 
 def choose_density_map(capture: Capture, material: Material, flake_result: FlakeStageResult | None, *,
-                       held: int = HELD, shots: list[int] | None = None) -> tuple[FlakeModel | None, dict]:
+                       held: int = HELD, shots: list[int] | None = None,
+                       renders: dict | None = None) -> tuple[FlakeModel | None, dict]:
     """``material.flakes`` with a density map when left-out shots prefer it, else unchanged.
 
     The candidates are the uniform model and a map per detectability mode
@@ -100,6 +101,8 @@ def choose_density_map(capture: Capture, material: Material, flake_result: Flake
             flakes, or None); flake_result: the flake stage's result (particles, flake_id).
         held: how many shots to leave out; shots: which (the capture's shot plan,
             :mod:`torchmetal.fit.shot_plan`; None: the ``held`` with most associated detections).
+        renders: ``material``'s renders of left-out shots the caller already has (shot → (3, H, W), e.g.
+            :func:`~torchmetal.flakes.choice.choose_observed`'s), for the uniform candidate.
 
     Returns:
         (FlakeModel or None, report {"candidates", "held", "per_shot" {candidate: [score_shot dicts]},
@@ -117,7 +120,7 @@ def choose_density_map(capture: Capture, material: Material, flake_result: Flake
         return model, rep
     parts = flake_result.particles
     _score_folds(rep, capture, material, parts, fid,
-                 held_shots(parts, fid, capture.num_shots, held) if shots is None else shots)
+                 held_shots(parts, fid, capture.num_shots, held) if shots is None else shots, renders or {})
     if not rep["held"]:
         rep["reason"] = "no left-out shot gave a non-uniform map (too few flakes, one block, or Poisson-like counts)"
         return model, rep
@@ -151,7 +154,7 @@ def _not_applicable(capture: Capture, model: FlakeModel | None, fid: Tensor | No
 
 
 def _score_folds(rep: dict, capture: Capture, material: Material, parts: Particles, fid: Tensor,
-                 shots: list[int]) -> None:
+                 shots: list[int], renders: dict) -> None:
     """Score every candidate on each left-out shot of ``shots`` (its maps estimated from the other shots) into ``rep``."""
     model = material.flakes
     rep["folds"] = []
@@ -166,13 +169,18 @@ def _score_folds(rep: dict, capture: Capture, material: Material, parts: Particl
         rep["held"].append(k)
         rep["folds"].append({"shot": k, **{name: dm.report["density_map"] for name, dm in maps.items()}})
     # the uniform model needs no fold's estimate: without observed flakes, one render of every left-out shot
-    uniform = render_held(material, capture, rep["held"]) if folds and material.observed_flakes is None else None
-    for i, (k, maps) in enumerate(folds):
+    # (those the caller has are not rendered again)
+    uniform = {}
+    if folds and material.observed_flakes is None:
+        todo = [k for k in rep["held"] if k not in renders]
+        uniform = {**{k: renders[k] for k in rep["held"] if k in renders},
+                   **(dict(zip(todo, render_held(material, capture, todo))) if todo else {})}
+    for k, maps in folds:
         base = material
         if material.observed_flakes is not None:
             base = replace(material, observed_flakes=observed_without(capture, parts, fid, model, k))
         grid = maps["map:glint"].grid
-        rep["per_shot"]["uniform"].append(score_shot(base, capture, k, grid, None if uniform is None else uniform[i]))
+        rep["per_shot"]["uniform"].append(score_shot(base, capture, k, grid, uniform.get(k)))
         for name, dm in maps.items():
             rep["per_shot"][name].append(score_shot(replace(base, flakes=with_map(model, dm)), capture, k, grid))
 

@@ -319,3 +319,22 @@ class TestSparkle:
         on = full > 1e-3
         swing = (stack.amax(0) - stack.amin(0))[on] / full[on]
         assert float(swing.max()) > 0.5
+
+
+def test_flat_surface_tangent_frame_is_the_general_one_bit_for_bit():
+    """A flat surface takes a shortcut (x and y, broadcast): the same bits as the general frame, whose
+    normal-dependent case still serves tilted normals."""
+    from torchmetal.flakes.model.field import _tangent_frame
+
+    flat = torch.zeros(3, 5, 7)
+    flat[2] = 1.0
+    t1, t2 = _tangent_frame(flat)
+    ex = torch.zeros_like(flat)
+    ex[0] = 1.0
+    g1 = normalize(ex - (ex * flat).sum(0, keepdim=True) * flat, dim=0)
+    g2 = torch.cross(flat, g1, dim=0)
+    assert t1.shape == (3, 1, 1) and torch.equal(t1.expand_as(g1), g1) and torch.equal(t2.expand_as(g2), g2)
+    tilted = normalize(flat + 0.1 * torch.randn(3, 5, 7, generator=torch.Generator().manual_seed(0)), dim=0)
+    u1, u2 = _tangent_frame(tilted)
+    assert u1.shape == (3, 5, 7) and float((u1 * tilted).sum(0).abs().max()) < 1e-6
+    assert float((u2 * tilted).sum(0).abs().max()) < 1e-6 and torch.allclose(u1.norm(dim=0), torch.ones(5, 7))
