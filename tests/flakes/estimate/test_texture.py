@@ -104,6 +104,19 @@ class TestTextureWithoutGlints:
         err = (new - sc.texture)[:, 30:33, 30:33].abs().max()
         assert float(err) < 0.1 / 7 / 3  # within a third of what a clean-shot mean would keep
 
+    def test_renders_change_only_where_the_texture_did_and_the_inputs_stay(self, flaky):
+        """The renders are updated on the re-solved pixels only (elsewhere bit for bit the input's), the input
+        renders are left as they were, and a float64 texture gives float64 renders."""
+        sc, cap = flaky
+        tex, phong = _least_squares_texture(sc)
+        det = _detect(cap, phong)
+        before = phong.clone()
+        new, new_phong, changed = texture_without_glints(cap, tex.double(), phong, det.labels)
+        assert torch.equal(phong, before) and new_phong.dtype == torch.float64 and new.dtype == torch.float64
+        off = ~changed[0]
+        assert torch.equal(new_phong[:, :, off], phong.double()[:, :, off])
+        assert bool((new_phong[:, :, changed[0]] != phong.double()[:, :, changed[0]]).any())
+
     def test_deterministic(self, flaky):
         sc, cap = flaky
         tex, phong = _least_squares_texture(sc)

@@ -89,7 +89,7 @@ def texture_without_glints(
     dt = texture.dtype
     idx = torch.nonzero(changed[0].flatten(), as_tuple=True)[0]  # (M,) pixels to re-solve
     shots = [slice(k0, min(n, k0 + chunk)) for k0 in range(0, n, chunk)]
-    est, gain = _clean_estimates(capture, texture, phong_images, flagged, idx, shots)
+    est, gain, a_idx = _clean_estimates(capture, texture, phong_images, flagged, idx, shots)
     # a glint below the detection threshold in a few clean shots (those next to the detected
     # ones) would raise the mean, and with it lower every detected glint's amplitude: shots
     # more than 2.5 robust σ above the median are left out of the weighted mean
@@ -109,28 +109,32 @@ def texture_without_glints(
     d = torch.where(solved, torch.minimum(d, texture) if guard else d, torch.zeros_like(texture))
     filled = _fill_unsolved(torch.where(changed, d, texture), changed, solved)
     new = torch.where(changed, filled.clamp_min(0.0), texture)
-    delta = new - texture
-    phong = torch.cat([phong_images[sl] + delta * _diffuse_gain(capture, sl, dt) for sl in shots])
+    delta = new - texture  # 0 off the re-solved pixels: the renders change only there
+    phong = phong_images.to(torch.promote_types(phong_images.dtype, dt), copy=True)
+    flat = phong.view(n, 3, h * w)
+    flat[:, :, idx] = flat[:, :, idx] + delta.reshape(1, 3, h * w)[:, :, idx] * a_idx
     return new, phong, changed
 
 
 def _clean_estimates(capture: Capture, texture: Tensor, phong_images: Tensor, flagged: Tensor, idx: Tensor,
-                     shots: list[slice]) -> tuple[Tensor, Tensor]:
+                     shots: list[slice]) -> tuple[Tensor, Tensor, Tensor]:
     """Per shot, the texture each pixel ``idx`` (M,) implies (N, 3, M) (NaN where the shot is not usable
-    there: masked, saturated, shadowed or detected) and its diffuse gain a (N, 3, M) (0 there)."""
+    there: masked, saturated, shadowed or detected), its diffuse gain a (N, 3, M) (0 there) and a itself."""
     n = capture.images.shape[0]
     dt = texture.dtype
     valid = capture.mask.unsqueeze(0) & ~capture.saturated
     est = torch.empty(n, 3, idx.numel(), dtype=dt, device=texture.device)
     gain = torch.empty_like(est)
+    a_idx = torch.empty_like(est)
     for sl in shots:
         a = _diffuse_gain(capture, sl, dt)
+        a_idx[sl] = a.flatten(2)[:, :, idx]
         spec = phong_images[sl] - texture * a
         ok = valid[sl] & ~flagged[sl] & (a > 0)
         e = (capture.images[sl].to(dt) - spec) / a.clamp_min(1e-12)
         est[sl] = torch.where(ok, e, torch.full_like(e, float("nan"))).flatten(2)[:, :, idx]
         gain[sl] = torch.where(ok, a, torch.zeros_like(a)).flatten(2)[:, :, idx]
-    return est, gain
+    return est, gain, a_idx
 
 
 def _fill_unsolved(base: Tensor, changed: Tensor, solved: Tensor) -> Tensor:
