@@ -33,6 +33,8 @@ FLAKE_SCENES = ("flakes_a", "flakes_b", "flakes_orange", "flakes_half")
 SPHERE = "sphere_sharp72"
 REAL = ("cards_blue", "yellow_box", "uw_gray_sphere")
 SHARE_TARGET = 0.10
+#: the default whole command on a shared real capture (1024² × 7 phone photos at most), every choice included
+REAL_DEFAULT_TARGET_S = 30.0
 
 
 def flake_share(report: dict) -> float:
@@ -142,13 +144,29 @@ def _matrix_cells(r: dict) -> list[str]:
             _num(r.get("ratio"), ".2f"), _pct(r.get("share")), {True: "yes", False: "no"}.get(r.get("flakes"), "–")]
 
 
+def real_default_rows(matrix: list[dict]) -> list[str]:
+    """The default command's wall time on each shared real capture against :data:`REAL_DEFAULT_TARGET_S`
+    (markdown lines; none without a real capture in the matrix)."""
+    rows = [r for r in matrix if r["capture"] in REAL and r["options"] == "default"]
+    if not rows:
+        return []
+    out = [f"Default whole command on the shared real captures (target ≤ {REAL_DEFAULT_TARGET_S:.0f} s):", "",
+           "| capture | wall s | ≤ target |", "|---|---|---|"]
+    for r in rows:
+        w = r.get("wall_s")
+        good = isinstance(w, (int, float)) and w <= REAL_DEFAULT_TARGET_S and "error" not in r
+        out.append(f"| {r['capture']} | {_num(w)} | {'yes' if good else 'NO'} |")
+    return out + [""]
+
+
 def markdown(res: dict) -> str:
     rows = ["| capture | options | result | wall s | numpy paper s | ratio | flake stage | flake model |",
             "|---|---|---|---|---|---|---|---|"]
     rows += ["| " + " | ".join(_matrix_cells(r)) + " |" for r in res["matrix"]]
     ok = sum(bool(r.get("complete")) and "error" not in r for r in res["matrix"])
-    rows += ["", f"{ok} of {len(res['matrix'])} runs wrote a complete material.", "",
-             f"Flake-stage share of the default fit on flake-free captures (target ≤ {SHARE_TARGET:.0%}):", "",
+    rows += ["", f"{ok} of {len(res['matrix'])} runs wrote a complete material.", ""]
+    rows += real_default_rows(res["matrix"])
+    rows += [f"Flake-stage share of the default fit on flake-free captures (target ≤ {SHARE_TARGET:.0%}):", "",
              "| capture | fit s | flake stage | ≤ target |", "|---|---|---|---|"]
     for r in res["share"]:
         s = r.get("share")
