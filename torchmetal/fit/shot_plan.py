@@ -1,6 +1,6 @@
 """Which shots the held-out choices leave out of their fits: one plan per capture.
 
-Every choice made on left-out shots (docs/design.md §2.5) scores candidates on shots their fits did not
+Every choice made on left-out shots (docs/design.md §4) scores candidates on shots their fits did not
 see. Which shots those are is decided once, here, not by each choice:
 
 - the coating's choices (weights, highlight evidence, clusters, relabelling, gloss maps, specular colour,
