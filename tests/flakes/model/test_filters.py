@@ -4,7 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from torchmetal.flakes.model.filters import axis_max, max_filter
+from torchmetal.flakes.model.filters import axis_max, binary_morph, max_filter
 
 
 @pytest.mark.parametrize("shape", [(37, 29), (3, 17, 40), (2, 3, 9, 5)])
@@ -27,3 +27,26 @@ def test_max_filter_of_a_mask_is_its_dilation():
     m[3, 3] = 1.0
     got = max_filter(m, 1) > 0
     assert int(got.sum()) == 9 and bool(got[2:5, 2:5].all())
+
+
+@pytest.mark.parametrize("density", [0.02, 0.3, 0.7, 0.95])
+@pytest.mark.parametrize("close,open_", [(3, 1), (1, 3), (3, 3), (5, 3), (1, 1)])
+def test_binary_morph_is_kornia_closing_then_opening(density, close, open_):
+    import kornia.morphology as km
+
+    m = torch.rand(3, 1, 41, 33, generator=torch.Generator().manual_seed(5)) < density
+    want = m.float()
+    if close > 1:
+        want = km.closing(want, torch.ones(close, close))
+    if open_ > 1:
+        want = km.opening(want, torch.ones(open_, open_))
+    got = binary_morph(m, close, open_)
+    assert got.dtype == torch.bool and torch.equal(got, want > 0.5)
+
+
+def test_binary_morph_closes_a_one_pixel_gap_and_keeps_the_border():
+    m = torch.zeros(5, 9, dtype=torch.bool)
+    m[:, 0:4] = True
+    m[:, 5:9] = True  # column 4 is a 1-px gap
+    got = binary_morph(m, 3, 1)
+    assert bool(got.all())  # the gap closed; the image border did not erode the mask

@@ -9,8 +9,9 @@ Hysteresis binarisation keeps the 8-connected regions of ``signal > k_lo·σ`` t
 ``0.85·k_hi·σ`` somewhere (positive residuals only; invalid/saturated pixels never count); a
 region is a particle when its peak above the local ring background (the amplitude the
 statistics use) reaches ``k_hi·σ``.
-``kornia.morphology`` closes 1-px gaps (3×3; ``engine="auto"`` under ``no_grad`` = the exact
-"shift" engine on CPU); opening is available but off by default, since it erases the 1–3 px
+A morphological closing closes 1-px gaps (3×3; :func:`~torchmetal.flakes.model.filters.binary_morph`: the
+values of ``kornia.morphology.closing``, 11× faster on bool masks); opening is available but off by default,
+since it erases the 1–3 px
 glints real glitter makes. Properties come from :mod:`torchmetal.flakes.estimate.regions`, measured on
 the residual minus a local background (the mean of the non-detected pixels in a ring around
 each particle, so a flake never lowers its own amplitude), and the mean Lab colour of each particle from ``kornia.color.rgb_to_lab`` on its clamped,
@@ -30,7 +31,7 @@ from torchmetal.checks import check_finite, check_float, check_shape
 from torchmetal.errors import InputError
 from torchmetal.flakes.estimate import regions
 from torchmetal.flakes.estimate.results import Particles
-from torchmetal.flakes.model.filters import box_mean, max_filter
+from torchmetal.flakes.model.filters import binary_morph, box_mean, max_filter
 from torchmetal.io.images import linear_to_srgb
 
 _CANDIDATE = 0.85  # hysteresis seeds at 0.85·k_hi on the box high-pass; the final cut is k_hi on the ring peak
@@ -109,17 +110,6 @@ def _check_inputs(photos: Tensor, phong: Tensor, irradiance: Tensor, valid: Tens
         raise InputError(f"irradiance: expected finite values > 0, found minimum {low:.4g}")
 
 
-def _morph(mask: Tensor, close: int, open_: int) -> Tensor:
-    import kornia.morphology as km  # deferred: kornia is heavy to import
-
-    x = mask.to(torch.float32)
-    if close > 1:
-        x = km.closing(x, torch.ones(close, close, device=x.device), engine="auto")
-    if open_ > 1:
-        x = km.opening(x, torch.ones(open_, open_, device=x.device), engine="auto")
-    return x > 0.5
-
-
 def _detect_chunk(res: Tensor, valid: Tensor, all_valid: bool, *, k_hi, k_lo, tile, background, close, open_, min_area, backend, times):
     t0 = time.perf_counter()
     s = res.mean(1, keepdim=True)
@@ -131,7 +121,7 @@ def _detect_chunk(res: Tensor, valid: Tensor, all_valid: bool, *, k_hi, k_lo, ti
     lo = hp > k_lo * sigma
     if not all_valid:
         lo &= valid
-    lo = _morph(lo, close, open_)
+    lo = binary_morph(lo, close, open_)
     if not all_valid:
         lo &= valid
     t2 = time.perf_counter()
