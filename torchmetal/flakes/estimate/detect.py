@@ -11,8 +11,7 @@ region is a particle when its peak above the local ring background (the amplitud
 statistics use) reaches ``k_hi·σ``.
 A morphological closing closes 1-px gaps (3×3; :func:`~torchmetal.flakes.model.filters.binary_morph`: the
 values of ``kornia.morphology.closing``, 11× faster on bool masks); opening is available but off by default,
-since it erases the 1–3 px
-glints real glitter makes. Properties come from :mod:`torchmetal.flakes.estimate.regions`, measured on
+since it erases the 1–3 px glints real glitter makes. Properties come from :mod:`torchmetal.flakes.estimate.regions`, measured on
 the residual minus a local background (the mean of the non-detected pixels in a ring around
 each particle, so a flake never lowers its own amplitude), and the mean Lab colour of each particle from ``kornia.color.rgb_to_lab`` on its clamped,
 sRGB-encoded residual colour (computed on foreground pixels only).
