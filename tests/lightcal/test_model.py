@@ -41,7 +41,7 @@ def test_gains_scale_each_shot_and_apply_divides():
     cap = _capture()
     cal = LightCalibration(falloff=2.0, gains=(0.5, 1.0, 2.0, 1.0))
     f = cal.factor(cap)
-    f0 = cal.without_gains().factor(cap)
+    f0 = cal.for_unseen().factor(cap)
     torch.testing.assert_close(f / f0, torch.tensor([0.5, 1.0, 2.0, 1.0])[:, None, None, None].expand_as(f))
     torch.testing.assert_close(cal.apply(cap).images * f, cap.images)
     assert math.isfinite(float(f.sum()))

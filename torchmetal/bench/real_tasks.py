@@ -25,14 +25,16 @@ def task_real(cfg: dict) -> dict:
     (``in_sample``: fitted on every shot, scored on the same shots — what the model can explain at all).
     A pipeline variant also gets ``coat`` / ``coat_mean`` / ``coat_in_sample``: the same PSNRs of its material
     rendered without its sparkles, the zoo's coat score (random sparkle positions cost PSNR even where the
-    flake statistics are right, so the coatings compare without them; the sparkles are judged by MD).
+    flake statistics are right, so the coatings compare without them; the sparkles are judged by MD), and
+    ``light_fitted`` / ``light_fitted_mean`` / ``light_fitted_chroma`` / ``light_fitted_chroma_mean``: the
+    left-out scores with each left-out shot's light position fitted to its photo, the material held fixed
+    (a phone capture's light positions are off by centimetres: this compares the materials, not them).
 
     With ``cfg["gallery"]`` (a directory), the default pipeline's first ``cfg["gallery_shots"]`` (3)
     left-out shots are written there as ``{capture}_shot{k}.png``: photo | render | error (|Δ| of the
     sRGB values ×4), sRGB, each panel box-downsampled to ≤ 512 px wide."""
     load_capture = need("torchmetal.io.capture", "load_capture")
     leave_one_out_with = need("torchmetal.fit.holdout", "leave_one_out_with")
-    chroma_artifact_share = need("torchmetal.metrics", "chroma_artifact_share")
     cap = load_capture(cfg["dir"])
     if cfg.get("max_shots") and cap.num_shots > int(cfg["max_shots"]):
         cap = cap.subset(list(range(int(cfg["max_shots"]))))
@@ -44,7 +46,8 @@ def task_real(cfg: dict) -> dict:
     for spec in cfg.get("speculars", ["global", "clustered"]):
         t0 = time.perf_counter()
         coats: list = []  # a pipeline variant's renders without sparkles, one per call
-        fr = _phong_fit_render(spec) if spec in ("global", "clustered") else _material_fit_render(spec, coats)
+        calibrated: list = []  # a pipeline variant's left-out renders under the light fitted to the shot's photo
+        fr = _phong_fit_render(spec) if spec in ("global", "clustered") else _material_fit_render(spec, coats, calibrated)
         renders: list = []
 
         def keep(train, one, fr=fr, renders=renders):
@@ -55,11 +58,7 @@ def task_real(cfg: dict) -> dict:
         vals = [float(v) for v in leave_one_out_with(cap, keep)]
         seconds = time.perf_counter() - t0
         coat = [psnr_or_nan(c, cap.images[k : k + 1], valid_mask(cap.subset([k]))) for k, c in enumerate(coats)]
-        chroma = []
-        for k, pred in enumerate(renders):
-            one = cap.subset([k])
-            v = valid_mask(one)[0].all(0)
-            chroma.append(chroma_artifact_share(pred[0], one.images[0].float(), mask=v) if bool(v.any()) else float("nan"))
+        chroma = [_chroma(pred[0], cap.subset([k])) for k, pred in enumerate(renders)]
         pred = fr(cap, cap)  # in sample: every shot fitted and rendered
         in_sample = psnr_or_nan(pred.detach().float().cpu(), cap.images, valid_mask(cap))
         out[spec] = {"psnr": vals, "mean": float(np.mean(vals)), "seconds": seconds, "chroma": chroma,
@@ -68,10 +67,23 @@ def task_real(cfg: dict) -> dict:
         if coats:
             out[spec].update(coat=coat, coat_mean=float(np.mean(coat)),
                              coat_in_sample=psnr_or_nan(coats[-1], cap.images, valid_mask(cap)))
+        if calibrated:
+            cal = [psnr_or_nan(c, cap.images[k : k + 1], valid_mask(cap.subset([k]))) for k, c in enumerate(calibrated)]
+            cal_chroma = [_chroma(c[0], cap.subset([k])) for k, c in enumerate(calibrated)]
+            out[spec].update(light_fitted=cal, light_fitted_mean=float(np.mean(cal)), light_fitted_chroma=cal_chroma,
+                             light_fitted_chroma_mean=float(np.nanmean(cal_chroma)) if any(c == c for c in cal_chroma)
+                             else float("nan"))
         if gallery is not None and spec == "default":
             out[spec]["gallery"] = [str(_gallery_png(gallery / f"{name}_shot{k}.png", cap.images[k], renders[k][0]))
                                     for k in range(min(len(renders), int(cfg.get("gallery_shots", 3))))]
     return out
+
+
+def _chroma(pred, one) -> float:
+    """The chroma-artifact share of a render (3, H, W) of the one-shot capture ``one`` (NaN: no valid pixel)."""
+    chroma_artifact_share = need("torchmetal.metrics", "chroma_artifact_share")
+    v = valid_mask(one)[0].all(0)
+    return chroma_artifact_share(pred, one.images[0].float(), mask=v) if bool(v.any()) else float("nan")
 
 
 def _phong_fit_render(specular: str):
@@ -118,18 +130,23 @@ def _gallery_png(path: Path, photo, render) -> Path:
 #: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe and the
 #: normals were chosen on left-out shots, and the richest options
 REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong"}, "light_auto": {"light": "auto"},
+                 "light_positions": {"light": "positions"},
                  "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}
 
 
-def _material_fit_render(method: str, coats: list | None = None):
+def _material_fit_render(method: str, coats: list | None = None, calibrated: list | None = None):
     """fit_render for :func:`~torchmetal.fit.holdout.leave_one_out_with`: the whole pipeline with the
     options of the zoo's ``method``, rendered by the material's renderer. With ``coats`` (a list), each
-    call also appends the render without the material's sparkles (flake model and observed flakes), on CPU."""
+    call also appends the render without the material's sparkles (flake model and observed flakes), on CPU;
+    with ``calibrated`` (a list), each call on a left-out shot appends its render under the light position
+    fitted to its photo with the material held fixed (:func:`~torchmetal.lightcal.positions.material_offsets`:
+    every variant scored under a calibrated light, the capture's light errors aside), on CPU."""
     from dataclasses import replace
 
     import torch
 
     # on use: loads torch (this module imports numpy only)
+    from torchmetal.lightcal.positions import material_offsets, moved_lights
     from torchmetal.pipeline import fit_material
     from torchmetal.renderer import MaterialRenderer
 
@@ -139,15 +156,21 @@ def _material_fit_render(method: str, coats: list | None = None):
 
     def fit_render(train, one):
         res = fit_material(train, seed=0, **variants[method])
-        # the photos' lights: the calibration's falloff (a left-out shot has no gain)
-        factor = res.light.without_gains().factor(one) if one is not train else res.light.factor(one)
+        # the photos' lights: the calibration's falloff (a left-out shot has no gain, no offset)
+        seen = one is train
+        light = res.light if seen else res.light.for_unseen()
+        factor, lights = light.factor(one), light.lights(one)
+        renderer = MaterialRenderer(res.material)
         with torch.no_grad():
-            pred = MaterialRenderer(res.material)(one.lights, one.intensities, one.cameras)
+            pred = renderer(lights, one.intensities, one.cameras)
             if coats is not None:
                 m = res.material
                 coat = pred if m.flakes is None and m.observed_flakes is None else \
-                    MaterialRenderer(replace(m, flakes=None, observed_flakes=None))(one.lights, one.intensities, one.cameras)
+                    MaterialRenderer(replace(m, flakes=None, observed_flakes=None))(lights, one.intensities, one.cameras)
                 coats.append((coat * factor).detach().float().cpu())
+            if calibrated is not None and not seen:
+                fitted = moved_lights(one.lights, material_offsets(res.material, one, factor))
+                calibrated.append((renderer(fitted, one.intensities, one.cameras) * factor).detach().float().cpu())
         return pred * factor
 
     return fit_render

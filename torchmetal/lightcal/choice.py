@@ -1,14 +1,19 @@
-"""``light="auto"``: the flash's falloff (:mod:`torchmetal.lightcal`) kept when shots left out of the fit
-prefer it; per-shot gains only when asked for (``light="gains"``).
+"""``light="auto"``: the flash's falloff or per-shot light positions (:mod:`torchmetal.lightcal`) kept
+when shots left out of the fit prefer them; per-shot gains only when asked for (``light="gains"``).
 
 Like the normals' choice (:func:`~torchmetal.normals.choice.choose_normals`): on a pixel grid of the
 capture (:func:`~torchmetal.normals.choice.strided_capture`), the shots are dealt into up to ``FOLDS``
-groups; for each, a fit on the other shots without calibration and one after a step of
-:func:`~torchmetal.lightcal.estimate.calibrate` from it render the group with the falloff. Per pixel,
-the median squared error over the group's observations pairs up, and
-:func:`~torchmetal.fit.decision.paired_choice` keeps no calibration unless the falloff lowers it beyond
-noise. The chosen falloff is then estimated on all shots of the grid, in ``ROUNDS`` steps, and applied
-to the whole capture.
+groups; for each, a fit on the other shots without calibration, one after a step of
+:func:`~torchmetal.lightcal.estimate.calibrate` from it, and one with per-shot light offsets
+(:func:`~torchmetal.lightcal.estimate.calibrate_positions`) render the group. A left-out shot's light
+position is an unknown of its own (the offsets of the fitted shots do not carry over: on the shared gold
+paper they range over 8 cm), so each candidate's material, held fixed, first fits the left-out shots'
+offsets to their photos (:func:`~torchmetal.lightcal.positions.fit_offsets`, three numbers per shot,
+the same for every candidate): the test compares materials under calibrated lights, not the capture's
+light errors. Per pixel, the median squared error over the group's observations pairs up, and
+:func:`~torchmetal.fit.decision.paired_choice` keeps no calibration unless another candidate lowers it
+beyond noise. The chosen calibration is then estimated on all shots of the grid and applied to the whole
+capture.
 
 The fits here keep the default specular structure (``FIT``): with one global lobe, the misfit of the
 zoo's two_materials (isotropic lights) passed as a falloff (held-out MSE −6 %, z 16) and so did the real
@@ -29,15 +34,16 @@ from torchmetal.errors import InputError
 from torchmetal.fit.api import fit_phong
 from torchmetal.fit.decision import Decision, paired_choice
 from torchmetal.fit.shot_plan import shot_groups
-from torchmetal.lightcal.estimate import calibrate
+from torchmetal.lightcal.estimate import calibrate, calibrate_positions
 from torchmetal.lightcal.model import LightCalibration
+from torchmetal.lightcal.positions import PIXELS, fit_offsets, move_capture
 from torchmetal.normals.choice import rendered_pixel_errors, strided_capture
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
 
-LIGHT_MODES = ("auto", "off", "falloff", "gains")
-PIXELS = 48 * 48  # the decision's pixel grid
+LIGHT_MODES = ("auto", "off", "falloff", "gains", "positions")
+CANDIDATES = ("off", "falloff", "positions")  # what auto chooses among
 FOLDS = 3  # shot groups left out in turn
 MIN_SHOTS = 4  # the calibration's fit needs 3 shots besides a left-out one
 FIT = {"lobe": "phong"}  # the choice's fits: the default specular structure (module docstring)
@@ -45,15 +51,22 @@ ROUNDS = 3  # steps of the chosen calibration's estimate on all shots (a synthet
 
 
 def _fold_errors(train: Capture, hold: Capture, fit_kwargs: dict) -> dict[str, Tensor]:
-    """Per-pixel held-out errors of no calibration and of the falloff, fitted on ``train``."""
+    """Per-pixel held-out errors of no calibration, the falloff and per-shot positions, fitted on ``train``."""
     ref = fit_phong(train, **fit_kwargs)
     cal, fit = calibrate(train, ref, gains=False, fit_kwargs=fit_kwargs)
-    return {"off": _errors(ref, hold, LightCalibration()), "falloff": _errors(fit, hold, cal)}
+    pos_cal, pos = calibrate_positions(train, fit_kwargs=fit_kwargs)
+    return {"off": held_out_errors(ref, hold, LightCalibration()), "falloff": held_out_errors(fit, hold, cal),
+            "positions": held_out_errors(pos, hold, pos_cal)}
 
 
-def _errors(fit, hold: Capture, cal: LightCalibration) -> Tensor:
+def held_out_errors(fit, hold: Capture, cal: LightCalibration) -> Tensor:
+    """Per-pixel errors of ``fit`` on shots it did not see, each shot's light position first fitted to its
+    photo with the material held fixed (module docstring) and ``cal``'s falloff applied."""
+    factor = cal.for_unseen().factor(hold)
+    off = fit_offsets(hold, lambda lights: fit.render(lights, hold.intensities, hold.cameras) * factor)
+    moved = move_capture(hold, off)
     with torch.no_grad():
-        pred = fit.render(hold.lights, hold.intensities, hold.cameras) * cal.factor(hold)
+        pred = fit.render(moved.lights, moved.intensities, moved.cameras) * cal.for_unseen().factor(moved)
     return rendered_pixel_errors(pred, hold)
 
 
@@ -63,28 +76,28 @@ def _skip_reason(capture: Capture, *, test: bool = True) -> str | None:
     if test and n < MIN_SHOTS:
         return f"a left-out test of the light calibration needs >= {MIN_SHOTS} shots, found {n}"
     if not bool((capture.lights[:, 3] > 0).any()):
-        return "directional lights only: no falloff to calibrate"
+        return "directional lights only: no falloff or position to calibrate"
     return None
 
 
 def choose_light(capture: Capture, *, fit_kwargs: dict | None = None, max_pixels: int = PIXELS,
                  folds: int = FOLDS, **rule) -> tuple[str, Decision]:
-    """"off" or "falloff", decided on left-out shots (module docstring). ``rule``:
+    """"off", "falloff" or "positions", decided on left-out shots (module docstring). ``rule``:
     :func:`~torchmetal.fit.decision.paired_choice`'s ``z_min`` / ``min_gain``."""
     skip = _skip_reason(capture)
     if skip:
-        return "off", Decision("light", ("off", "falloff"), "off", reference="off", reason=skip)
+        return "off", Decision("light", CANDIDATES, "off", reference="off", reason=skip)
     kw = {**(fit_kwargs or {}), **FIT}
     n = capture.num_shots
     sub = strided_capture(capture, max_pixels)
     groups = shot_groups(n, folds)
-    errors: dict[str, list[Tensor]] = {"off": [], "falloff": []}
+    errors: dict[str, list[Tensor]] = {k: [] for k in CANDIDATES}
     for group in groups:
         fold = _fold_errors(sub.subset([k for k in range(n) if k not in group]), sub.subset(group), kw)
         for k, e in fold.items():
             errors[k].append(e)
     cat = {k: torch.cat(v) for k, v in errors.items()}
-    seen = ~torch.isnan(torch.stack(list(cat.values()))).any(0)  # pixels with a valid held-out observation in both
+    seen = ~torch.isnan(torch.stack(list(cat.values()))).any(0)  # pixels with a valid held-out observation in every candidate
     d = paired_choice("light", {k: e[seen] for k, e in cat.items()}, ref="off", **rule)
     d.holds = groups
     d.pixels = int(sub.images.shape[-2] * sub.images.shape[-1])
@@ -108,7 +121,9 @@ def with_light(capture: Capture, mode: str, *, fit_kwargs: dict | None = None,
         chosen = "off"
         report["skipped"] = skip
     cal = LightCalibration()
-    if chosen != "off":
+    if chosen == "positions":
+        cal, _ = calibrate_positions(strided_capture(capture, max_pixels), fit_kwargs={**(fit_kwargs or {}), **FIT})
+    elif chosen != "off":
         kw = {**(fit_kwargs or {}), **FIT}
         sub = strided_capture(capture, max_pixels)
         fit = fit_phong(sub, **kw)

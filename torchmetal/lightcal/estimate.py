@@ -21,6 +21,7 @@ import torch
 from torchmetal.fit.api import fit_phong
 from torchmetal.fit.holdout import valid_pixels
 from torchmetal.lightcal.model import LightCalibration, log_axis_cosine
+from torchmetal.lightcal.positions import fit_offsets, move_capture
 
 if TYPE_CHECKING:
     from torchmetal.fit.result import FitResult
@@ -29,6 +30,7 @@ if TYPE_CHECKING:
 MIN_SIGNAL = 0.02  # observations whose render is under this fraction of the brightest one are left out
 MAX_FALLOFF = 40.0  # |p| beyond this is not a flash's beam: clamped (cos 16° ^ 40 ≈ 0.2)
 MAX_SPECULAR = 0.05  # only observations whose fitted specular part is under 5 % of the render (module docstring)
+POSITION_ROUNDS = 2  # offsets ↔ material alternations of calibrate_positions
 MIN_SPREAD = 1e-6  # the log-cosines' weighted variance under which the exponent is not identifiable
 
 
@@ -81,3 +83,18 @@ def calibrate(capture: Capture, fit: FitResult, *, gains: bool, fit_kwargs: dict
         torch.tensor(base.gains, dtype=torch.float64))
     cal = LightCalibration(base.falloff + p, tuple(torch.exp(log_g + b).tolist()) if gains else base.gains)
     return cal, fit_phong(cal.apply(capture), **(fit_kwargs or {})) if refit else None
+
+
+def calibrate_positions(capture: Capture, *, fit_kwargs: dict | None = None, rounds: int = POSITION_ROUNDS,
+                        base: LightCalibration | None = None) -> tuple[LightCalibration, FitResult]:
+    """Per-shot light offsets (:func:`~torchmetal.lightcal.positions.fit_offsets`) alternated ``rounds``
+    times with the material's fit on ``capture`` (each fit on the lights the last offsets moved), on top of
+    ``base``'s falloff and gains. Returns (calibration, the fit at its offsets)."""
+    base = base or LightCalibration()
+    kw = fit_kwargs or {}
+    cap = base.apply(capture)
+    fit, off = fit_phong(cap, **kw), None
+    for _ in range(rounds):
+        off = fit_offsets(cap, lambda lights: fit.render(lights, cap.intensities, cap.cameras), off)
+        fit = fit_phong(move_capture(cap, off), **kw)
+    return replace(base, offsets=tuple(tuple(o) for o in off.tolist())), fit

@@ -10,6 +10,7 @@ from torch import Tensor
 
 from torchmetal.errors import InputError
 from torchmetal.geometry import direction_to, surface_points
+from torchmetal.lightcal.positions import moved_lights
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -36,29 +37,45 @@ def log_axis_cosine(capture: Capture) -> Tensor:
 
 @dataclass(frozen=True)
 class LightCalibration:
-    """Falloff exponent and per-shot gains (:mod:`torchmetal.lightcal`); the default is no calibration.
+    """Falloff exponent, per-shot gains and per-shot light offsets (:mod:`torchmetal.lightcal`); the
+    default is no calibration.
 
     Attributes:
         falloff: p in cos(θ)^p (0: isotropic lights).
         gains: (N,) per-shot multipliers of the capture it was fitted on, or None (all 1).
+        offsets: (N,) (x, y, z) moves of the point lights of the capture it was fitted on, in its units
+            (:mod:`~torchmetal.lightcal.positions`), or None.
     """
 
     falloff: float = 0.0
     gains: tuple[float, ...] | None = None
+    offsets: tuple[tuple[float, float, float], ...] | None = None
 
     @property
     def identity(self) -> bool:
-        return self.falloff == 0.0 and self.gains is None
+        return self.falloff == 0.0 and self.gains is None and self.offsets is None
 
-    def without_gains(self) -> LightCalibration:
-        """The calibration for shots it was not fitted on: the falloff only."""
-        return replace(self, gains=None)
+    def for_unseen(self) -> LightCalibration:
+        """The calibration for shots it was not fitted on: the falloff only (no gain, no offset)."""
+        return replace(self, gains=None, offsets=None)
+
+    def lights(self, capture: Capture) -> Tensor:
+        """(N, 4) the capture's lights, the point lights moved by the offsets."""
+        if self.offsets is None:
+            return capture.lights
+        if len(self.offsets) != capture.num_shots:
+            raise InputError(f"light calibration: expected offsets for {capture.num_shots} shots, "
+                             f"found {len(self.offsets)}")
+        return moved_lights(capture.lights, torch.tensor(self.offsets, dtype=torch.float64))
 
     def factor(self, capture: Capture) -> Tensor:
-        """(N, 1, H, W) in the images' dtype: what the calibration multiplies each shot's irradiance by."""
+        """(N, 1, H, W) in the images' dtype: what the calibration multiplies each shot's irradiance by
+        (the falloff's axis from the moved lights where there are offsets)."""
         n = capture.num_shots
         if self.gains is not None and len(self.gains) != n:
             raise InputError(f"light calibration: expected gains for {n} shots, found {len(self.gains)}")
+        if self.offsets is not None and self.falloff != 0.0:
+            capture = replace(capture, lights=self.lights(capture))  # the axis from the moved lights
         log_f = self.falloff * log_axis_cosine(capture) if self.falloff != 0.0 else torch.zeros(
             n, 1, 1, 1, dtype=torch.float64, device=capture.images.device)
         if self.gains is not None:
@@ -67,13 +84,18 @@ class LightCalibration:
         return torch.exp(log_f).to(capture.images.dtype)
 
     def apply(self, capture: Capture) -> Capture:
-        """The capture as isotropic lights of constant power would have recorded it: photos / factor."""
+        """The capture as isotropic lights of constant power at the calibrated positions would have
+        recorded it: the lights moved, the photos / factor (the falloff's axis from the moved lights)."""
         if self.identity:
             return capture
-        return replace(capture, images=capture.images / self.factor(capture))
+        moved = replace(capture, lights=self.lights(capture))
+        if self.falloff == 0.0 and self.gains is None:
+            return moved
+        return replace(moved, images=capture.images / self.factor(capture))
 
     def to_dict(self) -> dict:
         return {"falloff": self.falloff, "gains": None if self.gains is None else list(self.gains),
+                "offsets": None if self.offsets is None else [list(o) for o in self.offsets],
                 "axis": "from each point light to the surface centre"}
 
     @classmethod
@@ -81,5 +103,6 @@ class LightCalibration:
         """The calibration a report's ``light`` entry describes (none for None or an empty entry)."""
         if not d:
             return cls()
-        gains = d.get("gains")
-        return cls(float(d.get("falloff", 0.0)), None if gains is None else tuple(float(g) for g in gains))
+        gains, offsets = d.get("gains"), d.get("offsets")
+        return cls(float(d.get("falloff", 0.0)), None if gains is None else tuple(float(g) for g in gains),
+                   None if offsets is None else tuple(tuple(float(x) for x in o) for o in offsets))

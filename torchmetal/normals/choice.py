@@ -42,16 +42,13 @@ MIN_SHOTS = 4  # the estimate needs 3 shots besides a left-out one
 MIN_GAIN = 0.05  # a normal map (2 parameters a pixel) must lower the per-pixel median held-out error by 5 % (0.2 dB)
 
 
-def strided_capture(capture: Capture, max_pixels: int = PIXELS) -> Capture:
-    """Every s-th pixel (s odd, the smallest with ≤ ``max_pixels`` pixels) as a capture of its own, its
-    surface size chosen so that each kept pixel's centre is where it was: the same lights, cameras and
-    geometry per pixel, at a fraction of the cost. Returns ``capture`` itself when it is small enough."""
-    h, w = int(capture.images.shape[-2]), int(capture.images.shape[-1])
+def stride_grid(h: int, w: int, max_pixels: int = PIXELS) -> tuple[slice, slice, float, float]:
+    """(rows, cols, width scale, height scale): every s-th pixel of an H × W grid (s odd, the smallest
+    with ≤ ``max_pixels`` pixels), and the factors of the surface size that keep each kept pixel's centre
+    where it was (:func:`strided_capture`)."""
     s = 1
     while -(-h // s) * -(-w // s) > max_pixels:
         s += 2
-    if s == 1:
-        return capture
 
     def axis(n: int) -> tuple[slice, int]:
         # m kept rows at o, o+s, …: centres match when o = (s−1)/2 + (n − m·s)/2, an integer for m ≡ n (mod 2)
@@ -63,7 +60,18 @@ def strided_capture(capture: Capture, max_pixels: int = PIXELS) -> Capture:
 
     rows, m_h = axis(h)
     cols, m_w = axis(w)
-    size = (capture.size[0] * m_w * s / w, capture.size[1] * m_h * s / h)
+    return rows, cols, m_w * s / w, m_h * s / h
+
+
+def strided_capture(capture: Capture, max_pixels: int = PIXELS) -> Capture:
+    """Every s-th pixel (s odd, the smallest with ≤ ``max_pixels`` pixels) as a capture of its own, its
+    surface size chosen so that each kept pixel's centre is where it was: the same lights, cameras and
+    geometry per pixel, at a fraction of the cost. Returns ``capture`` itself when it is small enough."""
+    h, w = int(capture.images.shape[-2]), int(capture.images.shape[-1])
+    if h * w <= max_pixels:
+        return capture
+    rows, cols, fw, fh = stride_grid(h, w, max_pixels)
+    size = (capture.size[0] * fw, capture.size[1] * fh)
     pick = lambda t: t[..., rows, cols]  # noqa: E731
     return replace(capture, images=pick(capture.images), normals=pick(capture.normals).contiguous(),
                    mask=pick(capture.mask), saturated=pick(capture.saturated), size=size)
