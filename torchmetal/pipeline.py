@@ -239,11 +239,13 @@ def fit_material(
             them, else plain least squares; the refits keep that choice), "uniform" (plain least squares) or
             "noise" (each observation weighted by the inverse of its expected noise variance,
             ``fit_phong(noise_weights=True)``).
-        light: the light calibration (:mod:`torchmetal.lightcal`: the flash's falloff from its axis and
-            per-shot gains, nuisances of the capture, not the material): "off" (the default: on the shared
-            real captures left-out shots did not prefer a falloff, docs/design.md §4), "auto" (the falloff
-            where left-out shots prefer it), "falloff" or "gains" (falloff and per-shot gains). ``result.light`` holds it: a render compared with the capture's photos is
-            multiplied by ``result.light.factor(capture)``.
+        light: the light calibration (:mod:`torchmetal.lightcal`: the flash's falloff from its axis,
+            per-shot gains and per-shot light positions, nuisances of the capture, not the material): "off"
+            (the default, docs/design.md §4), "auto" (the falloff or the positions where left-out shots
+            prefer them), "falloff", "gains" (falloff and per-shot gains) or "positions" (each shot's point
+            light moved to fit its photo, alternated with the material's fit). ``result.light`` holds it: a
+            render compared with the capture's photos uses ``result.light.lights(capture)`` and is multiplied
+            by ``result.light.factor(capture)``.
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,

@@ -32,7 +32,9 @@ def task_real(cfg: dict) -> dict:
 
     With ``cfg["gallery"]`` (a directory), the default pipeline's first ``cfg["gallery_shots"]`` (3)
     left-out shots are written there as ``{capture}_shot{k}.png``: photo | render | error (|Δ| of the
-    sRGB values ×4), sRGB, each panel box-downsampled to ≤ 512 px wide."""
+    sRGB values ×4), sRGB, each panel box-downsampled to ≤ 512 px wide; likewise
+    ``{capture}_light_fitted_shot{k}.png`` under the light fitted to the photo, and for every variant of
+    ``cfg["gallery_specs"]`` (default: only "default") with ``_{variant}`` after the capture's name."""
     load_capture = need("torchmetal.io.capture", "load_capture")
     leave_one_out_with = need("torchmetal.fit.holdout", "leave_one_out_with")
     cap = load_capture(cfg["dir"])
@@ -73,9 +75,15 @@ def task_real(cfg: dict) -> dict:
             out[spec].update(light_fitted=cal, light_fitted_mean=float(np.mean(cal)), light_fitted_chroma=cal_chroma,
                              light_fitted_chroma_mean=float(np.nanmean(cal_chroma)) if any(c == c for c in cal_chroma)
                              else float("nan"))
-        if gallery is not None and spec == "default":
-            out[spec]["gallery"] = [str(_gallery_png(gallery / f"{name}_shot{k}.png", cap.images[k], renders[k][0]))
-                                    for k in range(min(len(renders), int(cfg.get("gallery_shots", 3))))]
+        if gallery is not None and spec in cfg.get("gallery_specs", ("default",)):
+            tag = "" if spec == "default" else f"_{spec}"
+            shots = range(min(len(renders), int(cfg.get("gallery_shots", 3))))
+            out[spec]["gallery"] = [str(_gallery_png(gallery / f"{name}{tag}_shot{k}.png", cap.images[k], renders[k][0]))
+                                    for k in shots]
+            if calibrated:
+                out[spec]["gallery_light_fitted"] = [
+                    str(_gallery_png(gallery / f"{name}{tag}_light_fitted_shot{k}.png", cap.images[k], calibrated[k][0]))
+                    for k in shots]
     return out
 
 
