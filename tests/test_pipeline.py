@@ -158,20 +158,19 @@ def test_default_chooses_lobe_and_normals_on_left_out_shots():
 
 
 def test_light_calibration_stage_records_its_decision():
-    from torchmetal.lightcal import LightCalibration
+    from tests.lightcal.helpers import misplaced_capture
 
-    cap = synth_capture(size=40, shots=8, layout="near", texture="procedural", seed=5, noise=0.01).capture
-    cap = replace(cap, images=cap.images * LightCalibration(falloff=-6.0).factor(cap))
-    res = fit_material(cap, flakes="off", normals="given", lobe="phong", light="auto")
+    cap, _ = misplaced_capture()
+    res = fit_material(cap, flakes="off", normals="given", lobe="phong")  # light="auto", the default
     names = [d["name"] for d in res.report["decisions"]]
     assert names[:1] == ["light"] and res.report["decisions"][0]["chosen"] == res.report["light"]["chosen"]
-    assert res.report["light"]["chosen"] != "off" and res.light.falloff < -3.0
+    assert res.report["light"]["chosen"] == "positions" and len(res.report["light"]["offsets"]) == 8
     assert res.report["stage_times"]["light"] > 0
-    off = fit_material(cap, flakes="off", normals="given", lobe="phong")  # the default
+    off = fit_material(cap, flakes="off", normals="given", lobe="phong", light="off")
     assert off.light.identity and "light" not in [d["name"] for d in off.report["decisions"]]
-    # the calibrated material predicts the photos better once the renders carry the falloff
-    err = lambda r: float(((render_shots(r.fit, cap) * r.light.factor(cap) - cap.images) ** 2).mean())  # noqa: E731
-    assert err(res) < err(off)
+    # the calibrated material predicts the photos better once the renders use the moved lights
+    err = lambda r: float(((render_shots(r.fit, replace(cap, lights=r.light.lights(cap))) - cap.images) ** 2).mean())  # noqa: E731
+    assert err(res) < 0.5 * err(off)
     with pytest.raises(InputError, match="light: expected one of"):
         fit_material(cap, light="flash")
 

@@ -207,7 +207,7 @@ def fit_material(
     lobe: str = "auto",
     normals: str = "auto",
     weights: str = "auto",
-    light: str = "off",
+    light: str = "auto",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -239,11 +239,11 @@ def fit_material(
             them, else plain least squares; the refits keep that choice), "uniform" (plain least squares) or
             "noise" (each observation weighted by the inverse of its expected noise variance,
             ``fit_phong(noise_weights=True)``).
-        light: the light calibration (:mod:`torchmetal.lightcal`: the flash's falloff from its axis,
-            per-shot gains and per-shot light positions, nuisances of the capture, not the material): "off"
-            (the default, docs/design.md §4), "auto" (the falloff or the positions where left-out shots
-            prefer them), "falloff", "gains" (falloff and per-shot gains) or "positions" (each shot's point
-            light moved to fit its photo, alternated with the material's fit). ``result.light`` holds it: a
+        light: the light calibration (:mod:`torchmetal.lightcal`: per-shot light positions, the flash's
+            falloff from its axis and per-shot gains, nuisances of the capture, not the material): "auto"
+            (the default: each shot's point light moved to fit its photo where left-out shots, their own
+            lights fitted alike, prefer the material fitted so, docs/design.md §4), "off" (the capture's
+            lights), "positions", "falloff" or "gains" (falloff and per-shot gains). ``result.light`` holds it: a
             render compared with the capture's photos uses ``result.light.lights(capture)`` and is multiplied
             by ``result.light.factor(capture)``.
 
@@ -287,7 +287,7 @@ class Options:
     lobe: str
     normals: str
     weights: str
-    light: str = "off"
+    light: str = "auto"
 
     @classmethod
     def checked(cls, *, observed: str | bool, **kw) -> Options:

@@ -135,9 +135,10 @@ def _gallery_png(path: Path, photo, render) -> Path:
     return path
 
 
-#: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe and the
-#: normals were chosen on left-out shots, and the richest options
-REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong"}, "light_auto": {"light": "auto"},
+#: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe, the
+#: normals and the light were chosen on left-out shots, the capture's lights as given, the positions always,
+#: and the richest options
+REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong", "light": "off"}, "light_off": {"light": "off"},
                  "light_positions": {"light": "positions"},
                  "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}
 

@@ -88,12 +88,14 @@ def calibrate(capture: Capture, fit: FitResult, *, gains: bool, fit_kwargs: dict
 def calibrate_positions(capture: Capture, *, fit_kwargs: dict | None = None, rounds: int = POSITION_ROUNDS,
                         base: LightCalibration | None = None) -> tuple[LightCalibration, FitResult]:
     """Per-shot light offsets (:func:`~torchmetal.lightcal.positions.fit_offsets`) alternated ``rounds``
-    times with the material's fit on ``capture`` (each fit on the lights the last offsets moved), on top of
-    ``base``'s falloff and gains. Returns (calibration, the fit at its offsets)."""
+    times with the material's fit on ``capture`` (each fit on the lights the last offsets moved; the rounds
+    keep the lobe of the first), on top of ``base``'s falloff and gains. Returns (calibration, the fit at
+    its offsets)."""
     base = base or LightCalibration()
     kw = fit_kwargs or {}
     cap = base.apply(capture)
     fit, off = fit_phong(cap, **kw), None
+    kw = {**kw, "lobe": fit.lobe}  # the first fit's lobe (chosen there with lobe="auto") for the rounds
     for _ in range(rounds):
         off = fit_offsets(cap, lambda lights: fit.render(lights, cap.intensities, cap.cameras), off)
         fit = fit_phong(move_capture(cap, off), **kw)
