@@ -161,12 +161,12 @@ def test_light_calibration_stage_records_its_decision():
     from tests.lightcal.helpers import misplaced_capture
 
     cap, _ = misplaced_capture()
-    res = fit_material(cap, flakes="off", normals="given", lobe="phong")  # light="auto", the default
+    res = fit_material(cap, flakes="off", normals="given", lobe="phong", light="auto")
     names = [d["name"] for d in res.report["decisions"]]
     assert names[:1] == ["light"] and res.report["decisions"][0]["chosen"] == res.report["light"]["chosen"]
     assert res.report["light"]["chosen"] == "positions" and len(res.report["light"]["offsets"]) == 8
     assert res.report["stage_times"]["light"] > 0
-    off = fit_material(cap, flakes="off", normals="given", lobe="phong", light="off")
+    off = fit_material(cap, flakes="off", normals="given", lobe="phong")  # light="off", the default
     assert off.light.identity and "light" not in [d["name"] for d in off.report["decisions"]]
     # the calibrated material predicts the photos better once the renders use the moved lights
     err = lambda r: float(((render_shots(r.fit, replace(cap, lights=r.light.lights(cap))) - cap.images) ** 2).mean())  # noqa: E731

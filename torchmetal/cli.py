@@ -273,10 +273,10 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
                         "where left-out shots prefer them to a flat plane; given: the capture's normals.npy (flat "
                         "without one); flat: (0, 0, 1); estimate: from the photos (photometric stereo with the Phong "
                         "terms); tiled fits use the capture's")
-    f.add_argument("--light", choices=["auto", "off", "positions", "falloff", "gains"], default="auto",
-                   help="light calibration, nuisances of the capture (not the material): auto (default: each shot's "
-                        "light moved to fit its photo where left-out shots prefer the material fitted so), off (the "
-                        "capture's lights), positions, falloff (the flash's falloff from its axis), gains (falloff "
+    f.add_argument("--light", choices=["auto", "off", "positions", "falloff", "gains"], default="off",
+                   help="light calibration, nuisances of the capture (not the material): off (default: the capture's "
+                        "lights); auto: each shot's light moved to fit its photo where left-out shots prefer the "
+                        "material fitted so; positions; falloff (the flash's falloff from its axis); gains (falloff "
                         "and a gain per shot); tiled fits use none")
     f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
     f.add_argument("--tile", type=int, default=None, metavar="N",

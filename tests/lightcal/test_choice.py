@@ -3,11 +3,10 @@ from dataclasses import replace
 import pytest
 import torch
 
+from tests.lightcal.helpers import misplaced_capture
 from torchmetal.errors import InputError
 from torchmetal.lightcal import LightCalibration, choose_light, with_light
 from torchmetal.synth import synth_capture
-
-from tests.lightcal.helpers import misplaced_capture
 
 
 def _capture(falloff=0.0, layout="near", shots=8, seed=5):

@@ -136,9 +136,9 @@ def _gallery_png(path: Path, photo, render) -> Path:
 
 
 #: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe, the
-#: normals and the light were chosen on left-out shots, the capture's lights as given, the positions always,
-#: and the richest options
-REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong", "light": "off"}, "light_off": {"light": "off"},
+#: normals were chosen on left-out shots, the light calibration chosen on left-out shots, the positions
+#: always, and the richest options
+REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong", "light": "off"}, "light_auto": {"light": "auto"},
                  "light_positions": {"light": "positions"},
                  "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}
 

@@ -60,6 +60,13 @@ SECTIONS = ("sweep", "load", "fit1024", "skip", "flakes", "onnx", "real", "realf
             "gpu", "robust")
 
 
+def _light_fitted(v: dict) -> str:
+    """The real table's light-fitted cell: mean PSNR and chroma share, or empty."""
+    if v.get("light_fitted_mean") is None:
+        return ""
+    return f"{fmt(v['light_fitted_mean'], '.2f')}, {fmt(v.get('light_fitted_chroma_mean'), '.1%')}"
+
+
 # ----------------------------------------------------------------------------- sections
 
 
@@ -266,7 +273,7 @@ class Bench(SweepSection):
         for name, r in zip(names, res):
             msg = problem(r)
             if msg:
-                rows.append([name, msg, "", "", "", "", "", ""])
+                rows.append([name, msg, "", "", "", "", "", "", ""])
                 continue
             for spec in p.real_speculars:
                 v = r.get(spec)
@@ -274,7 +281,8 @@ class Bench(SweepSection):
                     continue
                 rows.append([f"{name} ({r['size'][0]}×{r['size'][1]}, {r['shots']} shots)", spec, fmt(v["mean"], ".2f"),
                              " ".join(fmt(x, ".2f") for x in v["psnr"]), fmt(v.get("coat_mean"), ".2f"),
-                             fmt(v.get("chroma_mean"), ".1%"), fmt(v.get("in_sample"), ".2f"), fmt(v["seconds"], ".1f")])
+                             fmt(v.get("chroma_mean"), ".1%"), _light_fitted(v), fmt(v.get("in_sample"), ".2f"),
+                             fmt(v["seconds"], ".1f")])
                 galleries += [Path(g).name for g in v.get("gallery", [])]
             if r.get("default") and r.get("paper"):
                 d, q = r["default"]["mean"], r["paper"]["mean"]
@@ -284,7 +292,7 @@ class Bench(SweepSection):
                                 f"{'yes' if d >= q else 'NO'} (mean), coat ≥ paper: {'yes' if c >= q else 'NO'}; "
                                 f"worse on {worse} of {len(r['paper']['psnr'])} left-out shots")
         self.add(md_table(["capture", "fit", "mean PSNR dB", "per left-out shot (dB)", "coat PSNR dB", "chroma artifacts",
-                           "in-sample PSNR dB", "seconds"], rows))
+                           "light fitted: PSNR dB, chroma", "in-sample PSNR dB", "seconds"], rows))
         self.add("\n*fit*: global / clustered are `fit_phong` (refine scheme) with that specular; default is "
                  "`fit_material` as `torchmetal fit` runs it (flakes, lobe, normals and maps decided by it), paper_model "
                  "the same with the paper's model forced (`--normals given --lobe phong`, the default before the lobe and the normals were chosen on left-out shots) "
@@ -294,7 +302,11 @@ class Bench(SweepSection):
                  "cost PSNR even where the flake statistics are right. *chroma artifacts*: share of 8×8-px blocks of the "
                  "left-out shots where photo and render differ by a CIELAB chroma distance > 15 (sRGB block means, "
                  "`torchmetal.metrics.chroma_artifact_share`), mean over the shots. *in-sample*: the same fit on every shot, "
-                 "scored on those shots (what the model explains at all). *seconds*: the leave-one-out fits.")
+                 "scored on those shots (what the model explains at all). *light fitted*: a pipeline's left-out shots "
+                 "rendered with each shot's light position fitted to its photo, the material held fixed (a phone "
+                 "capture's light positions are off by centimetres; this compares the materials, not them). "
+                 "light_auto: the default with `--light auto`. "
+                 "*seconds*: the leave-one-out fits.")
         if galleries:
             self.add(f"\nGallery (default pipeline; photo | render | error ×4, sRGB): `real_gallery/` — "
                      f"{', '.join(galleries)}")
