@@ -121,7 +121,14 @@ def test_fit_light_option(tmp_path):
     assert main(["fit", str(cap), "-o", str(mat), "-q", "--flakes", "off"]) == 0  # --light off: the default
     meta = json.loads((mat / "material.json").read_text())
     assert meta["fit"]["light"]["mode"] == "off" and meta["fit"]["light"]["falloff"] == 0.0
+    assert meta["fit"]["light"]["offsets"] is None
+    near = tmp_path / "near"
+    assert main(["synth", "-o", str(near), "--size", "32", "--shots", "5", "--layout", "near"]) == 0
+    assert main(["fit", str(near), "-o", str(tmp_path / "pos"), "-q", "--flakes", "off", "--light", "positions"]) == 0
+    light = json.loads((tmp_path / "pos" / "material.json").read_text())["fit"]["light"]
+    assert light["mode"] == "positions" and len(light["offsets"]) == 5 and all(len(o) == 3 for o in light["offsets"])
     assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m2", "--light", "falloff", "--tile", "16"), "--light")
+    assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m4", "--light", "positions", "--tile", "16"), "--light")
     proc = run_cli("fit", cap, "-o", tmp_path / "m3", "--light", "flash")
     assert proc.returncode == 2 and "--light" in proc.stderr and "Traceback" not in proc.stderr
 

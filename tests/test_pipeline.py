@@ -160,7 +160,7 @@ def test_default_chooses_lobe_and_normals_on_left_out_shots():
 def test_light_calibration_stage_records_its_decision():
     from tests.lightcal.helpers import misplaced_capture
 
-    cap, _ = misplaced_capture()
+    cap, *_ = misplaced_capture()
     res = fit_material(cap, flakes="off", normals="given", lobe="phong", light="auto")
     names = [d["name"] for d in res.report["decisions"]]
     assert names[:1] == ["light"] and res.report["decisions"][0]["chosen"] == res.report["light"]["chosen"]

@@ -230,6 +230,33 @@ def test_real_task_coat_is_the_render_without_sparkles(monkeypatch, tmp_path):
     assert float((pred - want).abs().max()) > 1e-3  # the sparkles are in the scored render, not in the coat
 
 
+def test_real_task_light_fitted_renders_under_the_shots_own_light(monkeypatch, tmp_path):
+    """A left-out shot photographed with its light moved: the light-fitted render (the material held fixed,
+    the light fitted to the photo) is closer to it than the render under capture.json's light; a fitted shot
+    gets its calibration's lights and no light-fitted render."""
+    from types import SimpleNamespace
+
+    import torchmetal.pipeline
+    from tests.lightcal.helpers import misplaced_capture
+    from torchmetal.bench.real_tasks import _material_fit_render
+    from torchmetal.lightcal import LightCalibration
+    from torchmetal.material import Material
+
+    cap, true, t = misplaced_capture(size=32, shots=4, noise=0.0)
+    m = Material(t["texture"], t["s"], t["alpha"], cap.size)
+    cal = LightCalibration(offsets=tuple(tuple(o) for o in true.tolist()))
+    monkeypatch.setattr(torchmetal.pipeline, "fit_material", lambda *a, **k: SimpleNamespace(material=m, light=cal))
+    fitted: list = []
+    fr = _material_fit_render("default", None, fitted)
+    one = cap.subset([1])
+    as_given = fr(cap.subset([0, 2, 3]), one)
+    assert len(fitted) == 1
+    err = lambda x: float(((x - one.images) ** 2).mean())  # noqa: E731
+    assert err(fitted[0]) < 0.01 * err(as_given)
+    in_sample = fr(cap, cap)  # the calibration's own shots: its moved lights
+    assert len(fitted) == 1 and err(in_sample[1:2]) < 0.01 * err(as_given)
+
+
 def test_cli_rejects_unknown_sections(capsys):
     from torchmetal.bench.__main__ import main
 

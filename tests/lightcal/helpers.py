@@ -10,7 +10,7 @@ from torchmetal.synth import synth_capture
 
 
 def misplaced_capture(size=40, shots=8, seed=5, shift=0.006, noise=0.01):
-    """(capture, true offsets (N, 3) float64): a glossy "near" scene (lights ~0.06 from a 0.1 wide surface),
+    """(capture, true offsets (N, 3) float64, the synthetic truth dict): a glossy "near" scene (lights ~0.06 from a 0.1 wide surface),
     each light ``shift`` away in a seeded direction, relative Gaussian noise ``noise``."""
     r = synth_capture(size=size, shots=shots, layout="near", texture="procedural", seed=seed,
                       alpha=(60.0, 60.0, 60.0), s=(0.5, 0.5, 0.5))
@@ -20,4 +20,4 @@ def misplaced_capture(size=40, shots=8, seed=5, shift=0.006, noise=0.01):
     photo = lobe_render(t["texture"], t["s"], t["alpha"], t["normals"], moved_lights(cap.lights, true),
                         cap.intensities, cap.cameras, cap.size)
     photo = photo * (1 + noise * torch.randn(photo.shape, generator=g))
-    return replace(cap, images=photo.clamp_min(0.0)), true
+    return replace(cap, images=photo.clamp_min(0.0)), true, t

@@ -31,7 +31,7 @@ def test_isotropic_lights_keep_no_calibration():
 
 def test_misplaced_lights_are_moved():
     """Photos taken with each light 6 mm (~10 % of its distance) from where capture.json puts it."""
-    cap, true = misplaced_capture()
+    cap, true, _ = misplaced_capture()
     out, cal, rep = with_light(cap, "auto")
     assert rep["chosen"] == "positions" and rep["decision"]["z"]["positions"] > 4.0
     found = torch.tensor(cal.offsets, dtype=torch.float64)
