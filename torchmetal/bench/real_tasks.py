@@ -135,9 +135,9 @@ def _gallery_png(path: Path, photo, render) -> Path:
     return path
 
 
-#: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe, the
-#: normals were chosen on left-out shots, the light calibration chosen on left-out shots, the positions
-#: always, and the richest options
+#: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe and the
+#: normals were chosen on left-out shots (paper_model), the lights moved where left-out shots prefer it
+#: (light_auto) or always (light_positions), and the richest options
 REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong", "light": "off"}, "light_auto": {"light": "auto"},
                  "light_positions": {"light": "positions"},
                  "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}

@@ -60,7 +60,7 @@ ROUNDS = 3  # steps of the chosen calibration's estimate on all shots (a synthet
 def _fold_errors(train: Capture, hold: Capture, fit_kwargs: dict) -> dict[str, Tensor]:
     """Per-pixel held-out errors of no calibration and of per-shot positions, fitted on ``train``."""
     ref = fit_phong(train, **fit_kwargs)
-    pos_cal, pos = calibrate_positions(train, fit_kwargs={**fit_kwargs, "lobe": ref.lobe})
+    pos_cal, pos = calibrate_positions(train, fit_kwargs=fit_kwargs)
     return {"off": held_out_errors(ref, hold, LightCalibration()), "positions": held_out_errors(pos, hold, pos_cal)}
 
 
