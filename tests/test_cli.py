@@ -129,7 +129,7 @@ def test_fit_light_option(tmp_path):
     assert light["mode"] == "positions" and len(light["offsets"]) == 5 and all(len(o) == 3 for o in light["offsets"])
     assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m2", "--light", "falloff", "--tile", "16"), "--light")
     assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m4", "--light", "positions", "--tile", "16"), "--light")
-    proc = run_cli("fit", cap, "-o", tmp_path / "m3", "--light", "flash")
+    proc = run_cli("fit", cap, "-o", tmp_path / "m3", "--light", "lamp")
     assert proc.returncode == 2 and "--light" in proc.stderr and "Traceback" not in proc.stderr
 
 

@@ -158,13 +158,13 @@ def test_default_chooses_lobe_and_normals_on_left_out_shots():
 
 
 def test_light_calibration_stage_records_its_decision():
-    from tests.lightcal.helpers import misplaced_capture
+    from tests.lightcal.helpers import flash_capture
 
-    cap, *_ = misplaced_capture()
+    cap, *_ = flash_capture()
     res = fit_material(cap, flakes="off", normals="given", lobe="phong", light="auto")
     names = [d["name"] for d in res.report["decisions"]]
     assert names[:1] == ["light"] and res.report["decisions"][0]["chosen"] == res.report["light"]["chosen"]
-    assert res.report["light"]["chosen"] == "positions" and len(res.report["light"]["offsets"]) == 8
+    assert res.report["light"]["chosen"] == "flash" and len(res.report["light"]["flash"]) == 3
     assert res.report["stage_times"]["light"] > 0
     off = fit_material(cap, flakes="off", normals="given", lobe="phong")  # light="off", the default
     assert off.light.identity and "light" not in [d["name"] for d in off.report["decisions"]]
@@ -172,7 +172,7 @@ def test_light_calibration_stage_records_its_decision():
     err = lambda r: float(((render_shots(r.fit, replace(cap, lights=r.light.lights(cap))) - cap.images) ** 2).mean())  # noqa: E731
     assert err(res) < 0.5 * err(off)
     with pytest.raises(InputError, match="light: expected one of"):
-        fit_material(cap, light="flash")
+        fit_material(cap, light="lamp")
 
 
 def test_the_statistics_refit_keeps_the_first_fits_clusters():

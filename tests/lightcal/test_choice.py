@@ -3,7 +3,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from tests.lightcal.helpers import misplaced_capture
+from tests.lightcal.helpers import flash_capture, misplaced_capture
 from torchmetal.errors import InputError
 from torchmetal.lightcal import LightCalibration, choose_light, with_light
 from torchmetal.synth import synth_capture
@@ -26,14 +26,27 @@ def test_isotropic_lights_keep_no_calibration():
     cap = _capture(falloff=0.0)
     out, cal, rep = with_light(cap, "auto")
     assert rep["chosen"] == "off" and cal.identity and out is cap and rep["decision"]["name"] == "light"
-    assert rep["decision"]["candidates"] == ["off", "positions"] and rep["decision"]["z"]["positions"] <= 4.0
+    assert rep["decision"]["candidates"] == ["off", "flash"] and rep["decision"]["z"]["flash"] <= 4.0
 
 
-def test_misplaced_lights_are_moved():
+def test_a_flash_beside_the_lens_is_found():
+    """Every photo taken with the light 6 mm below and 2 mm above where capture.json puts it."""
+    cap, move, _ = flash_capture()
+    out, cal, rep = with_light(cap, "auto")
+    assert rep["chosen"] == "flash", rep["decision"]["reason"]
+    assert set(rep["decision"]["scores"]) == {"phong", "ggx"}  # it must win with the fits of either lobe
+    found = torch.tensor(cal.flash, dtype=torch.float64)
+    assert float((found - move)[:2].norm()) < 0.2 * float(move[:2].norm())  # across: measured 0.8 mm of 6
+    assert float((found - move).norm()) < 0.5 * float(move.norm())  # depth trades against the texture's level
+    assert cal.offsets is None and cal.for_unseen() == cal  # the rig's move carries over to unseen shots
+    assert torch.equal(out.lights, cal.lights(cap)) and torch.equal(out.images, cap.images)
+
+
+def test_misplaced_lights_are_moved_when_asked():
     """Photos taken with each light 6 mm (~10 % of its distance) from where capture.json puts it."""
     cap, true, _ = misplaced_capture()
-    out, cal, rep = with_light(cap, "auto")
-    assert rep["chosen"] == "positions" and rep["decision"]["z"]["positions"] > 4.0
+    out, cal, rep = with_light(cap, "positions")
+    assert rep["mode"] == "positions" and "decision" not in rep
     found = torch.tensor(cal.offsets, dtype=torch.float64)
     err = (found - true).norm(dim=1).mean()
     assert float((found - true)[:, :2].norm(dim=1).mean()) < 0.3 * 0.006  # across: measured 0.0009
@@ -52,4 +65,4 @@ def test_skips_are_reported():
 
 def test_unknown_mode_is_refused():
     with pytest.raises(InputError, match="light: expected one of"):
-        with_light(_capture(), "flash")
+        with_light(_capture(), "lamp")

@@ -137,9 +137,10 @@ def _gallery_png(path: Path, photo, render) -> Path:
 
 #: more pipelines the real section can score beside the zoo's METHODS: the default before the lobe and the
 #: normals were chosen on left-out shots (paper_model), the lights moved where left-out shots prefer it
-#: (light_auto) or always (light_positions), and the richest options
+#: (light_auto), by the flash's one move (light_flash) or each to its photo (light_positions), and the
+#: richest options
 REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong", "light": "off"}, "light_auto": {"light": "auto"},
-                 "light_positions": {"light": "positions"},
+                 "light_flash": {"light": "flash"}, "light_positions": {"light": "positions"},
                  "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}
 
 

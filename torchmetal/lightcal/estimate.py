@@ -86,17 +86,22 @@ def calibrate(capture: Capture, fit: FitResult, *, gains: bool, fit_kwargs: dict
 
 
 def calibrate_positions(capture: Capture, *, fit_kwargs: dict | None = None, rounds: int = POSITION_ROUNDS,
-                        base: LightCalibration | None = None) -> tuple[LightCalibration, FitResult]:
-    """Per-shot light offsets (:func:`~torchmetal.lightcal.positions.fit_offsets`) alternated ``rounds``
-    times with the material's fit on ``capture`` (each fit on the lights the last offsets moved; the rounds
-    keep the lobe of the first), on top of ``base``'s falloff and gains. Returns (calibration, the fit at
-    its offsets)."""
+                        base: LightCalibration | None = None, shared: bool = False) -> tuple[LightCalibration, FitResult]:
+    """Per-shot light offsets (or, ``shared``, the flash's one move of every light:
+    :func:`~torchmetal.lightcal.positions.fit_offsets`) alternated ``rounds`` times with the material's fit
+    on ``capture`` (each fit on the lights the last offsets moved; the rounds keep the lobe of the first), on
+    top of ``base``'s falloff and gains. Returns (calibration, the fit at its offsets)."""
     base = base or LightCalibration()
     kw = fit_kwargs or {}
     cap = base.apply(capture)
     fit, off = fit_phong(cap, **kw), None
     kw = {**kw, "lobe": fit.lobe}  # the first fit's lobe (chosen there with lobe="auto") for the rounds
     for _ in range(rounds):
-        off = fit_offsets(cap, lambda lights: fit.render(lights, cap.intensities, cap.cameras), off)
+        off = fit_offsets(cap, lambda lights: fit.render(lights, cap.intensities, cap.cameras), off, shared=shared)
         fit = fit_phong(move_capture(cap, off), **kw)
+    if shared:  # every point light's row holds the one move; added to the base's
+        point = capture.lights[:, 3] > 0
+        move = off[point][0] if bool(point.any()) else torch.zeros(3, dtype=torch.float64)
+        prev = torch.tensor(base.flash or (0.0, 0.0, 0.0), dtype=torch.float64)
+        return replace(base, flash=tuple((prev + move).tolist())), fit
     return replace(base, offsets=tuple(tuple(o) for o in off.tolist())), fit

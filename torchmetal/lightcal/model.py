@@ -45,28 +45,35 @@ class LightCalibration:
         gains: (N,) per-shot multipliers of the capture it was fitted on, or None (all 1).
         offsets: (N,) (x, y, z) moves of the point lights of the capture it was fitted on, in its units
             (:mod:`~torchmetal.lightcal.positions`), or None.
+        flash: one (x, y, z) move of every point light, this capture's or another of the same rig (the
+            flash's place beside the lens), or None.
     """
 
     falloff: float = 0.0
     gains: tuple[float, ...] | None = None
     offsets: tuple[tuple[float, float, float], ...] | None = None
+    flash: tuple[float, float, float] | None = None
 
     @property
     def identity(self) -> bool:
-        return self.falloff == 0.0 and self.gains is None and self.offsets is None
+        return self.falloff == 0.0 and self.gains is None and self.offsets is None and self.flash is None
 
     def for_unseen(self) -> LightCalibration:
-        """The calibration for shots it was not fitted on: the falloff only (no gain, no offset)."""
+        """The calibration for shots it was not fitted on: the falloff and the flash's move (no gain, no
+        per-shot offset)."""
         return replace(self, gains=None, offsets=None)
 
     def lights(self, capture: Capture) -> Tensor:
-        """(N, 4) the capture's lights, the point lights moved by the offsets."""
+        """(N, 4) the capture's lights, the point lights moved by the flash's move and the offsets."""
+        lights = capture.lights
+        if self.flash is not None:
+            lights = moved_lights(lights, torch.tensor([self.flash], dtype=torch.float64).expand(capture.num_shots, 3))
         if self.offsets is None:
-            return capture.lights
+            return lights
         if len(self.offsets) != capture.num_shots:
             raise InputError(f"light calibration: expected offsets for {capture.num_shots} shots, "
                              f"found {len(self.offsets)}")
-        return moved_lights(capture.lights, torch.tensor(self.offsets, dtype=torch.float64))
+        return moved_lights(lights, torch.tensor(self.offsets, dtype=torch.float64))
 
     def factor(self, capture: Capture) -> Tensor:
         """(N, 1, H, W) in the images' dtype: what the calibration multiplies each shot's irradiance by
@@ -74,7 +81,7 @@ class LightCalibration:
         n = capture.num_shots
         if self.gains is not None and len(self.gains) != n:
             raise InputError(f"light calibration: expected gains for {n} shots, found {len(self.gains)}")
-        if self.offsets is not None and self.falloff != 0.0:
+        if (self.offsets is not None or self.flash is not None) and self.falloff != 0.0:
             capture = replace(capture, lights=self.lights(capture))  # the axis from the moved lights
         log_f = self.falloff * log_axis_cosine(capture) if self.falloff != 0.0 else torch.zeros(
             n, 1, 1, 1, dtype=torch.float64, device=capture.images.device)
@@ -96,6 +103,7 @@ class LightCalibration:
     def to_dict(self) -> dict:
         return {"falloff": self.falloff, "gains": None if self.gains is None else list(self.gains),
                 "offsets": None if self.offsets is None else [list(o) for o in self.offsets],
+                "flash": None if self.flash is None else list(self.flash),
                 "axis": "from each point light to the surface centre"}
 
     @classmethod
@@ -103,6 +111,7 @@ class LightCalibration:
         """The calibration a report's ``light`` entry describes (none for None or an empty entry)."""
         if not d:
             return cls()
-        gains, offsets = d.get("gains"), d.get("offsets")
+        gains, offsets, flash = d.get("gains"), d.get("offsets"), d.get("flash")
         return cls(float(d.get("falloff", 0.0)), None if gains is None else tuple(float(g) for g in gains),
-                   None if offsets is None else tuple(tuple(float(x) for x in o) for o in offsets))
+                   None if offsets is None else tuple(tuple(float(x) for x in o) for o in offsets),
+                   None if flash is None else tuple(float(x) for x in flash))

@@ -1,4 +1,5 @@
-"""Per-shot light positions as nuisance parameters (:mod:`torchmetal.lightcal`).
+"""Light positions as nuisance parameters (:mod:`torchmetal.lightcal`): per shot, or one offset shared by
+every shot (the flash).
 
 A phone capture's light positions come from its marker board and a guess of where the flash sits beside
 the lens; on the shared gold paper they put the flash's mirror point 1.7–3.1 cm away from the photo's
@@ -9,7 +10,9 @@ observations, the Jacobian by central differences (three numbers per shot, indep
 :func:`~torchmetal.lightcal.choice.with_light` alternates it with the material's fit.
 
 An offset is bounded by ``MAX_MOVE`` × the light's distance to the surface centre; a directional light
-has none.
+has none. A phone's flash sits beside the lens at the same place in every shot: where the capture put it
+elsewhere, one offset shared by every shot (``shared=True``) says so, and it carries over to shots the
+fit did not see (the shared card: y −0.85 cm in every leave-one-out fold, docs/design.md §4).
 """
 
 from __future__ import annotations
@@ -47,10 +50,12 @@ def move_capture(capture: Capture, offsets: Tensor | None) -> Capture:
 
 
 def fit_offsets(capture: Capture, render: Callable[[Tensor], Tensor], init: Tensor | None = None, *,
-                iters: int = ITERS) -> Tensor:
+                iters: int = ITERS, shared: bool = False) -> Tensor:
     """(N, 3) float64 offsets of ``capture``'s point lights that bring ``render`` (lights (N, 4) →
     (N, 3, H, W), the material held fixed) closest to the photos in squared error over their valid
-    observations (module docstring); ``init`` (N, 3) starts the search (zeros by default)."""
+    observations (module docstring); ``init`` (N, 3) starts the search (zeros by default). ``shared``:
+    one offset for every shot (the flash's place beside the lens, where the capture put it elsewhere:
+    the normal equations summed over the shots), repeated in each row."""
     lights = capture.lights.double().cpu()
     n = lights.shape[0]
     photo = capture.images.double().cpu().reshape(n, -1)
@@ -62,6 +67,9 @@ def fit_offsets(capture: Capture, render: Callable[[Tensor], Tensor], init: Tens
     if not bool(point.any()) or not bool(valid.any()):
         return d
     h = (STEP * dist)[:, None]
+    if shared:  # one set of normal equations, one damping, one bound (the nearest light's)
+        dist = dist.min().expand(n)
+    pool = (lambda x: x.sum(0, keepdim=True).expand_as(x)) if shared else (lambda x: x)  # noqa: E731
 
     def residual(off: Tensor) -> Tensor:
         with torch.no_grad():
@@ -79,8 +87,8 @@ def fit_offsets(capture: Capture, render: Callable[[Tensor], Tensor], init: Tens
             e[:, j] = h[:, 0]
             cols.append((residual(d + e) - residual(d - e)) / (2.0 * h))
         jac = torch.stack(cols, 2)  # (N, M, 3)
-        a = jac.transpose(1, 2) @ jac  # (N, 3, 3)
-        g = (jac * r[:, :, None]).sum(1)  # (N, 3)
+        a = pool(jac.transpose(1, 2) @ jac)  # (N, 3, 3)
+        g = pool((jac * r[:, :, None]).sum(1))  # (N, 3)
         damp = a + lam[:, None, None] * (torch.diagonal(a, dim1=1, dim2=2)[:, :, None] * eye + 1e-12 * eye)
         step = -torch.linalg.solve(damp, g[:, :, None])[:, :, 0]
         trial = d + step
@@ -89,7 +97,7 @@ def fit_offsets(capture: Capture, render: Callable[[Tensor], Tensor], init: Tens
         trial[~point] = 0.0
         r_t = residual(trial)
         c_t = (r_t * r_t).sum(1)
-        take = c_t < cost
+        take = pool(c_t[:, None])[:, 0] < pool(cost[:, None])[:, 0]
         d = torch.where(take[:, None], trial, d)
         r = torch.where(take[:, None], r_t, r)
         cost = torch.where(take, c_t, cost)
