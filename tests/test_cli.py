@@ -118,10 +118,10 @@ def test_console_entry_exits_fast_with_complete_outputs(tmp_path):
 def test_fit_light_option(tmp_path):
     cap, mat = tmp_path / "cap", tmp_path / "mat"
     assert main(["synth", "-o", str(cap), "--size", "32", "--shots", "5"]) == 0
-    assert main(["fit", str(cap), "-o", str(mat), "-q", "--flakes", "off"]) == 0  # --light off: the default
-    meta = json.loads((mat / "material.json").read_text())
-    assert meta["fit"]["light"]["mode"] == "off" and meta["fit"]["light"]["falloff"] == 0.0
-    assert meta["fit"]["light"]["offsets"] is None
+    assert main(["fit", str(cap), "-o", str(mat), "-q", "--flakes", "off"]) == 0  # --light auto: the default
+    light = json.loads((mat / "material.json").read_text())["fit"]["light"]
+    assert light["mode"] == "auto" and light["chosen"] == "off" and light["decision"]["name"] == "light"
+    assert light["falloff"] == 0.0 and light["offsets"] is None and light["flash"] is None  # the synth's exact lights
     near = tmp_path / "near"
     assert main(["synth", "-o", str(near), "--size", "32", "--shots", "5", "--layout", "near"]) == 0
     assert main(["fit", str(near), "-o", str(tmp_path / "pos"), "-q", "--flakes", "off", "--light", "positions"]) == 0

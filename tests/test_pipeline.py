@@ -153,7 +153,7 @@ def test_default_chooses_lobe_and_normals_on_left_out_shots():
     assert given.report["normals"]["chosen"] == "given" and given.material.normals is not None
     assert given.report["lobe"] == "ggx" == given.report["lobe_selection"]["lobe"], given.report["lobe_selection"]
     names = [d["name"] for d in rep["decisions"]]
-    assert names[:2] == ["normals", "lobe"] and rep["decisions"][0]["chosen"] == "estimate"
+    assert names[:3] == ["normals", "light", "lobe"] and rep["decisions"][0]["chosen"] == "estimate"
     assert [d["chosen"] for d in given.report["decisions"] if d["name"] == "lobe"] == ["ggx"]
 
 
@@ -161,12 +161,12 @@ def test_light_calibration_stage_records_its_decision():
     from tests.lightcal.helpers import flash_capture
 
     cap, *_ = flash_capture()
-    res = fit_material(cap, flakes="off", normals="given", lobe="phong", light="auto")
+    res = fit_material(cap, flakes="off", normals="given", lobe="phong")  # light="auto", the default
     names = [d["name"] for d in res.report["decisions"]]
     assert names[:1] == ["light"] and res.report["decisions"][0]["chosen"] == res.report["light"]["chosen"]
     assert res.report["light"]["chosen"] == "flash" and len(res.report["light"]["flash"]) == 3
     assert res.report["stage_times"]["light"] > 0
-    off = fit_material(cap, flakes="off", normals="given", lobe="phong")  # light="off", the default
+    off = fit_material(cap, flakes="off", normals="given", lobe="phong", light="off")
     assert off.light.identity and "light" not in [d["name"] for d in off.report["decisions"]]
     # the calibrated material predicts the photos better once the renders use the moved lights
     err = lambda r: float(((render_shots(r.fit, replace(cap, lights=r.light.lights(cap))) - cap.images) ** 2).mean())  # noqa: E731

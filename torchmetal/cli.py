@@ -273,11 +273,12 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
                         "where left-out shots prefer them to a flat plane; given: the capture's normals.npy (flat "
                         "without one); flat: (0, 0, 1); estimate: from the photos (photometric stereo with the Phong "
                         "terms); tiled fits use the capture's")
-    f.add_argument("--light", choices=["auto", "off", "positions", "falloff", "gains"], default="off",
-                   help="light calibration, nuisances of the capture (not the material): off (default: the capture's "
-                        "lights); auto: each shot's light moved to fit its photo where left-out shots prefer the "
-                        "material fitted so; positions; falloff (the flash's falloff from its axis); gains (falloff "
-                        "and a gain per shot); tiled fits use none")
+    f.add_argument("--light", choices=["auto", "off", "flash", "positions", "falloff", "gains"], default="auto",
+                   help="light calibration, nuisances of the capture (not the material): auto (default: the flash's one "
+                        "move of every light where left-out shots, under their lights moved alike, prefer it); off "
+                        "(the capture's lights); flash (that move always); positions (each shot's light moved to fit "
+                        "its photo); falloff (the flash's falloff from its axis); gains (falloff and a gain per shot); "
+                        "tiled fits use none")
     f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
     f.add_argument("--tile", type=int, default=None, metavar="N",
                    help="fit tile by tile (N x N pixels; memory bounded by the tile, not the capture; docs/scale.md)")

@@ -207,7 +207,7 @@ def fit_material(
     lobe: str = "auto",
     normals: str = "auto",
     weights: str = "auto",
-    light: str = "off",
+    light: str = "auto",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -239,12 +239,13 @@ def fit_material(
             them, else plain least squares; the refits keep that choice), "uniform" (plain least squares) or
             "noise" (each observation weighted by the inverse of its expected noise variance,
             ``fit_phong(noise_weights=True)``).
-        light: the light calibration (:mod:`torchmetal.lightcal`: per-shot light positions, the flash's
-            falloff from its axis and per-shot gains, nuisances of the capture, not the material): "off"
-            (the default: the capture's lights; on the shared gold paper the positions' material predicts
-            left-out shots under the capture's lights worse, docs/design.md §4), "auto" (each shot's point
-            light moved to fit its photo where left-out shots, their own lights fitted alike, prefer the
-            material fitted so), "positions", "falloff" or "gains" (falloff and per-shot gains). ``result.light`` holds it: a
+        light: the light calibration (:mod:`torchmetal.lightcal`: the flash's move, per-shot light
+            positions, the flash's falloff from its axis and per-shot gains, nuisances of the capture, not
+            the material): "auto" (the default: every point light moved alike — a flash beside the lens
+            where the capture put it elsewhere — where left-out shots, their lights moved the same way,
+            prefer it with Phong and GGX fits alike, docs/design.md §4), "off" (the capture's lights),
+            "flash" (that move always), "positions" (each shot's light moved to fit its photo), "falloff"
+            or "gains" (falloff and per-shot gains). ``result.light`` holds it: a
             render compared with the capture's photos uses ``result.light.lights(capture)`` and is multiplied
             by ``result.light.factor(capture)``.
 
@@ -288,7 +289,7 @@ class Options:
     lobe: str
     normals: str
     weights: str
-    light: str = "off"
+    light: str = "auto"
 
     @classmethod
     def checked(cls, *, observed: str | bool, **kw) -> Options:

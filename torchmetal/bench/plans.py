@@ -30,7 +30,7 @@ class Plan:
     real_downsample: int = 1
     real_captures: tuple[str, ...] = ("cards_blue", "yellow_box", "uw_gray_sphere")
     real_max_shots: int | None = None
-    real_speculars: tuple[str, ...] = ("global", "clustered", "paper", "paper_model", "light_auto", "default")
+    real_speculars: tuple[str, ...] = ("global", "clustered", "paper", "paper_model", "light_off", "default")
     realflakes_captures: tuple[str, ...] = ("cards_blue",)
     isolate: bool = True
     timeout_s: float = 1800.0

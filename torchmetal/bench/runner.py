@@ -294,9 +294,10 @@ class Bench(SweepSection):
         self.add(md_table(["capture", "fit", "mean PSNR dB", "per left-out shot (dB)", "coat PSNR dB", "chroma artifacts",
                            "light fitted: PSNR dB, chroma", "in-sample PSNR dB", "seconds"], rows))
         self.add("\n*fit*: global / clustered are `fit_phong` (refine scheme) with that specular; default is "
-                 "`fit_material` as `torchmetal fit` runs it (flakes, lobe, normals and maps decided by it), paper_model "
-                 "the same with the paper's model forced (`--normals given --lobe phong`, the default before the lobe and the normals were chosen on left-out shots) "
-                 "and paper the paper's scheme (`--scheme paper --flakes off`), all rendered by the material's renderer. "
+                 "`fit_material` as `torchmetal fit` runs it (flakes, lobe, normals, maps and the light decided by it), paper_model "
+                 "the same with the paper's model forced (`--normals given --lobe phong --light off`, the default before the lobe, "
+                 "the normals and the light were chosen on left-out shots) "
+                 "and paper the paper's scheme (`--scheme paper --flakes off --light off`), all rendered by the material's renderer. "
                  "PSNR: linear, peak 1, mask pixels not saturated. *coat PSNR*: the pipeline's material rendered "
                  "without its sparkles (mean over the left-out shots), the zoo's coat score: random sparkle positions "
                  "cost PSNR even where the flake statistics are right. *chroma artifacts*: share of 8×8-px blocks of the "
@@ -305,7 +306,7 @@ class Bench(SweepSection):
                  "scored on those shots (what the model explains at all). *light fitted*: a pipeline's left-out shots "
                  "rendered with each shot's light position fitted to its photo, the material held fixed (a phone "
                  "capture's light positions are off by centimetres; this compares the materials, not them). "
-                 "light_auto: the default with `--light auto`. "
+                 "light_off: the default with the capture's lights as given (`--light off`). "
                  "*seconds*: the leave-one-out fits.")
         if galleries:
             self.add(f"\nGallery (default pipeline; photo | render | error ×4, sRGB): `real_gallery/` — "
