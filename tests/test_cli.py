@@ -124,7 +124,8 @@ def test_fit_light_option(tmp_path):
     assert light["falloff"] == 0.0 and light["offsets"] is None and light["flash"] is None  # the synth's exact lights
     near = tmp_path / "near"
     assert main(["synth", "-o", str(near), "--size", "32", "--shots", "5", "--layout", "near"]) == 0
-    assert main(["fit", str(near), "-o", str(tmp_path / "pos"), "-q", "--flakes", "off", "--light", "positions"]) == 0
+    proc = run_cli("fit", near, "-o", tmp_path / "pos", "-q", "--flakes", "off", "--light", "positions")
+    assert proc.returncode == 0 and "5 lights moved to their photos (--light positions)" in proc.stdout, proc.stdout
     light = json.loads((tmp_path / "pos" / "material.json").read_text())["fit"]["light"]
     assert light["mode"] == "positions" and len(light["offsets"]) == 5 and all(len(o) == 3 for o in light["offsets"])
     assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m2", "--light", "falloff", "--tile", "16"), "--light")

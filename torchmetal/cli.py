@@ -70,10 +70,26 @@ def cmd_fit(args: argparse.Namespace) -> int:
         f"fitted {capture.num_shots} shots {capture.height}x{capture.width} in {rep['total_time']:.2f} s: "
         f"rmse {rep['rmse']:.4g}, s {[round(v, 4) for v in result.material.s.tolist()]}, "
         f"alpha {[round(v, 1) for v in result.material.alpha.tolist()]}, lobe {result.material.lobe}, "
-        f"flakes {'none' if flakes is None else _density_text(flakes)}; "
+        f"flakes {'none' if flakes is None else _density_text(flakes)}{_light_text(rep.get('light'))}; "
         f"skipped: {'; '.join(rep['skipped']) or 'nothing'} -> {args.output}"
     )
     return 0
+
+
+def _light_text(light: dict | None) -> str:
+    """The fit line's light calibration, where there is one: ", lights moved by (x, y, z) (flash)" and the like."""
+    if not light:
+        return ""
+    parts = []
+    if light.get("flash") is not None:
+        parts.append(f"lights moved by ({', '.join(f'{v:.3g}' for v in light['flash'])})")
+    if light.get("offsets") is not None:
+        parts.append(f"{len(light['offsets'])} lights moved to their photos")
+    if light.get("falloff"):
+        parts.append(f"flash falloff cos^{light['falloff']:.3g}")
+    if light.get("gains") is not None:
+        parts.append("per-shot gains")
+    return f", {', '.join(parts)} (--light {light.get('chosen', light.get('mode'))})" if parts else ""
 
 
 def _fit_tiled(args: argparse.Namespace, scratch: list) -> tuple[PipelineResult, TiledCapture]:

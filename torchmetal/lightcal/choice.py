@@ -60,8 +60,8 @@ ROUNDS = 3  # steps of the chosen calibration's estimate on all shots (a synthet
 def _fold_errors(train: Capture, hold: Capture, fit_kwargs: dict) -> dict[str, Tensor]:
     """Per-pixel held-out errors of the capture's lights and of the flash's move, fitted on ``train``."""
     ref = fit_phong(train, **fit_kwargs)
-    cal, moved = calibrate_positions(train, fit_kwargs=fit_kwargs, shared=True)
-    return {"off": held_out_errors(ref, hold, LightCalibration()), "flash": held_out_errors(moved, hold, cal)}
+    cal, fit = calibrate_positions(train, fit_kwargs=fit_kwargs, shared=True)
+    return {"off": held_out_errors(ref, hold, LightCalibration()), "flash": held_out_errors(fit, hold, cal)}
 
 
 def held_out_errors(fit, hold: Capture, cal: LightCalibration) -> Tensor:
@@ -113,7 +113,7 @@ def choose_light(capture: Capture, *, fit_kwargs: dict | None = None, max_pixels
     if d.chosen != "off" and any(x.chosen == "off" for x in per_lobe.values()):
         d.chosen = "off"
     d.reason = "; ".join(f"{lobe} fits: {x.reason}" for lobe, x in per_lobe.items())
-    d.scores = {f"{lobe}": {"mse": dict(x.mse), "z": dict(x.z)} for lobe, x in per_lobe.items()}
+    d.scores = {lobe: {"mse": dict(x.mse), "z": dict(x.z)} for lobe, x in per_lobe.items()}
     d.holds = groups
     d.pixels = int(sub.images.shape[-2] * sub.images.shape[-1])
     return d.chosen, d
