@@ -3,11 +3,11 @@ from dataclasses import replace
 import pytest
 import torch
 
+from tests.lightcal.helpers import glossy_scene, photographed
 from torchmetal.fit.api import fit_phong
 from torchmetal.lightcal import LightCalibration, with_light
 from torchmetal.lightcal.estimate import calibrate_positions
 from torchmetal.lightcal.positions import MAX_MOVE, fit_offsets, material_offsets, move_capture, moved_lights
-from torchmetal.lobes import lobe_render
 from torchmetal.material import Material
 from torchmetal.synth import synth_capture
 
@@ -17,18 +17,9 @@ TRUE = torch.tensor([[0.6, -0.4, 0.3], [-0.5, 0.2, -0.4], [0.3, 0.5, 0.2], [-0.2
 
 def _scene(size=48, shots=6, seed=4, noise=0.0):
     """A glossy synthetic capture photographed with each point light at TRUE[k] from where capture.json says."""
-    r = synth_capture(size=size, shots=shots, layout="near", texture="procedural", seed=seed, noise=0.0,
-                      alpha=(60.0, 60.0, 60.0), s=(0.5, 0.5, 0.5))
-    t = r.truth
-    cap = r.capture
-
-    def render(lights):
-        return lobe_render(t["texture"], t["s"], t["alpha"], t["normals"], lights, cap.intensities, cap.cameras, cap.size)
-
-    photo = render(moved_lights(cap.lights, TRUE[:shots]))
-    if noise:
-        photo = photo * (1 + noise * torch.randn(photo.shape, generator=torch.Generator().manual_seed(seed)))
-    return r, replace(cap, images=photo.clamp_min(0)), render
+    r = glossy_scene(size, shots, seed)
+    cap, render = photographed(r, TRUE[:shots], noise, torch.Generator().manual_seed(seed))
+    return r, cap, render
 
 
 def test_moved_lights_moves_point_lights_only():
@@ -106,12 +97,8 @@ def test_with_light_positions_reports_the_offsets():
 
 
 def test_a_shared_offset_moves_every_light_alike():
-    from tests.lightcal.helpers import flash_capture
-
-    cap, move, t = flash_capture(noise=0.0)
-
-    def render(lights):
-        return lobe_render(t["texture"], t["s"], t["alpha"], t["normals"], lights, cap.intensities, cap.cameras, cap.size)
+    move = torch.tensor([0.0, -0.006, 0.002], dtype=torch.float64)  # a flash beside the lens
+    cap, render = photographed(glossy_scene(), move.expand(8, 3))
 
     off = fit_offsets(cap, render, shared=True)
     assert bool((off == off[:1]).all())  # one move, in every row

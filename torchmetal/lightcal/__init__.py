@@ -3,28 +3,30 @@ where asked for, or (``light="auto"``) where shots left out of the fit prefer th
 
 A phone's flash is not the isotropic point light of capture.json: it sits a centimetre or more from
 where the capture put it, its beam falls off (or the phone's vignetting correction brightens the edges)
-with the angle from its axis, and its power can drift from shot to shot. Three nuisances model that:
+with the angle from its axis, and its power can drift from shot to shot. Four nuisances model that:
 
-- **positions**: an offset (x, y, z) per shot's point light, fitted to its photo with the material held
-  fixed and alternated with the material's fit (the lights move: the fit sees other geometry);
+- **flash**: one offset (x, y, z) of every point light (the flash beside the lens, where the capture put
+  it elsewhere: the same move in every shot, and in shots the fit did not see);
+- **positions**: an offset per shot's point light, fitted to its photo;
 - **falloff**: each point light's intensity × cos(θ)^p, θ the angle between the direction from the light
   to a surface point and the light's axis (from the light to the surface centre: the phone is aimed at
   the sample); one exponent p for the capture;
 - **gains**: one multiplier per shot (geometric mean 1: the texture carries the overall level).
 
-The falloff and the gains scale a shot's irradiance per pixel, and the model is linear in irradiance, so
-a calibrated capture is the photos divided by the factor and its lights moved by the offsets
-(:meth:`LightCalibration.apply`). The material describes the sample, not the lights: it carries no
-calibration, and a render compared with one of the capture's photos uses :meth:`LightCalibration.lights`
-and is multiplied by :meth:`LightCalibration.factor` (a shot the fit did not see gets the falloff only,
-:meth:`LightCalibration.for_unseen`).
+The offsets are fitted with the material held fixed and alternated with the material's fit (the lights
+move: the fit sees other geometry). The falloff and the gains scale a shot's irradiance per pixel, and
+the model is linear in irradiance, so a calibrated capture is the photos divided by the factor and its
+lights moved (:meth:`LightCalibration.apply`). The material describes the sample, not the lights: it
+carries no calibration, and a render compared with one of the capture's photos uses
+:meth:`LightCalibration.lights` and is multiplied by :meth:`LightCalibration.factor` (a shot the fit did
+not see gets the flash's move and the falloff, :meth:`LightCalibration.for_unseen`).
 
 - :mod:`~torchmetal.lightcal.model`: :class:`LightCalibration` (lights, factor, apply, the report's dict);
-- :mod:`~torchmetal.lightcal.positions`: the offsets, by Levenberg–Marquardt per shot;
+- :mod:`~torchmetal.lightcal.positions`: the offsets, by Levenberg–Marquardt per shot or shared;
 - :mod:`~torchmetal.lightcal.estimate`: the exponent and gains from a fit's log-ratio residuals, and the
-  positions alternated with the fit;
-- :mod:`~torchmetal.lightcal.choice`: ``light="auto"``: the capture's lights or the positions, decided on
-  left-out shots (:func:`~torchmetal.fit.decision.paired_choice`); the falloff and gains only when asked for.
+  offsets alternated with the fit;
+- :mod:`~torchmetal.lightcal.choice`: ``light="auto"``: the capture's lights or the flash's move, decided
+  on left-out shots (:func:`~torchmetal.fit.decision.paired_choice`); the rest only when asked for.
 """
 
 from torchmetal.lightcal.choice import LIGHT_MODES, choose_light, with_light

@@ -7,7 +7,7 @@ hotspot (docs/design.md §6), and a fit then explains the hotspot with a broad l
 sample. Here each point light gets an offset (x, y, z) in the capture's units, fitted to the shot's photo
 with the material held fixed: a Levenberg–Marquardt step per shot on the squared error over its valid
 observations, the Jacobian by central differences (three numbers per shot, independent across shots).
-:func:`~torchmetal.lightcal.choice.with_light` alternates it with the material's fit.
+:func:`~torchmetal.lightcal.estimate.calibrate_positions` alternates it with the material's fit.
 
 An offset is bounded by ``MAX_MOVE`` × the light's distance to the surface centre; a directional light
 has none. A phone's flash sits beside the lens at the same place in every shot: where the capture put it
@@ -120,11 +120,8 @@ def material_offsets(material: Material, capture: Capture, factor: Tensor | None
     if (h, w) != (material.height, material.width):
         raise ValueError(f"material_offsets: expected photos of {material.height}x{material.width}, found {h}x{w}")
     sub = strided_capture(capture, max_pixels)
-    if sub is capture:
-        pick = lambda t: t  # noqa: E731
-    else:
-        rows, cols, _, _ = stride_grid(h, w, max_pixels)
-        pick = lambda t: t[..., rows, cols]  # noqa: E731
+    rows, cols, _, _ = stride_grid(h, w, max_pixels)  # every pixel where the capture is small enough
+    pick = lambda t: t[..., rows, cols]  # noqa: E731
     tex = pick(material.texture)
     dt = tex.dtype
     s, alpha = material.specular_maps()
