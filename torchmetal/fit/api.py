@@ -49,7 +49,7 @@ from torchmetal.fit.result import FitResult
 from torchmetal.fit.run import FitRun
 from torchmetal.geometry import is_flat
 from torchmetal.lobes import LOBES, check_lobe
-from torchmetal.memory import release_free_memory, streams_geometry
+from torchmetal.memory import pixels_per_chunk, release_free_memory, streams_geometry
 
 if TYPE_CHECKING:
     from torchmetal.fit.decisions import SubsampleDecisions
@@ -113,7 +113,7 @@ def _grid_maps(x: Tensor, h: int, w: int) -> Tensor:
 def fit_phong(
     capture: Capture, *, scheme: str = "refine", specular: str = "auto", tol: float = 1e-6, max_iters: int = 100,
     robust: str | None = None, progress: bool = False, outliers: float | None = None,
-    clusters: tuple[int, ...] = (2, 3, 4), max_pixels_per_chunk: int = 4096, sub_pixels: int = 1 << 16,
+    clusters: tuple[int, ...] = (2, 3, 4), max_pixels_per_chunk: int | None = None, sub_pixels: int = 1 << 16,
     select_pixels: int = 1 << 13, seed: int = 0, lobe: str = "phong", noise_weights: bool | str = False,
     relabel: bool = True, plan: ShotPlan | None = None,
 ) -> FitResult:
@@ -138,7 +138,8 @@ def fit_phong(
             (cards_blue leave-one-out: 18.9 dB without, 18.2 dB with, clustered specular).
         clusters: cluster counts tried for clustered specular.
         max_pixels_per_chunk: pixels per processing chunk (memory of temporaries:
-            ~N·3·chunk values each); results do not depend on it.
+            ~N·3·chunk values each); results do not depend on it. None: 4096 on the CPU, larger on an
+            accelerator (:func:`~torchmetal.memory.pixels_per_chunk`).
         sub_pixels, select_pixels: pixel budgets of the init and selection subsamples.
         seed: k-means seed.
         lobe: the specular lobe (:mod:`torchmetal.lobes`): "phong" (docs/design.md §2.2, the default here),
@@ -168,6 +169,8 @@ def fit_phong(
         raise InputError(f"noise_weights: expected True, False or 'auto', found {noise_weights!r}")
     _check_args(capture, scheme, specular, tol, max_iters, robust, outliers, clusters)
     _check_lobe_arg(lobe, scheme)
+    if max_pixels_per_chunk is None:
+        max_pixels_per_chunk = pixels_per_chunk(capture)
     kw = dict(specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers, clusters=clusters,
               chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
               noise=noise_weights, relabel=relabel, plan=plan)

@@ -42,6 +42,7 @@ from torchmetal.fit.chunk_pass import weighted as weighted
 from torchmetal.fit.grid_terms import GridSource, grid_axes, grid_geometry
 from torchmetal.fit.lobes import LOG_OFF as LOG_OFF
 from torchmetal.fit.lobes import geo_channels
+from torchmetal.memory import pixels_per_chunk
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -247,7 +248,7 @@ class Observations:
 
 def build_observations(
     capture: Capture, *, stride: int = 1, shots: list[int] | None = None, dtype: torch.dtype | None = None,
-    chunk: int = 4096, ref: Reference | None = None, weighting: Weighting | None = None,
+    chunk: int | None = None, ref: Reference | None = None, weighting: Weighting | None = None,
     labeler: Callable[[Tensor, Tensor], Tensor] | None = None, want_tmin: bool = False, with_stats: bool = False,
     lobe: str = "phong", window: tuple[slice, slice] | None = None, stream: bool = False,
 ) -> Observations:
@@ -259,7 +260,7 @@ def build_observations(
         stride: keep pixels (off + i·stride, off + j·stride), off = stride // 2 (1: all).
         shots: shot indices to use (default all).
         dtype: compute dtype (default float64 for float64 images, else float32).
-        chunk: pixels per chunk.
+        chunk: pixels per chunk; None: :func:`~torchmetal.memory.pixels_per_chunk`.
         ref: specular model at which residuals are taken for ``weighting`` (and the fallback).
         weighting: turn residuals at ``ref`` into weights (per-pixel IRLS of the texture,
             ``weighting.rounds`` rounds, inside each chunk).
@@ -284,6 +285,7 @@ def build_observations(
     idx = None if shots is None else torch.as_tensor(shots, dtype=torch.long, device=imgs.device)
     y, sat, mask, h, w = _grid_pixels(capture, rows, cols, idx)
     lights, cams, inten = _shot_terms(capture, idx, dt, int(y.shape[0]))
+    chunk = pixels_per_chunk(capture) if chunk is None else chunk
     chunks = chunk_ranges(h * w, chunk)
     ps = _start_pass(y, inten, mask, sat, rows, cols, w, dt, len(chunks), ref=ref, weighting=weighting, labeler=labeler,
                      want_tmin=want_tmin, with_stats=with_stats, stream=stream, lobe=lobe)

@@ -100,7 +100,7 @@ def calibrate_positions(capture: Capture, *, fit_kwargs: dict | None = None, rou
         off = fit_offsets(cap, lambda lights: fit.render(lights, cap.intensities, cap.cameras), off, shared=shared)
         fit = fit_phong(move_capture(cap, off), **kw)
     if shared:  # every point light's row holds the one move; added to the base's
-        point = capture.lights[:, 3] > 0
+        point = (capture.lights[:, 3] > 0).cpu()  # off lives on the CPU (fit_offsets)
         move = off[point][0] if bool(point.any()) else torch.zeros(3, dtype=torch.float64)
         prev = torch.tensor(base.flash or (0.0, 0.0, 0.0), dtype=torch.float64)
         return replace(base, flash=tuple((prev + move).tolist())), fit

@@ -92,9 +92,9 @@ def _refine_normals(m0: Tensor, hk: Tensor, fid: Tensor, amp: Tensor, snr: Tenso
         d = m[fid] - hk  # (P, 3)
         x = torch.stack([torch.ones_like(wt), -(d * t1[fid]).sum(1) / sigma, -(d * t2[fid]).sum(1) / sigma], 1)
         y = y_obs + (d * d).sum(1) / (2 * sigma * sigma)
-        a = torch.zeros(j, 3, 3, dtype=m.dtype).index_add_(0, fid, wt.view(-1, 1, 1) * x.unsqueeze(2) * x.unsqueeze(1))
-        a = a + torch.diag(torch.tensor([1e-9, 1.0, 1.0], dtype=m.dtype))
-        rhs = torch.zeros(j, 3, dtype=m.dtype).index_add_(0, fid, (wt * y).unsqueeze(1) * x)
+        a = torch.zeros(j, 3, 3, dtype=m.dtype, device=m.device).index_add_(0, fid, wt.view(-1, 1, 1) * x.unsqueeze(2) * x.unsqueeze(1))
+        a = a + torch.diag(torch.tensor([1e-9, 1.0, 1.0], dtype=m.dtype, device=m.device))
+        rhs = torch.zeros(j, 3, dtype=m.dtype, device=m.device).index_add_(0, fid, (wt * y).unsqueeze(1) * x)
         sol = torch.linalg.solve(a, rhs)
         step = sol[:, 1:]
         norm = step.norm(dim=1, keepdim=True)
@@ -129,13 +129,13 @@ def observed_flakes(capture: Capture, particles: Particles, flake_id: Tensor, mo
     fid = torch.unique(flake_id[keep], return_inverse=True)[1]
     j = int(fid.max()) + 1
     amp = p.amp.to(dt).clamp_min(1e-12)
-    wsum = torch.zeros(j, dtype=dt).index_add_(0, fid, amp)
-    cy = torch.zeros(j, dtype=dt).index_add_(0, fid, amp * p.cy.to(dt)) / wsum
-    cx = torch.zeros(j, dtype=dt).index_add_(0, fid, amp * p.cx.to(dt)) / wsum
+    wsum = torch.zeros(j, dtype=dt, device=fid.device).index_add_(0, fid, amp)
+    cy = torch.zeros(j, dtype=dt, device=fid.device).index_add_(0, fid, amp * p.cy.to(dt)) / wsum
+    cx = torch.zeros(j, dtype=dt, device=fid.device).index_add_(0, fid, amp * p.cx.to(dt)) / wsum
     b, axes = _brightest_footprint(p, fid, j)
     row, col, half = _half_vectors(capture, cy, cx)
     hk = half[p.shot, :, fid]  # (P, 3)
-    normal = normalize(torch.zeros(j, 3, dtype=dt).index_add_(0, fid, amp.unsqueeze(1) * hk), dim=1)
+    normal = normalize(torch.zeros(j, 3, dtype=dt, device=fid.device).index_add_(0, fid, amp.unsqueeze(1) * hk), dim=1)
     sig = float(model.glint_sigma)
     normal = _refine_normals(normal, hk, fid, amp, p.snr.to(dt), sig)
     detect_amp = _detect_amp(particles)
@@ -156,10 +156,10 @@ def observed_flakes(capture: Capture, particles: Particles, flake_id: Tensor, mo
 def _brightest_footprint(p: Particles, fid: Tensor, j: int) -> tuple[Particles, Tensor]:
     """Each flake's brightest detection (the least noisy shape) and its footprint's semi-axes (J, 2)."""
     dt = torch.float64
-    best = torch.full((j,), -1.0, dtype=dt).scatter_reduce(0, fid, p.snr.to(dt), "amax")
+    best = torch.full((j,), -1.0, dtype=dt, device=fid.device).scatter_reduce(0, fid, p.snr.to(dt), "amax")
     is_best = p.snr.to(dt) == best[fid]
-    first = torch.full((j,), len(p), dtype=torch.int64).scatter_reduce(
-        0, fid[is_best], torch.arange(len(p))[is_best], "amin")
+    first = torch.full((j,), len(p), dtype=torch.int64, device=fid.device).scatter_reduce(
+        0, fid[is_best], torch.arange(len(p), device=fid.device)[is_best], "amin")
     b = p.select(first)
     area = (b.flux.to(dt) / b.amp.to(dt).clamp_min(1e-12)).clamp(0.25, 50.0)
     lam1 = (b.major.to(dt) / 4) ** 2 - 1.0 / 12.0
@@ -192,10 +192,10 @@ def _place_by_brightness(capture: Capture, p: Particles, fid: Tensor, amp: Tenso
     j = normal.shape[0]
     n_shot = half.shape[0]
     flat = p.shot * j + fid  # a flake detected twice in a shot: its brightest detection
-    det = torch.zeros(n_shot * j, dtype=torch.bool).index_fill_(0, flat, True).view(n_shot, j)
-    log_a = torch.full((n_shot * j,), -50.0, dtype=dt).scatter_reduce(0, flat, torch.log(amp), "amax").view(n_shot, j)
-    wt = torch.zeros(n_shot * j, dtype=dt).scatter_reduce(0, flat, p.snr.to(dt).clamp(1.0, 100.0) ** 2, "amax")
-    valid = capture.mask[0, row, col].cpu().unsqueeze(0) & ~capture.saturated[:, :, row, col].any(1).cpu()
+    det = torch.zeros(n_shot * j, dtype=torch.bool, device=flat.device).index_fill_(0, flat, True).view(n_shot, j)
+    log_a = torch.full((n_shot * j,), -50.0, dtype=dt, device=flat.device).scatter_reduce(0, flat, torch.log(amp), "amax").view(n_shot, j)
+    wt = torch.zeros(n_shot * j, dtype=dt, device=flat.device).scatter_reduce(0, flat, p.snr.to(dt).clamp(1.0, 100.0) ** 2, "amax")
+    valid = (capture.mask[0, row, col].unsqueeze(0) & ~capture.saturated[:, :, row, col].any(1)).to(det.device)
     return place_normals(normal, half, det, valid, log_a, wt.view(n_shot, j), sig, float(prior[0]),
                          float(prior[1]), detect_amp)
 
@@ -209,17 +209,17 @@ def _colours(p: Particles, fid: Tensor, amp: Tensor, normal: Tensor, hk: Tensor,
     # colour: peak colour = c · w_peak · g_k  →  least squares over the detections
     g = torch.exp(-((normal[fid] - hk) ** 2).sum(1) / (2.0 * sig * sig))  # (P,)
     flake, _, wt = footprints(position, axes, b.angle.to(dt), *shape)
-    w_peak = torch.zeros(j, dtype=dt).scatter_reduce(0, flake, wt, "amax").clamp_min(0.05)
-    num = torch.zeros(j, 3, dtype=dt).index_add_(0, fid, g.unsqueeze(1) * p.peak.to(dt).clamp_min(0.0))
-    den = torch.zeros(j, dtype=dt).index_add_(0, fid, g * g).clamp_min(1e-12)
+    w_peak = torch.zeros(j, dtype=dt, device=fid.device).scatter_reduce(0, flake, wt, "amax").clamp_min(0.05)
+    num = torch.zeros(j, 3, dtype=dt, device=fid.device).index_add_(0, fid, g.unsqueeze(1) * p.peak.to(dt).clamp_min(0.0))
+    den = torch.zeros(j, dtype=dt, device=fid.device).index_add_(0, fid, g * g).clamp_min(1e-12)
     color = num / (den * w_peak).unsqueeze(1)
     # a glint factor ≥ 1/2 at the brightest detection: c ≤ 2·peak/w_peak (a normal placed far off
     # the detections' half vectors must not turn a faint detection into a bright flake), or, with the
     # flakes' brightness known, up to its mean + 2 spreads (a flake placed by it)
-    top = torch.zeros(j, 3, dtype=dt).scatter_reduce_(0, fid.view(-1, 1).expand(-1, 3), p.peak.to(dt).clamp_min(0.0), "amax")
-    scale = torch.full((j,), 2.0, dtype=dt)
+    top = torch.zeros(j, 3, dtype=dt, device=fid.device).scatter_reduce_(0, fid.view(-1, 1).expand(-1, 3), p.peak.to(dt).clamp_min(0.0), "amax")
+    scale = torch.full((j,), 2.0, dtype=dt, device=fid.device)
     if prior is not None:
-        a_top = torch.zeros(j, dtype=dt).scatter_reduce(0, fid, amp, "amax")
+        a_top = torch.zeros(j, dtype=dt, device=fid.device).scatter_reduce(0, fid, amp, "amax")
         bright = math.exp(float(prior[0]) + 2.0 * max(float(prior[1]), MIN_AMP_STD))
         scale = torch.maximum(scale, bright / a_top)
     return torch.minimum(color, scale.unsqueeze(1) * top / w_peak.unsqueeze(1)).clamp(0.0, MAX_COLOR)

@@ -41,10 +41,10 @@ def _candidates(m0: Tensor, sigma: float) -> Tensor:
     ref = torch.where(m0[:, :1].abs() > 0.9, alt, ref)
     t1 = normalize(ref - (ref * m0).sum(1, keepdim=True) * m0, dim=1)
     t2 = torch.cross(m0, t1, dim=1)
-    r = torch.linspace(0.0, 3.5, RADII, dtype=m0.dtype)[1:]
-    phi = torch.arange(ANGLES, dtype=m0.dtype) * (2 * math.pi / ANGLES)
-    u = torch.cat([torch.zeros(1, dtype=m0.dtype), (r.view(-1, 1) * torch.cos(phi)).reshape(-1)])
-    v = torch.cat([torch.zeros(1, dtype=m0.dtype), (r.view(-1, 1) * torch.sin(phi)).reshape(-1)])
+    r = torch.linspace(0.0, 3.5, RADII, dtype=m0.dtype, device=m0.device)[1:]
+    phi = torch.arange(ANGLES, dtype=m0.dtype, device=m0.device) * (2 * math.pi / ANGLES)
+    u = torch.cat([m0.new_zeros(1), (r.view(-1, 1) * torch.cos(phi)).reshape(-1)])
+    v = torch.cat([m0.new_zeros(1), (r.view(-1, 1) * torch.sin(phi)).reshape(-1)])
     off = sigma * (u.view(1, -1, 1) * t1.unsqueeze(1) + v.view(1, -1, 1) * t2.unsqueeze(1))
     return normalize(m0.unsqueeze(1) + off, dim=2)
 
@@ -75,4 +75,4 @@ def place_normals(m0: Tensor, half: Tensor, detected: Tensor, valid: Tensor, log
     cost = cost + MISS_WEIGHT * (miss * over * over).sum(-1)
     best = cost.argmin(1)  # first minimum on ties
     best = torch.where(cost.gather(1, best.view(-1, 1))[:, 0] < cost[:, 0] - GAIN, best, torch.zeros_like(best))
-    return cand[torch.arange(cand.shape[0]), best]
+    return cand[torch.arange(cand.shape[0], device=cand.device), best]

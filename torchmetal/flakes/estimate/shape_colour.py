@@ -42,7 +42,7 @@ def fit_shapes(obs: FlakeObservations, *, min_snr: float = 8.0) -> dict:
     k = (xc * (semi_major - semi_major.mean())).sum() / (xc * xc).sum().clamp_min(1e-300)
     b0 = semi_major.mean() - k * x.mean()
     resid = semi_major - (b0 + k * x)
-    q = torch.quantile(resid, torch.tensor([0.05, 0.95], dtype=resid.dtype))
+    q = torch.quantile(resid, torch.tensor([0.05, 0.95], dtype=resid.dtype, device=resid.device))
     lines = (float(b0 + q[0]), float(k), float(b0 + q[1]), float(k))
     return {
         "area_log_mean": med, "area_log_std": math.sqrt(var),
@@ -73,7 +73,7 @@ def fit_colour(obs: FlakeObservations, fit: GlintFit, *, min_snr: float = 8.0) -
     dev_ch = ch - ch.mean(0)  # covariance by element-wise sums, not a BLAS product (see fit_shapes)
     cov_ch = (dev_ch.unsqueeze(2) * dev_ch.unsqueeze(1)).sum(0) / max(ch.shape[0] - 1, 1)
     noise = (3.0 / (obs.snr[sel].double() ** 2 * obs.area[sel].double().clamp_min(1.0))).median()
-    cov_ch = cov_ch - noise * torch.eye(3, dtype=ch.dtype)
+    cov_ch = cov_ch - noise * torch.eye(3, dtype=ch.dtype, device=ch.device)
     ev, evec = torch.linalg.eigh(cov_ch)
     cov_ch = evec @ torch.diag(ev.clamp_min(0.0)) @ evec.t()
     cov = mean_a**2 * cov_ch + var_a * torch.outer(cm, cm)

@@ -207,14 +207,14 @@ def _fill_keep(model: FlakeModel, stat: FlakeField, obs: ObservedFlakes, occupie
             amp = stat.weight.reshape(-1)[idx] * stat.color.reshape(3, -1)[:, idx].mean(0)
             seen = amp * g >= obs.detect_amp
         bad = seen | occupied.reshape(-1)[idx]
-        drop.scatter_reduce_(0, cell[idx], bad, "amax")
+        drop.index_fill_(0, cell[idx][bad], True)  # any bad pixel drops its cell (CUDA has no bool scatter)
         if obs.density is not None:  # patchy glitter: thin the fill cell by cell
             gh_, gw_ = obs.density.shape
             dr = (rows * gh_ // oh).clamp(max=gh_ - 1)
             dc = (cols * gw_ // ow).clamp(max=gw_ - 1)
             ratio = obs.density.to(normals.device, dt)[dr, dc]
             u = hash_uniform(cell[idx] // gw, cell[idx] % gw, model.seed, 12, dt)
-            drop.scatter_reduce_(0, cell[idx], u >= ratio, "amax")
+            drop.index_fill_(0, cell[idx][u >= ratio], True)
     keep = on & ~drop[cell]
     return keep.view(h, w), int(torch.unique(cell[keep]).numel())
 
