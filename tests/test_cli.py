@@ -134,20 +134,6 @@ def test_fit_light_option(tmp_path):
     assert proc.returncode == 2 and "--light" in proc.stderr and "Traceback" not in proc.stderr
 
 
-def test_fit_tint_option(tmp_path):
-    """--tint on tints the specular like the texture and says so on the fit line; off (the default) does not;
-    with --tile a one-line refusal."""
-    cap = tmp_path / "cap"
-    assert main(["synth", "-o", str(cap), "--size", "32", "--shots", "5"]) == 0
-    proc = run_cli("fit", cap, "-o", tmp_path / "on", "-q", "--flakes", "off", "--tint", "on")
-    assert proc.returncode == 0 and " x texture (--tint on)" in proc.stdout, proc.stdout
-    meta = json.loads((tmp_path / "on" / "material.json").read_text())
-    assert meta["fit"]["tint"]["mode"] == "on" and len(meta["fit"]["tint"]["s_m"]) == 3 and "gloss" in json.dumps(meta)
-    assert main(["fit", str(cap), "-o", str(tmp_path / "off"), "-q", "--flakes", "off"]) == 0
-    assert json.loads((tmp_path / "off" / "material.json").read_text())["fit"]["tint"] is None
-    assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "t", "--tint", "on", "--tile", "16"), "--tint")
-
-
 def test_fit_weights_option(tmp_path):
     """--weights auto (the default) records its held-out choice; noise with --tile is a one-line refusal."""
     cap, mat = tmp_path / "cap", tmp_path / "mat"

@@ -173,8 +173,6 @@ def test_light_calibration_stage_records_its_decision():
     assert err(res) < 0.5 * err(off)
     with pytest.raises(InputError, match="light: expected one of"):
         fit_material(cap, light="lamp")
-    with pytest.raises(InputError, match=r"tint: expected one of \['off', 'on'\], found 'auto'"):
-        fit_material(cap, tint="auto")
 
 
 def test_the_statistics_refit_keeps_the_first_fits_clusters():

@@ -70,18 +70,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
         f"fitted {capture.num_shots} shots {capture.height}x{capture.width} in {rep['total_time']:.2f} s: "
         f"rmse {rep['rmse']:.4g}, s {[round(v, 4) for v in result.material.s.tolist()]}, "
         f"alpha {[round(v, 1) for v in result.material.alpha.tolist()]}, lobe {result.material.lobe}, "
-        f"flakes {'none' if flakes is None else _density_text(flakes)}{_light_text(rep.get('light'))}"
-        f"{_tint_text(rep.get('tint'))}; "
+        f"flakes {'none' if flakes is None else _density_text(flakes)}{_light_text(rep.get('light'))}; "
         f"skipped: {'; '.join(rep['skipped']) or 'nothing'} -> {args.output}"
     )
     return 0
-
-
-def _tint_text(tint: dict | None) -> str:
-    """The fit line's tint, where the specular is tinted: ", specular = 1.23 x texture (--tint on)"."""
-    if not tint or not tint.get("s_m"):
-        return ""
-    return f", specular = {tint['s_m'][0]:.3g} x texture (--tint on)"
 
 
 def _light_text(light: dict | None) -> str:
@@ -117,8 +109,6 @@ def _fit_tiled(args: argparse.Namespace, scratch: list) -> tuple[PipelineResult,
     if args.light not in ("off", "auto"):
         raise InputError(f"--light {args.light}: expected 'off' or 'auto' with --tile (tiled fits use no light "
                          "calibration)")
-    if args.tint == "on":
-        raise InputError("--tint on: expected 'off' with --tile (tiled fits use the paper's specular)")
     # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.scale.tiled import fit_tiled_material
 
@@ -145,7 +135,7 @@ def _fit_whole(args: argparse.Namespace) -> tuple[PipelineResult, Capture]:
         capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
         tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
         progress=not args.quiet, normals=args.normals, lobe=args.lobe, observed_flakes=args.observed_flakes,
-        weights=args.weights, light=args.light, tint=args.tint,
+        weights=args.weights, light=args.light,
     )
     return result, capture
 
@@ -305,10 +295,6 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
                         "(the capture's lights); flash (that move always); positions (each shot's light moved to fit "
                         "its photo); falloff (the flash's falloff from its axis); gains (falloff and a gain per shot); "
                         "tiled fits use none")
-    f.add_argument("--tint", choices=["off", "on"], default="off",
-                   help="the specular's colour: off (default: one s per channel, the paper's); on (a metal's: s(p) = "
-                        "s_m x texture(p), the highlight in the texture's hue; not chosen for you: on the real "
-                        "captures it did not predict left-out shots better); tiled fits use off")
     f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
     f.add_argument("--tile", type=int, default=None, metavar="N",
                    help="fit tile by tile (N x N pixels; memory bounded by the tile, not the capture; docs/scale.md)")

@@ -30,7 +30,6 @@ import torch
 from torchmetal.errors import InputError
 from torchmetal.fit import FitResult, fit_phong
 from torchmetal.fit.shot_plan import ShotPlan, flake_holds
-from torchmetal.fit.tint import TINT_MODES, tint_factor, tinted_fit
 from torchmetal.flakes.choice import HELD as FLAKE_HOLDS
 from torchmetal.flakes.choice import choose_observed, keep_flakes
 from torchmetal.flakes.density_choice import choose_density_map
@@ -209,7 +208,6 @@ def fit_material(
     normals: str = "auto",
     weights: str = "auto",
     light: str = "auto",
-    tint: str = "off",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -250,9 +248,6 @@ def fit_material(
             or "gains" (falloff and per-shot gains). ``result.light`` holds it: a
             render compared with the capture's photos uses ``result.light.lights(capture)`` and is multiplied
             by ``result.light.factor(capture)``.
-        tint: "off" (the default: one s per channel, the paper's, or what ``specular`` makes of it) or "on" (a
-            metal's specular tinted like its base, s(p) = s_m·d(p) under a Phong lobe, :mod:`torchmetal.fit.tint`;
-            not chosen by default: on the real captures it did not predict left-out shots better).
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,
@@ -266,12 +261,11 @@ def fit_material(
     t0 = time.perf_counter()
     state = State(Options.checked(scheme=scheme, specular=specular, flakes=flakes, tol=tol, max_iters=max_iters,
                                   robust=robust, seed=seed, observed=observed_flakes, progress=progress, lobe=lobe,
-                                  normals=normals, weights=weights, light=light, tint=tint))
+                                  normals=normals, weights=weights, light=light))
     for stage in STAGES:
         capture, state = stage(capture, state)
     material = state.material
     material.report["light"] = state.light_report
-    material.report["tint"] = state.tint_report
     material.report["decisions"] = decision_records(state.first, state.fit, state.normals_report, state.flake_result,
                                                     state.light_report)
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
@@ -296,7 +290,6 @@ class Options:
     normals: str
     weights: str
     light: str = "auto"
-    tint: str = "off"
 
     @classmethod
     def checked(cls, *, observed: str | bool, **kw) -> Options:
@@ -311,8 +304,6 @@ class Options:
             raise InputError(f"weights: expected one of {WEIGHTS}, found {kw['weights']!r}")
         if kw["light"] not in LIGHT_MODES:
             raise InputError(f"light: expected one of {list(LIGHT_MODES)}, found {kw['light']!r}")
-        if kw.get("tint", "off") not in TINT_MODES:
-            raise InputError(f"tint: expected one of {list(TINT_MODES)}, found {kw['tint']!r}")
         return cls(observed=mode, **kw)
 
     def fit_kwargs(self) -> dict:
@@ -329,7 +320,6 @@ class State:
     normals_report: dict | None = None
     light: LightCalibration = field(default_factory=LightCalibration)
     light_report: dict | None = None
-    tint_report: dict | None = None  # the tint's mode, s_m and time (torchmetal.fit.tint)
     first: FitResult | None = None  # the first Phong fit: the flake-free material's
     fit: FitResult | None = None  # the fit the material is made from
     flake_result: FlakeStageResult | None = None
@@ -365,18 +355,11 @@ def stage_light(capture: Capture, st: State) -> tuple[Capture, State]:
 
 
 def stage_phong(capture: Capture, st: State) -> tuple[Capture, State]:
-    """The first Phong fit (lobe, specular structure: chosen on left-out shots), its specular tinted like
-    its base where ``tint`` asks for it (:mod:`torchmetal.fit.tint`)."""
+    """The first Phong fit (lobe, specular structure: chosen on left-out shots)."""
     o = st.opts
-    kw = dict(robust=None if o.robust == "auto" else o.robust, lobe=o.lobe, **o.fit_kwargs())
-    st.first = st.fit = fit_phong(capture, **kw)
+    st.first = st.fit = fit_phong(capture, robust=None if o.robust == "auto" else o.robust, lobe=o.lobe, **o.fit_kwargs())
     st.stage_times.update({f"phong.{k}": v for k, v in st.first.stage_times.items()})
     st.skipped = list(st.first.skipped)
-    if o.tint == "on":
-        t = time.perf_counter()
-        st.first = st.fit = tinted_fit(capture, st.first)
-        st.tint_report = {"mode": "on", "s_m": tint_factor(st.first), "time": time.perf_counter() - t}
-        st.stage_times["tint"] = st.tint_report["time"]
     return capture, st
 
 
@@ -404,12 +387,9 @@ def stage_flakes(capture: Capture, st: State) -> tuple[Capture, State]:
     # maps again cost more than the rest of the refit): its cluster count, and relabelling only where the first
     # fit relabelled (at full resolution it cost 10 s of the real card's 18 s refit); the coating's refit below
     # chooses it again, glints out
-    tinted = st.first.specular == "tinted"  # the refits are tinted too, from a global fit
-    same = {**kw, "specular": "global" if tinted else st.first.specular if o.specular == "auto" else o.specular,
-            **_same_clusters(st.first)}
-    tint = (lambda cap, f: tinted_fit(cap, f)) if tinted else (lambda cap, f: f)
-    refit = (lambda: tint(capture, fit_phong(capture, robust=ROBUST_GLINTS, **same))) if two_fits else None
-    coat_fit = (lambda cap: tint(cap, fit_phong(cap, robust=None, **kw))) if two_fits else None
+    same = {**kw, "specular": st.first.specular if o.specular == "auto" else o.specular, **_same_clusters(st.first)}
+    refit = (lambda: fit_phong(capture, robust=ROBUST_GLINTS, **same)) if two_fits else None
+    coat_fit = (lambda cap: fit_phong(cap, robust=None, **kw)) if two_fits else None
     st.flake_result, coat, texture = _flake_stage(capture, st.first, o.seed, refit, coat_fit)
     st.stage_times["flakes"] = time.perf_counter() - t
     if st.flake_result.model is not None:
