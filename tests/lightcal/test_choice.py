@@ -3,9 +3,10 @@ from dataclasses import replace
 import pytest
 import torch
 
-from tests.lightcal.helpers import flash_capture, misplaced_capture
+from tests.lightcal.helpers import flash_capture, misplaced_capture, photographed
 from torchmetal.errors import InputError
 from torchmetal.lightcal import LightCalibration, choose_light, with_light
+from torchmetal.lightcal.choice import NO_LOBE
 from torchmetal.synth import synth_capture
 
 
@@ -40,6 +41,19 @@ def test_a_flash_beside_the_lens_is_found():
     assert float((found - move).norm()) < 0.5 * float(move.norm())  # depth trades against the texture's level
     assert cal.offsets is None and cal.for_unseen() == cal  # the rig's move carries over to unseen shots
     assert torch.equal(out.lights, cal.lights(cap)) and torch.equal(out.images, cap.images)
+
+
+def test_no_highlight_no_move():
+    """A matte sample photographed with the flash moved: the test fits keep no specular lobe, so the capture's
+    lights stay, though here the move is real (without the rule it was chosen): a diffuse-only fit's misfit
+    moves the lights as readily as a misplaced flash does (yellow_box without shot 6: a 5.7 cm move that cost
+    that shot 2.4 dB), and the capture's lights are the simpler option."""
+    r = synth_capture(size=40, shots=8, layout="near", texture="procedural", seed=5, s=(0.0, 0.0, 0.0))
+    move = torch.tensor((0.0, -0.006, 0.002), dtype=torch.float64)
+    cap, _ = photographed(r, move.expand(8, 3), 0.01, torch.Generator().manual_seed(7))
+    mode, d = choose_light(cap)
+    assert mode == "off" and d.chosen == "off" and d.reason.startswith(f"phong fits: {NO_LOBE}"), d.reason
+    assert set(d.scores) == {"phong"}  # no GGX test after Phong's "off"
 
 
 def test_misplaced_lights_are_moved_when_asked():
