@@ -178,8 +178,6 @@ def _renderer_part(dev, shots: int, size: int, render_size: int, repeats: int, h
 def _pipeline_part(dev, size: int) -> dict:
     """The default ``fit_material`` (every choice on auto) on a flaky synthetic capture, on ``dev`` and on the
     CPU: its time on each and the largest texture difference between them."""
-    import time as _time
-
     from torchmetal.flakes.model import FlakeModel
     from torchmetal.pipeline import fit_material
     from torchmetal.synth import synth_capture
@@ -188,10 +186,10 @@ def _pipeline_part(dev, size: int) -> dict:
     runs = {}
     for d in dict.fromkeys((str(dev), "cpu")):
         _sync(dev)
-        t0 = _time.perf_counter()
+        t0 = time.perf_counter()
         res = fit_material(syn.capture.to(d))
         _sync(dev)
-        runs[d] = (_time.perf_counter() - t0, res.material)
+        runs[d] = (time.perf_counter() - t0, res.material)
     here, cpu = runs[str(dev)], runs["cpu"]
     return {"size": size, "shots": 8, "seconds": here[0], "cpu_seconds": cpu[0],
             "texture_psnr": psnr_or_nan(here[1].texture.cpu(), syn.truth["texture"]),
@@ -265,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
             out = run_gpu(device, size, shots, flake_size=min(1024, size), render_size=min(1024, size),
                           pipeline_size=min(512, size))
         except Exception as e:  # reported as the section's row
-            out = {"error": f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"}
+            out = _failure(e)
     path.write_text(json.dumps(out, default=str))
     return 0
 

@@ -9,8 +9,8 @@ render the group, its lights moved alike: the move is the rig's, it carries over
 see. Per pixel, the median squared error over the group's observations pairs up, and
 :func:`~torchmetal.fit.decision.paired_choice` keeps the capture's lights unless the move lowers it by
 ``MIN_GAIN`` beyond noise — and where a test fit kept no specular lobe (no highlight on the grid), always:
-a diffuse-only fit's misfit moves the lights as readily as a misplaced flash does. The chosen move is then estimated on all shots of the grid and applied to the
-whole capture.
+a diffuse-only fit's misfit moves the lights as readily as a misplaced flash does. The chosen move is then
+estimated on all shots of the grid and applied to the whole capture.
 
 Not candidates (docs/design.md §4): per-shot positions — a left-out shot's own position is an unknown
 the fitted shots do not tell (on the shared gold paper they range over 8 cm), and under the capture's
