@@ -57,3 +57,21 @@ def test_a_decisive_gain_on_few_observations_wins():
     small = ref.clone()
     small[:4] = 0.9
     assert paired_choice("specular evidence", {"diffuse": ref, "specular": small}, "diffuse").chosen == "diffuse"
+
+
+def test_rank_keeps_the_simplest_winner_the_best_does_not_beat():
+    """With a complexity rank, a richer winner must beat the simpler winner it extends beyond noise, not only
+    the reference (cards_blue: both:K=4 won over colour:K=3 by 2 % without beating it clearly, and its extra
+    cluster painted grey blotches across the materials)."""
+    g = torch.Generator().manual_seed(2)
+    ref = 1.0 + torch.rand(4000, dtype=torch.float64, generator=g)
+    simple = 0.7 * ref
+    signs = torch.tensor([1.0, -1.0], dtype=torch.float64).repeat(2000)
+    within = simple * (1 - 2e-4) + 0.05 * signs  # lower on average, but not beyond noise (z ≈ 0.3)
+    errors = {"global": ref, "colour:K=3": simple, "both:K=4": within}
+    rank = {"global": (1, 0), "colour:K=3": (3, 0), "both:K=4": (4, 2)}
+    assert paired_choice("specular clusters", errors, "global").chosen == "both:K=4"  # lowest MSE
+    d = paired_choice("specular clusters", errors, "global", rank=rank)
+    assert d.chosen == "colour:K=3" and "does not lower it further" in d.reason
+    errors["both:K=4"] = 0.6 * ref  # beyond noise against the simpler winner too: the richer model earns its place
+    assert paired_choice("specular clusters", errors, "global", rank=rank).chosen == "both:K=4"

@@ -459,12 +459,21 @@ def _cluster_candidates(obs: Observations, g: SpecFit, score: Callable[[SpecFit,
     return labelers
 
 
+def _complexity(name: str) -> tuple[int, int]:
+    """A specular candidate's complexity: (K, its feature set's place in :data:`FEATURE_SETS`); global is (1, 0)."""
+    if name == "global":
+        return (1, 0)
+    feats, k = name.split(":K=")
+    return (int(k), list(FEATURE_SETS).index(feats))
+
+
 def _held_out_selection(obs: Observations, ho: Observations, g: SpecFit, ij: Tensor, labelers: dict[str, Labeler],
                         best: str, errors: dict, mse: dict, *, hold: int, force: bool, tol: float,
                         max_iters: int, try_relabel: bool = True) -> Selection:
     """Global unless a clustered candidate lowers the held-out errors beyond noise (``force``: the ``best``
     candidate then); for a clustered choice, whether relabelling the pixels helps too."""
-    d = paired_choice("specular clusters", errors, "global", floor=MIN_GAIN_ABS * mean_square(ho))
+    d = paired_choice("specular clusters", errors, "global", floor=MIN_GAIN_ABS * mean_square(ho),
+                      rank={k: _complexity(k) for k in errors})
     d.holds, d.pixels = [hold], ho.num_pixels
     if force and d.chosen == "global":
         d.chosen = best

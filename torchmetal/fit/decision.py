@@ -6,7 +6,10 @@ from a lucky one (on the zoo's blinn scene Blinn is 1.2 dB closer to the clean t
 pixels, same shots, same noise) and pair up element by element: the paired difference's mean over its
 standard error, z, measures a gain against that noise. A candidate replaces the reference (the simpler
 model) when z > ``z_min`` and its MSE is lower by at least ``min_gain`` (and by ``floor`` in absolute terms:
-rounding noise, :data:`MIN_GAIN_ABS` of the held-out signal's mean square); among several, the lowest MSE.
+rounding noise, :data:`MIN_GAIN_ABS` of the held-out signal's mean square); among several, the lowest MSE —
+or, where the caller ranks the candidates by complexity (``rank``), the simplest winner that the lowest-MSE
+one does not beat by the same rule: more capacity must earn its place against the simpler model it
+extends, not only against the reference.
 
 A gain carried by a few observations has a small z whatever its size (k equal gains among M observations
 give z ≈ √k): a sharp highlight covers a handful of a held-out shot's pixels. So a candidate that at least
@@ -65,10 +68,12 @@ def paired_z(err: Tensor, ref: Tensor) -> float:
 
 
 def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: float = Z_MIN,
-                  min_gain: float = MIN_GAIN, floor: float = 0.0) -> Decision:
+                  min_gain: float = MIN_GAIN, floor: float = 0.0, rank: dict | None = None) -> Decision:
     """The module's rule on held-out squared errors ``errors`` (candidate → (M,), the same M observations
     in the same order for every candidate); ``ref`` is kept unless another candidate wins (its MSE lower
-    than the reference's by ``min_gain`` of it and by ``floor``, z > ``z_min``)."""
+    than the reference's by ``min_gain`` of it and by ``floor``, z > ``z_min``). With ``rank`` (candidate →
+    sortable complexity, simpler first), the simplest winner the lowest-MSE winner does not beat by that
+    rule (module docstring)."""
     d = Decision(name, tuple(errors), ref, reference=ref)
     for k, e in errors.items():
         d.mse[k] = float(e.mean()) if e.numel() else math.inf
@@ -78,10 +83,29 @@ def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: floa
     beyond = {k: d.z[k] > z_min or (d.z[k] > 0 and d.mse[k] <= DECISIVE * d.mse[ref]) for k in d.z}
     wins = [k for k in d.z if beyond[k] and d.mse[k] < (1.0 - min_gain) * d.mse[ref] - floor]
     d.chosen = min(wins, key=d.mse.get) if wins else ref
+    if rank is not None and len(wins) > 1:
+        d.chosen = _simplest_unbeaten(errors, d.mse, sorted(wins, key=rank.__getitem__), d.chosen, z_min=z_min,
+                                      min_gain=min_gain, floor=floor)
     others = ", ".join(f"{k} {d.mse[k]:.4g} (z {d.z[k]:.1f})" for k in d.z)
-    if d.chosen != ref:
+    if d.chosen != ref and d.chosen != min(wins, key=d.mse.get):
+        d.reason = (f"{d.chosen} lowers the held-out MSE beyond noise and {min(wins, key=d.mse.get)} does not lower "
+                    f"it further beyond noise: {ref} {d.mse[ref]:.4g}, {others}")
+    elif d.chosen != ref:
         d.reason = f"{d.chosen} lowers the held-out MSE beyond noise: {ref} {d.mse[ref]:.4g}, {others}"
     else:
         d.reason = (f"held-out MSE: {ref} {d.mse[ref]:.4g}, {others}: nothing lower beyond noise "
                     f"(z > {z_min:g} or half the MSE, and {min_gain:.2%}); {ref} kept")
     return d
+
+
+def _simplest_unbeaten(errors: dict[str, Tensor], mse: dict, ordered: list[str], best: str, *, z_min: float,
+                       min_gain: float, floor: float) -> str:
+    """The first of ``ordered`` (winners, simplest first) whose MSE ``best`` does not lower beyond noise."""
+    for k in ordered:
+        if k == best:
+            return k
+        z = paired_z(errors[best], errors[k])
+        beaten = (z > z_min or (z > 0 and mse[best] <= DECISIVE * mse[k])) and mse[best] < (1.0 - min_gain) * mse[k] - floor
+        if not beaten:
+            return k
+    return best
