@@ -31,7 +31,8 @@ The layers, lowest first (derived from the graph; a layer may import itself and 
    (flakes.model, field, observed, placement, filters, md), material, renderer, metrics, and
    synth (synthetic captures rendered with it).
 4. fit: the Phong fit (:mod:`torchmetal.fit`; ``torchmetal.normals``, the normal estimation
-   that is leaving fit/, keeps its place).
+   that is leaving fit/, keeps its place; ``torchmetal.lightcal`` and ``torchmetal.clipping``, the capture's
+   nuisances chosen with fits).
 5. flakes: flake estimation (the rest of :mod:`torchmetal.flakes`: detection, statistics,
    choice, stage); it may use the fit, not the other way round.
 6. pipeline: fit + flakes → material.
@@ -66,7 +67,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
               "torchmetal.lbfgs", "torchmetal.phong", "torchmetal.lobes")),
     ("io", ("torchmetal.io",)),
     ("model", ("torchmetal.flakes.model", "torchmetal.material", "torchmetal.renderer", "torchmetal.metrics", "torchmetal.synth")),
-    ("fit", ("torchmetal.fit", "torchmetal.normals", "torchmetal.lightcal")),
+    ("fit", ("torchmetal.fit", "torchmetal.normals", "torchmetal.lightcal", "torchmetal.clipping")),
     ("flakes", ("torchmetal.flakes",)),
     ("pipeline", ("torchmetal.pipeline",)),
     ("outputs", ("torchmetal.onnx_export", "torchmetal.formats", "torchmetal.report", "torchmetal.viewer.site",

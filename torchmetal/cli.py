@@ -109,6 +109,9 @@ def _fit_tiled(args: argparse.Namespace, scratch: list) -> tuple[PipelineResult,
     if args.light not in ("off", "auto"):
         raise InputError(f"--light {args.light}: expected 'off' or 'auto' with --tile (tiled fits use no light "
                          "calibration)")
+    if args.clipping == "pixel":
+        raise InputError("--clipping pixel: expected 'auto' or 'channel' with --tile (tiled fits read each channel's clip "
+                         "on its own)")
     # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.scale.tiled import fit_tiled_material
 
@@ -135,7 +138,7 @@ def _fit_whole(args: argparse.Namespace) -> tuple[PipelineResult, Capture]:
         capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
         tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
         progress=not args.quiet, normals=args.normals, lobe=args.lobe, observed_flakes=args.observed_flakes,
-        weights=args.weights, light=args.light,
+        weights=args.weights, light=args.light, clipping=args.clipping,
     )
     return result, capture
 
@@ -295,6 +298,10 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
                         "(the capture's lights); flash (that move always); positions (each shot's light moved to fit "
                         "its photo); falloff (the flash's falloff from its axis); gains (falloff and a gain per shot); "
                         "tiled fits use none")
+    f.add_argument("--clipping", choices=["auto", "channel", "pixel"], default="auto",
+                   help="how an observation with a clipped channel is read: auto (default: chosen on left-out shots); "
+                        "channel (the other channels stay valid: a linear sensor's clip); pixel (dropped in all three: "
+                        "a phone's processing leaves them wrong too); tiled fits use channel")
     f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
     f.add_argument("--tile", type=int, default=None, metavar="N",
                    help="fit tile by tile (N x N pixels; memory bounded by the tile, not the capture; docs/scale.md)")

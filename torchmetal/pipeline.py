@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
+from torchmetal.clipping import CLIPPING_MODES, with_clipping
 from torchmetal.errors import InputError
 from torchmetal.fit import FitResult, fit_phong
 from torchmetal.fit.shot_plan import ShotPlan, flake_holds
@@ -93,11 +94,13 @@ FIRST_FIT_CHOICES = ("lobe", "weights")  # made by the first fit alone: the flak
 
 
 def decision_records(first: FitResult, fit: FitResult, normals_report: dict | None, flake_result: FlakeStageResult | None,
-                     light_report: dict | None = None) -> list[dict]:
+                     light_report: dict | None = None, clipping_report: dict | None = None) -> list[dict]:
     """Every choice made on left-out shots, in the order made, as :class:`~torchmetal.fit.decision.Decision`
-    dicts: normals, the light calibration, the lobe and the weights (``first``, the first fit, chose them), the final fit's specular choices
-    (evidence, clusters, relabelling, gloss maps), then the flake choices."""
+    dicts: the clipping, normals, the light calibration, the lobe and the weights (``first``, the first fit, chose
+    them), the final fit's specular choices (evidence, clusters, relabelling, gloss maps), then the flake choices."""
     out = []
+    if clipping_report and clipping_report.get("decision"):
+        out.append(clipping_report["decision"])
     if normals_report and normals_report.get("decision"):
         out.append(normals_report["decision"])
     if light_report and light_report.get("decision"):
@@ -208,6 +211,7 @@ def fit_material(
     normals: str = "auto",
     weights: str = "auto",
     light: str = "auto",
+    clipping: str = "auto",
 ) -> PipelineResult:
     """Fit a full material to a capture.
 
@@ -248,12 +252,15 @@ def fit_material(
             or "gains" (falloff and per-shot gains). ``result.light`` holds it: a
             render compared with the capture's photos uses ``result.light.lights(capture)`` and is multiplied
             by ``result.light.factor(capture)``.
+        clipping: how an observation with a clipped channel is read (:mod:`torchmetal.clipping`): "auto" (the
+            default: chosen on left-out shots), "channel" (the other channels stay valid: a linear sensor's
+            honest clip) or "pixel" (dropped in all three: a phone's processing leaves them wrong too).
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,
         errors, the list of skipped stages and every choice's ``Decision`` record ("decisions").
 
-    The stages run in order (:data:`STAGES`), each ``(capture, state) → (capture, state)``: normals,
+    The stages run in order (:data:`STAGES`), each ``(capture, state) → (capture, state)``: the clipping, normals,
     the light calibration, the Phong fit, the flake stage, the material, then the flake choices (observed flakes, flakes or
     none, the density map), each on shots left out; every choice's record ends in the report's "decisions"
     (:func:`decision_records`).
@@ -261,13 +268,14 @@ def fit_material(
     t0 = time.perf_counter()
     state = State(Options.checked(scheme=scheme, specular=specular, flakes=flakes, tol=tol, max_iters=max_iters,
                                   robust=robust, seed=seed, observed=observed_flakes, progress=progress, lobe=lobe,
-                                  normals=normals, weights=weights, light=light))
+                                  normals=normals, weights=weights, light=light, clipping=clipping))
     for stage in STAGES:
         capture, state = stage(capture, state)
     material = state.material
     material.report["light"] = state.light_report
+    material.report["clipping"] = state.clipping_report
     material.report["decisions"] = decision_records(state.first, state.fit, state.normals_report, state.flake_result,
-                                                    state.light_report)
+                                                    state.light_report, state.clipping_report)
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
     return PipelineResult(material=material, fit=state.fit, flakes=state.flake_result, report=material.report,
                           light=state.light)
@@ -290,6 +298,7 @@ class Options:
     normals: str
     weights: str
     light: str = "auto"
+    clipping: str = "auto"
 
     @classmethod
     def checked(cls, *, observed: str | bool, **kw) -> Options:
@@ -304,6 +313,8 @@ class Options:
             raise InputError(f"weights: expected one of {WEIGHTS}, found {kw['weights']!r}")
         if kw["light"] not in LIGHT_MODES:
             raise InputError(f"light: expected one of {list(LIGHT_MODES)}, found {kw['light']!r}")
+        if kw["clipping"] not in CLIPPING_MODES:
+            raise InputError(f"clipping: expected one of {list(CLIPPING_MODES)}, found {kw['clipping']!r}")
         return cls(observed=mode, **kw)
 
     def fit_kwargs(self) -> dict:
@@ -317,6 +328,7 @@ class State:
     """What the stages have made so far."""
 
     opts: Options
+    clipping_report: dict | None = None
     normals_report: dict | None = None
     light: LightCalibration = field(default_factory=LightCalibration)
     light_report: dict | None = None
@@ -336,6 +348,15 @@ class State:
                 "iterations": fit.iterations, "rmse": fit.rmse, "normals": self.normals_report,
                 "flakes": None if self.flake_result is None else self.flake_result.report, "lobe": fit.lobe,
                 "lobe_selection": self.first.lobe_selection, "shot_plan": None if plan is None else plan.to_dict()}
+
+
+def stage_clipping(capture: Capture, st: State) -> tuple[Capture, State]:
+    """How a clipped channel is read (:mod:`torchmetal.clipping`): alone, or as the whole observation's."""
+    t0 = time.perf_counter()
+    capture, st.clipping_report = with_clipping(capture, st.opts.clipping,
+                                                fit_kwargs=dict(tol=st.opts.tol, max_iters=st.opts.max_iters))
+    st.stage_times["clipping"] = time.perf_counter() - t0
+    return capture, st
 
 
 def stage_normals(capture: Capture, st: State) -> tuple[Capture, State]:
@@ -468,4 +489,4 @@ def stage_density(capture: Capture, st: State) -> tuple[Capture, State]:
     return capture, st
 
 
-STAGES = (stage_normals, stage_light, stage_phong, stage_flakes, stage_material, stage_observed, stage_keep, stage_density)
+STAGES = (stage_clipping, stage_normals, stage_light, stage_phong, stage_flakes, stage_material, stage_observed, stage_keep, stage_density)

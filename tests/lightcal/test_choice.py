@@ -53,7 +53,24 @@ def test_no_highlight_no_move():
     cap, _ = photographed(r, move.expand(8, 3), 0.01, torch.Generator().manual_seed(7))
     mode, d = choose_light(cap)
     assert mode == "off" and d.chosen == "off" and d.reason.startswith(f"phong fits: {NO_LOBE}"), d.reason
-    assert set(d.scores) == {"phong"}  # no GGX test after Phong's "off"
+    assert f"ggx fits: {NO_LOBE}" in d.reason  # neither test lobe votes: the capture's lights stay
+
+
+@pytest.mark.parametrize("lobed, chosen", [({"phong"}, "flash"), (set(), "off")])
+def test_a_test_lobe_without_highlights_has_no_vote(monkeypatch, lobed, chosen):
+    """The move wins when every test lobe that kept its lobe prefers it (cards_blue without shot 1, each
+    channel's clipping dropping the observation: a GGX test fit lost its lobe on the grid and its veto had
+    kept the capture's lights against the Phong fits' clear preference, z 21.9); none voting keeps them."""
+    from torchmetal.lightcal import choice
+
+    def fold_errors(train, hold, kw):
+        base = torch.rand(200, dtype=torch.float64, generator=torch.Generator().manual_seed(len(train.names)))
+        return {"off": base, "flash": 0.5 * base}, kw["lobe"] in lobed
+
+    monkeypatch.setattr(choice, "_fold_errors", fold_errors)
+    mode, d = choose_light(_capture())
+    assert mode == d.chosen == chosen and set(d.scores) == {"phong", "ggx"}, d.reason
+    assert (f"ggx fits: {NO_LOBE}" in d.reason) and ((f"phong fits: {NO_LOBE}" in d.reason) == ("phong" not in lobed))
 
 
 def test_misplaced_lights_are_moved_when_asked():

@@ -28,7 +28,7 @@ if TYPE_CHECKING:  # annotations only: a real import would load torch (this modu
 
 METHODS = {
     "default": {},
-    "paper": {"scheme": "paper", "flakes": "off", "light": "off"},
+    "paper": {"scheme": "paper", "flakes": "off", "light": "off", "clipping": "channel"},
 }
 
 

@@ -8,8 +8,9 @@ groups; for each, a fit on the other shots as the capture gives them and one wit
 render the group, its lights moved alike: the move is the rig's, it carries over to shots the fit did not
 see. Per pixel, the median squared error over the group's observations pairs up, and
 :func:`~torchmetal.fit.decision.paired_choice` keeps the capture's lights unless the move lowers it by
-``MIN_GAIN`` beyond noise — and where a test fit kept no specular lobe (no highlight on the grid), always:
-a diffuse-only fit's misfit moves the lights as readily as a misplaced flash does. The chosen move is then
+``MIN_GAIN`` beyond noise under every test lobe (Phong and GGX fits). A test lobe whose fit kept no
+specular lobe in some group (no highlight on the grid) has no vote: a diffuse-only fit's misfit moves the
+lights as readily as a misplaced flash does; where no test lobe votes, the capture's lights stay. The chosen move is then
 estimated on all shots of the grid and applied to the whole capture.
 
 Not candidates (docs/design.md §4): per-shot positions — a left-out shot's own position is an unknown
@@ -103,7 +104,7 @@ def choose_light(capture: Capture, *, fit_kwargs: dict | None = None, max_pixels
     v = valid_pixels(sub)
     floor = MIN_GAIN_ABS * float((sub.images.double()[v] ** 2).mean()) if bool(v.any()) else 0.0  # not float rounding
     rule = {"min_gain": MIN_GAIN, "floor": floor, **rule}
-    per_lobe = {}
+    per_lobe, abstain = {}, set()
     for lobe in TEST_LOBES:
         kw = {**(fit_kwargs or {}), **FIT, "lobe": lobe}
         errors: dict[str, list[Tensor]] = {k: [] for k in CANDIDATES}
@@ -116,14 +117,15 @@ def choose_light(capture: Capture, *, fit_kwargs: dict | None = None, max_pixels
         cat = {k: torch.cat(e) for k, e in errors.items()}
         seen = ~torch.isnan(torch.stack(list(cat.values()))).any(0)  # a valid held-out observation in every candidate
         per_lobe[lobe] = paired_choice("light", {k: e[seen] for k, e in cat.items()}, ref="off", **rule)
-        if not lobed:  # a diffuse-only fit's misfit is not the light's (module docstring)
+        if not lobed:  # a diffuse-only fit's misfit is not the light's (module docstring): no vote
+            abstain.add(lobe)
             per_lobe[lobe].chosen = "off"
             per_lobe[lobe].reason = f"{NO_LOBE}; {per_lobe[lobe].reason}"
-        if per_lobe[lobe].chosen == "off":
-            break  # the move must win under every test lobe
+        elif per_lobe[lobe].chosen == "off":
+            break  # the move must win under every test lobe that kept its lobe
+    voters = [x for lobe, x in per_lobe.items() if lobe not in abstain]
     d = per_lobe[TEST_LOBES[0]]
-    if d.chosen != "off" and any(x.chosen == "off" for x in per_lobe.values()):
-        d.chosen = "off"
+    d.chosen = "flash" if voters and all(x.chosen == "flash" for x in voters) else "off"
     d.reason = "; ".join(f"{lobe} fits: {x.reason}" for lobe, x in per_lobe.items())
     d.scores = {lobe: {"mse": dict(x.mse), "z": dict(x.z)} for lobe, x in per_lobe.items()}
     d.holds = groups
