@@ -144,3 +144,18 @@ def test_fit_weights_option(tmp_path):
     assert main(["fit", str(cap), "-o", str(tmp_path / "u"), "-q", "--flakes", "off", "--weights", "uniform"]) == 0
     assert "weights" not in [d["name"] for d in json.loads((tmp_path / "u" / "material.json").read_text())["fit"]["decisions"]]
     assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m2", "--weights", "noise", "--tile", "16"), "--weights")
+
+
+def test_fit_clipping_option(tmp_path):
+    """--clipping auto (the default) records how the clipped channels were read; pixel with --tile is refused."""
+    cap, mat = tmp_path / "cap", tmp_path / "mat"
+    assert main(["synth", "-o", str(cap), "--size", "32", "--shots", "5"]) == 0
+    assert main(["fit", str(cap), "-o", str(mat), "-q", "--flakes", "off"]) == 0
+    fit = json.loads((mat / "material.json").read_text())["fit"]
+    assert fit["clipping"]["mode"] == "auto" and fit["clipping"]["chosen"] in ("channel", "pixel")
+    assert fit["decisions"][0]["name"] == "clipping"
+    assert main(["fit", str(cap), "-o", str(tmp_path / "p"), "-q", "--flakes", "off", "--clipping", "pixel"]) == 0
+    fit = json.loads((tmp_path / "p" / "material.json").read_text())["fit"]
+    assert fit["clipping"] == {"mode": "pixel", "chosen": "pixel"}
+    assert "clipping" not in [d["name"] for d in fit["decisions"]]
+    assert_one_line_error(run_cli("fit", cap, "-o", tmp_path / "m2", "--clipping", "pixel", "--tile", "16"), "--clipping")
