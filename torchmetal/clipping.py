@@ -11,7 +11,8 @@ decides it per capture on shots left out of the fit, like the normals (:mod:`tor
 on a pixel grid, for each group of shots, a Phong fit on the other shots read each way predicts the group;
 both are scored on the group's observations with no channel clipped (valid under either reading), paired
 per observation (:func:`~torchmetal.fit.decision.paired_choice`, its error lower by ``MIN_GAIN``); "channel",
-the reading that keeps more data, is the reference. A capture without a partly clipped observation keeps "channel" untested.
+the reading that keeps more data, is the reference. A capture without a partly clipped observation keeps
+"channel" untested.
 """
 
 from __future__ import annotations

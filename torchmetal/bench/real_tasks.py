@@ -139,8 +139,8 @@ def _gallery_png(path: Path, photo, render) -> Path:
 #: clipping, the normals and the light were chosen on left-out shots (paper_model), the capture's lights as given
 #: (light_off), moved by the flash's one move (light_flash) or each to its photo (light_positions), and the
 #: richest options
-REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong", "light": "off", "clipping": "channel"}, "light_off": {"light": "off"},
-                 "light_flash": {"light": "flash"}, "light_positions": {"light": "positions"},
+REAL_VARIANTS = {"paper_model": {"normals": "given", "lobe": "phong", "light": "off", "clipping": "channel"},
+                 "light_off": {"light": "off"}, "light_flash": {"light": "flash"}, "light_positions": {"light": "positions"},
                  "richest": {"normals": "estimate", "lobe": "auto", "specular": "maps"}}
 
 

@@ -82,14 +82,15 @@ def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: floa
             d.z[k] = paired_z(e, errors[ref])
     beyond = {k: d.z[k] > z_min or (d.z[k] > 0 and d.mse[k] <= DECISIVE * d.mse[ref]) for k in d.z}
     wins = [k for k in d.z if beyond[k] and d.mse[k] < (1.0 - min_gain) * d.mse[ref] - floor]
-    d.chosen = min(wins, key=d.mse.get) if wins else ref
+    lowest = min(wins, key=d.mse.get) if wins else ref
+    d.chosen = lowest
     if rank is not None and len(wins) > 1:
-        d.chosen = _simplest_unbeaten(errors, d.mse, sorted(wins, key=rank.__getitem__), d.chosen, z_min=z_min,
+        d.chosen = _simplest_unbeaten(errors, d.mse, sorted(wins, key=rank.__getitem__), lowest, z_min=z_min,
                                       min_gain=min_gain, floor=floor)
     others = ", ".join(f"{k} {d.mse[k]:.4g} (z {d.z[k]:.1f})" for k in d.z)
-    if d.chosen != ref and d.chosen != min(wins, key=d.mse.get):
-        d.reason = (f"{d.chosen} lowers the held-out MSE beyond noise and {min(wins, key=d.mse.get)} does not lower "
-                    f"it further beyond noise: {ref} {d.mse[ref]:.4g}, {others}")
+    if d.chosen != lowest:
+        d.reason = (f"{d.chosen} lowers the held-out MSE beyond noise and {lowest} does not lower it further "
+                    f"beyond noise: {ref} {d.mse[ref]:.4g}, {others}")
     elif d.chosen != ref:
         d.reason = f"{d.chosen} lowers the held-out MSE beyond noise: {ref} {d.mse[ref]:.4g}, {others}"
     else:

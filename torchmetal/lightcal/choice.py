@@ -10,8 +10,8 @@ see. Per pixel, the median squared error over the group's observations pairs up,
 :func:`~torchmetal.fit.decision.paired_choice` keeps the capture's lights unless the move lowers it by
 ``MIN_GAIN`` beyond noise under every test lobe (Phong and GGX fits). A test lobe whose fit kept no
 specular lobe in some group (no highlight on the grid) has no vote: a diffuse-only fit's misfit moves the
-lights as readily as a misplaced flash does; where no test lobe votes, the capture's lights stay. The chosen move is then
-estimated on all shots of the grid and applied to the whole capture.
+lights as readily as a misplaced flash does; where no test lobe votes, the capture's lights stay. The
+chosen move is then estimated on all shots of the grid and applied to the whole capture.
 
 Not candidates (docs/design.md §4): per-shot positions — a left-out shot's own position is an unknown
 the fitted shots do not tell (on the shared gold paper they range over 8 cm), and under the capture's
