@@ -26,7 +26,7 @@ from torch import Tensor
 from torchmetal.errors import InputError
 from torchmetal.fit.api import fit_phong
 from torchmetal.fit.decision import MIN_GAIN_ABS, Decision, paired_choice
-from torchmetal.fit.holdout import valid_pixels
+from torchmetal.fit.holdout import valid_mean_square, valid_pixels
 from torchmetal.fit.shot_plan import shot_groups
 from torchmetal.normals.choice import strided_capture
 
@@ -67,6 +67,11 @@ def _errors(fit, hold: Capture) -> Tensor:
     return (pred - hold.images).double().square()[valid_pixels(hold)]
 
 
+def _untested(reason: str) -> tuple[str, Decision]:
+    """"channel", the reference, kept without a test, and its record."""
+    return "channel", Decision("clipping", CANDIDATES, "channel", reference="channel", reason=reason)
+
+
 def choose_clipping(capture: Capture, *, fit_kwargs: dict | None = None, max_pixels: int = PIXELS,
                     folds: int = FOLDS, **rule: float) -> tuple[str, Decision]:
     """"channel" or "pixel", decided on left-out shots (module docstring). ``rule``:
@@ -74,11 +79,9 @@ def choose_clipping(capture: Capture, *, fit_kwargs: dict | None = None, max_pix
     n = int(capture.images.shape[0])
     partial = partly_clipped(capture)
     if partial == 0:
-        return "channel", Decision("clipping", CANDIDATES, "channel", reference="channel",
-                                   reason="no observation has some but not all channels clipped")
+        return _untested("no observation has some but not all channels clipped")
     if n < MIN_SHOTS:
-        return "channel", Decision("clipping", CANDIDATES, "channel", reference="channel",
-                                   reason=f"a left-out test of the clipping needs >= {MIN_SHOTS} shots, found {n}")
+        return _untested(f"a left-out test of the clipping needs >= {MIN_SHOTS} shots, found {n}")
     kw = {**(fit_kwargs or {}), **FIT}
     sub = strided_capture(capture, max_pixels)
     readings = {"channel": sub, "pixel": pixel_clipped(sub)}
@@ -90,8 +93,7 @@ def choose_clipping(capture: Capture, *, fit_kwargs: dict | None = None, max_pix
         for name, cap in readings.items():
             errors[name].append(_errors(fit_phong(cap.subset(train), **kw), hold))
     cat = {k: torch.cat(e) for k, e in errors.items()}
-    v = valid_pixels(readings["pixel"])
-    floor = MIN_GAIN_ABS * float(readings["pixel"].images.double()[v].square().mean()) if bool(v.any()) else 0.0
+    floor = MIN_GAIN_ABS * valid_mean_square(readings["pixel"])  # not float rounding
     d = paired_choice("clipping", cat, "channel", **{"min_gain": MIN_GAIN, "floor": floor, **rule})
     d.holds = groups
     d.pixels = int(sub.images.shape[-2] * sub.images.shape[-1])

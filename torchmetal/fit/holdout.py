@@ -24,6 +24,13 @@ def valid_pixels(capture: Capture) -> Tensor:
     return v
 
 
+def valid_mean_square(capture: Capture) -> float:
+    """Mean square of the capture's valid observations (:func:`valid_pixels`; 0.0 without one): the scale of a
+    held-out signal, against which a decision's gain is float rounding below :data:`~torchmetal.fit.decision.MIN_GAIN_ABS`."""
+    v = valid_pixels(capture)
+    return float(capture.images.double()[v].square().mean()) if bool(v.any()) else 0.0
+
+
 def leave_one_out(capture: Capture, specular: str = "auto", *, peak: float = 1.0, **fit_kwargs: Any) -> list[float]:
     """PSNR of each shot rendered from a :func:`~torchmetal.fit.fit_phong` fit on all the other shots.
 

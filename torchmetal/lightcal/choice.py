@@ -33,7 +33,7 @@ from torch import Tensor
 from torchmetal.errors import InputError
 from torchmetal.fit.api import fit_phong
 from torchmetal.fit.decision import MIN_GAIN_ABS, Decision, paired_choice
-from torchmetal.fit.holdout import valid_pixels
+from torchmetal.fit.holdout import valid_mean_square
 from torchmetal.fit.shot_plan import shot_groups
 from torchmetal.lightcal.estimate import calibrate, calibrate_positions
 from torchmetal.lightcal.model import LightCalibration
@@ -101,8 +101,7 @@ def choose_light(capture: Capture, *, fit_kwargs: dict | None = None, max_pixels
     n = capture.num_shots
     sub = strided_capture(capture, max_pixels)
     groups = shot_groups(n, folds)
-    v = valid_pixels(sub)
-    floor = MIN_GAIN_ABS * float((sub.images.double()[v] ** 2).mean()) if bool(v.any()) else 0.0  # not float rounding
+    floor = MIN_GAIN_ABS * valid_mean_square(sub)  # not float rounding
     rule = {"min_gain": MIN_GAIN, "floor": floor, **rule}
     per_lobe, abstain = {}, set()
     for lobe in TEST_LOBES:
