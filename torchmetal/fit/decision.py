@@ -80,13 +80,12 @@ def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: floa
     for k, e in errors.items():
         if k != ref:
             d.z[k] = paired_z(e, errors[ref])
-    beyond = {k: d.z[k] > z_min or (d.z[k] > 0 and d.mse[k] <= DECISIVE * d.mse[ref]) for k in d.z}
-    wins = [k for k in d.z if beyond[k] and d.mse[k] < (1.0 - min_gain) * d.mse[ref] - floor]
+    rule = {"z_min": z_min, "min_gain": min_gain, "floor": floor}
+    wins = [k for k in d.z if _beats(d.mse[k], d.mse[ref], d.z[k], **rule)]
     lowest = min(wins, key=d.mse.get) if wins else ref
     d.chosen = lowest
     if rank is not None and len(wins) > 1:
-        d.chosen = _simplest_unbeaten(errors, d.mse, sorted(wins, key=rank.__getitem__), lowest, z_min=z_min,
-                                      min_gain=min_gain, floor=floor)
+        d.chosen = _simplest_unbeaten(errors, d.mse, sorted(wins, key=rank.__getitem__), lowest, **rule)
     others = ", ".join(f"{k} {d.mse[k]:.4g} (z {d.z[k]:.1f})" for k in d.z)
     if d.chosen != lowest:
         d.reason = (f"{d.chosen} lowers the held-out MSE beyond noise and {lowest} does not lower it further "
@@ -99,14 +98,18 @@ def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: floa
     return d
 
 
+def _beats(mse: float, mse_ref: float, z: float, *, z_min: float, min_gain: float, floor: float) -> bool:
+    """The rule: an MSE ``mse`` with paired ``z`` beats ``mse_ref`` (module docstring)."""
+    beyond = z > z_min or (z > 0 and mse <= DECISIVE * mse_ref)
+    return beyond and mse < (1.0 - min_gain) * mse_ref - floor
+
+
 def _simplest_unbeaten(errors: dict[str, Tensor], mse: dict, ordered: list[str], best: str, *, z_min: float,
                        min_gain: float, floor: float) -> str:
     """The first of ``ordered`` (winners, simplest first) whose MSE ``best`` does not lower beyond noise."""
     for k in ordered:
         if k == best:
             return k
-        z = paired_z(errors[best], errors[k])
-        beaten = (z > z_min or (z > 0 and mse[best] <= DECISIVE * mse[k])) and mse[best] < (1.0 - min_gain) * mse[k] - floor
-        if not beaten:
+        if not _beats(mse[best], mse[k], paired_z(errors[best], errors[k]), z_min=z_min, min_gain=min_gain, floor=floor):
             return k
     return best
