@@ -122,7 +122,7 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
     assert "weights" in records  # the first fit's choice, kept by the flake stage's refits, is on record
     assert records["observed flakes"]["chosen"] == ("observed" if kept.material.observed_flakes is not None
                                                     else "statistical")
-    assert set(records) <= {"clipping", "normals", "light", "weights", "lobe", "specular evidence", "specular clusters", "relabel",
+    assert set(records) <= {"clipping", "normals", "relief", "light", "weights", "lobe", "specular evidence", "specular clusters", "relabel",
                             "gloss maps", "specular colour", "observed flakes", "flakes", "density map"}
     times = kept.report["stage_times"]  # the total counts the flake choices too
     assert kept.report["total_time"] >= times["flakes"] + times["flakes.observed"] + times["flakes.choice"]

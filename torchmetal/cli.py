@@ -287,11 +287,12 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
                    help="specular lobe: auto (default: chosen on left-out shots; phong unless another lobe predicts them "
                         "better beyond noise), phong (docs/design.md §2.2), blinn, ggx (microfacet, Fresnel, shadowing); "
                         "tiled fits and --scheme paper use phong")
-    f.add_argument("--normals", choices=["auto", "given", "flat", "estimate"], default="auto",
-                   help="auto (default): the capture's normals.npy when it has one, else estimated from the photos "
-                        "where left-out shots prefer them to a flat plane; given: the capture's normals.npy (flat "
-                        "without one); flat: (0, 0, 1); estimate: from the photos (photometric stereo with the Phong "
-                        "terms); tiled fits use the capture's")
+    f.add_argument("--normals", choices=["auto", "given", "flat", "estimate", "relief"], default="auto",
+                   help="auto (default): the capture's normals.npy when it has one, else estimated from the photos, "
+                        "or else an embossing's relief, where left-out shots prefer them to a flat plane; given: the "
+                        "capture's normals.npy (flat without one); flat: (0, 0, 1); estimate: from the photos "
+                        "(photometric stereo with the Phong terms); relief: a high-passed height field fitted with "
+                        "the Phong terms (phone-flash captures of embossed samples); tiled fits use the capture's")
     f.add_argument("--light", choices=["auto", "off", "flash", "positions", "falloff", "gains"], default="auto",
                    help="light calibration, nuisances of the capture (not the material): auto (default: the flash's one "
                         "move of every light where left-out shots, under their lights moved alike, prefer it); off "

@@ -101,8 +101,7 @@ def decision_records(first: FitResult, fit: FitResult, normals_report: dict | No
     out = []
     if clipping_report and clipping_report.get("decision"):
         out.append(clipping_report["decision"])
-    if normals_report and normals_report.get("decision"):
-        out.append(normals_report["decision"])
+    out += [normals_report[k] for k in ("decision", "relief_decision") if (normals_report or {}).get(k)]
     if light_report and light_report.get("decision"):
         out.append(light_report["decision"])
     out += [d for d in first.decisions if d["name"] in FIRST_FIT_CHOICES]  # the refits keep these
@@ -235,10 +234,11 @@ def fit_material(
         lobe: the specular lobe, "auto" (the default: chosen on held-out shots by the first fit,
             :mod:`~torchmetal.fit.lobe_choice`; phong, docs/design.md §2.2, unless another lobe predicts them
             better beyond noise; the refits keep that choice), "phong", "blinn" or "ggx".
-        normals: "auto" (the default: the capture's normals.npy when it has one; else estimated where
-            left-out shots prefer them to the flat plane, :mod:`~torchmetal.normals.choice`), "given"
-            (the capture's normals.npy; flat without one), "flat" (0, 0, 1), or "estimate" (photometric
-            stereo with the Phong terms, :func:`~torchmetal.normals.estimate_normals`; the material keeps them).
+        normals: "auto" (the default: the capture's normals.npy when it has one; else estimated, or else the
+            embossing's relief, where left-out shots prefer them to the flat plane, :mod:`~torchmetal.normals.choice`),
+            "given" (the capture's normals.npy; flat without one), "flat" (0, 0, 1), "estimate" (photometric
+            stereo with the Phong terms, :func:`~torchmetal.normals.estimate_normals`) or "relief" (a high-passed
+            height field fitted with global Phong terms, :mod:`~torchmetal.normals.relief`); the material keeps them.
         weights: "auto" (the default: noise weights where the first fit's held-out shot predicts better with
             them, else plain least squares; the refits keep that choice), "uniform" (plain least squares) or
             "noise" (each observation weighted by the inverse of its expected noise variance,

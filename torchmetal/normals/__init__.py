@@ -14,22 +14,26 @@ Modules: the estimate, the core its steps share, the steps in the order they run
 * :mod:`~torchmetal.normals.median`: the neighbourhood's normal where it explains a pixel as well
   (:func:`median_where_as_good`);
 * :mod:`~torchmetal.normals.flat`: flat where the photos cannot tell (:func:`flat_where_unresolved`);
-* :mod:`~torchmetal.normals.choice`: ``normals="auto"``, estimated or flat as left-out shots prefer
-  (:func:`choose_normals`);
+* :mod:`~torchmetal.normals.relief`: an embossing's relief, a high-passed height field fitted with the
+  global Phong terms (:func:`with_relief`);
+* :mod:`~torchmetal.normals.choice`: ``normals="auto"``, estimated, relief or flat as left-out shots prefer
+  (:func:`choose_normals`, :func:`choose_relief`);
 * :mod:`~torchmetal.normals.modes`: the normals a fit uses, by mode (:func:`with_normals`).
 """
 
-from torchmetal.normals.choice import choose_normals, pixel_errors, strided_capture
+from torchmetal.normals.choice import choose_normals, choose_relief, pixel_errors, strided_capture
 from torchmetal.normals.estimate import NormalsEstimate, angular_error, estimate_normals
 from torchmetal.normals.flat import flat_where_unresolved
 from torchmetal.normals.joint import joint_refine, try_weak_lobe
 from torchmetal.normals.median import median_where_as_good
 from torchmetal.normals.modes import NORMALS_MODES, with_normals
 from torchmetal.normals.refine import refine_normals
+from torchmetal.normals.relief import with_relief
 from torchmetal.normals.restart import restart_and_settle
 
 __all__ = [
-    "NORMALS_MODES", "NormalsEstimate", "estimate_normals", "with_normals", "choose_normals", "strided_capture",
+    "NORMALS_MODES", "NormalsEstimate", "estimate_normals", "with_normals", "choose_normals", "choose_relief",
+    "with_relief", "strided_capture",
     "pixel_errors", "refine_normals", "joint_refine", "try_weak_lobe", "restart_and_settle", "median_where_as_good",
     "flat_where_unresolved", "angular_error",
 ]
