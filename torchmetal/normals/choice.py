@@ -107,33 +107,19 @@ def choose_normals(capture: Capture, *, fit_kwargs: dict | None = None, max_pixe
     Returns:
         (mode, the :class:`~torchmetal.fit.decision.Decision` behind it).
     """
-    n = int(capture.images.shape[0])
-    if not capture.flat:
-        return "given", Decision("normals", ("given",), "given", reason="the capture's own normals (normals.npy)")
-    if n < MIN_SHOTS:
-        return "flat", Decision("normals", ("flat", "estimate"), "flat",
-                                reason=f"a left-out test of estimated normals needs >= {MIN_SHOTS} shots, found {n}")
+    untested = _untested(capture, "normals", "estimate", "estimated normals")
+    if untested is not None:
+        return untested
     fit_kwargs = dict(fit_kwargs or {})
     sub = strided_capture(capture, max_pixels)
-    groups = shot_groups(n, folds)
-    errors: dict[str, list[Tensor]] = {"flat": [], "estimate": []}
-    rule = {"min_gain": MIN_GAIN, **rule}
-    for i, group in enumerate(groups):
-        train = sub.subset([k for k in range(n) if k not in group])
-        hold = sub.subset(group)
-        flat_fit = fit_phong(train, **fit_kwargs)
-        est = estimate_normals(train, fit_kwargs=fit_kwargs)
-        est_fit = fit_phong(replace(train, normals=est.normals), **fit_kwargs)
-        errors["flat"].append(pixel_errors(flat_fit, hold))
-        errors["estimate"].append(pixel_errors(est_fit, hold))
-        d = _decide(errors, rule)
-        if i + 1 < len(groups) and d.z["estimate"] < -rule.get("z_min", Z_MIN):
-            # futility: the estimate already predicts these groups worse beyond noise; only the remaining groups
-            # outweighing them could make it win
-            d.reason += f"; stopped after {i + 1} of {len(groups)} shot groups (the estimate worse beyond noise)"
-            groups = groups[: i + 1]
-            break
-    d.holds = groups
+
+    def group_errors(train: list[int], group: list[int]) -> tuple[Tensor, Tensor]:
+        fit_on, hold = sub.subset(train), sub.subset(group)
+        est = estimate_normals(fit_on, fit_kwargs=fit_kwargs)
+        return (pixel_errors(fit_phong(fit_on, **fit_kwargs), hold),
+                pixel_errors(fit_phong(replace(fit_on, normals=est.normals), **fit_kwargs), hold))
+
+    d = _grouped_test(capture.num_shots, folds, "estimate", group_errors, rule)
     d.pixels = int(sub.images.shape[-2] * sub.images.shape[-1])
     return d.chosen, d
 
@@ -143,35 +129,59 @@ def choose_relief(capture: Capture, *, res: int = RES, folds: int = FOLDS, **rul
     (:mod:`~torchmetal.normals.relief`): on the capture box-downsampled to ≤ ``res`` pixels a side, the
     shots dealt into groups as for the estimate; for each group the flat plane and the relief, both with
     global Phong terms fitted on the other shots, render it; per pixel the median squared error over its
-    observations, the paired rule with ``MIN_GAIN`` and the same futility stop as :func:`choose_normals`.
+    observations, the paired rule with ``MIN_GAIN`` and the same futility stop as :func:`choose_normals`, and
+    the typical pixel must gain too (:func:`_typical`).
 
     Returns:
         (mode, the :class:`~torchmetal.fit.decision.Decision` behind it).
     """
-    n = int(capture.images.shape[0])
-    if not capture.flat:
-        return "given", Decision("relief", ("given",), "given", reason="the capture's own normals (normals.npy)")
-    if n < MIN_SHOTS:
-        return "flat", Decision("relief", ("flat", "relief"), "flat",
-                                reason=f"a left-out test of a relief needs >= {MIN_SHOTS} shots, found {n}")
+    untested = _untested(capture, "relief", "relief", "a relief")
+    if untested is not None:
+        return untested
     ds = downsample(capture, factor_for(capture, res))
+
+    def group_errors(train: list[int], group: list[int]) -> tuple[Tensor, Tensor]:
+        fit_on, hold = ds.subset(train), ds.subset(group)
+        flat = fit_relief(fit_on, relief=False)
+        return tuple(rendered_pixel_errors(render_heldout(f, fit_on, hold), hold)
+                     for f in (flat, fit_relief(fit_on, start=flat)))
+
+    d = _grouped_test(capture.num_shots, folds, "relief", group_errors, rule, check=_typical)
+    d.pixels = ds.height * ds.width
+    return d.chosen, d
+
+
+def _untested(capture: Capture, name: str, alt: str, what: str) -> tuple[str, Decision] | None:
+    """The choice without a test: "given" for a capture with normals, "flat" with too few shots; else None."""
+    n = capture.num_shots
+    if not capture.flat:
+        return "given", Decision(name, ("given",), "given", reason="the capture's own normals (normals.npy)")
+    if n < MIN_SHOTS:
+        return "flat", Decision(name, ("flat", alt), "flat", reason=f"a left-out test of {what} needs >= {MIN_SHOTS} shots, found {n}")
+    return None
+
+
+def _grouped_test(n: int, folds: int, alt: str, group_errors, rule: dict, check=None) -> Decision:
+    """Flat against ``alt`` over the shot groups in turn: ``group_errors(train, group)`` → per-pixel held-out
+    errors (flat, alt) of fits on ``train`` rendering ``group``; the paired rule on all groups so far
+    (``check(decision, errors)`` may overrule it), stopping early (futility) once ``alt`` predicts worse
+    beyond noise: only the remaining groups outweighing them could make it win."""
     groups = shot_groups(n, folds)
-    errors: dict[str, list[Tensor]] = {"flat": [], "relief": []}
+    errors: dict[str, list[Tensor]] = {"flat": [], alt: []}
     rule = {"min_gain": MIN_GAIN, **rule}
     for i, group in enumerate(groups):
-        train, hold = ds.subset([k for k in range(n) if k not in group]), ds.subset(group)
-        flat = fit_relief(train, relief=False)
-        for name, fit in (("flat", flat), ("relief", fit_relief(train, start=flat))):
-            errors[name].append(rendered_pixel_errors(render_heldout(fit, train, hold), hold))
-        d = _decide(errors, rule, "relief")
-        _typical(d, errors)
-        if i + 1 < len(groups) and d.z["relief"] < -rule.get("z_min", Z_MIN):
-            d.reason += f"; stopped after {i + 1} of {len(groups)} shot groups (the relief worse beyond noise)"
+        flat, other = group_errors([k for k in range(n) if k not in group], list(group))
+        errors["flat"].append(flat)
+        errors[alt].append(other)
+        d = _decide(errors, rule, alt)
+        if check is not None:
+            check(d, errors)
+        if i + 1 < len(groups) and d.z[alt] < -rule.get("z_min", Z_MIN):
+            d.reason += f"; stopped after {i + 1} of {len(groups)} shot groups (the {alt} worse beyond noise)"
             groups = groups[: i + 1]
             break
     d.holds = groups
-    d.pixels = ds.height * ds.width
-    return d.chosen, d
+    return d
 
 
 def _typical(d: Decision, errors: dict[str, list[Tensor]]) -> None:
