@@ -13,6 +13,10 @@ noise and by ``MIN_GAIN`` (5 %: a normal map is two parameters a pixel). The gro
 and the test stops early (futility) when the estimate already predicts worse beyond noise (z < −z_min): a
 flat sample saves the other groups' fits, two thirds of the choice's time.
 
+Where flat is kept, :func:`choose_relief` tests an embossing's relief against it in the same way
+(:mod:`~torchmetal.normals.relief`: a height field on 64 control points a side without its slow tilts, which
+absorb the lights' errors), on the capture downsampled to ≤ 128², kept only where the typical pixel gains too.
+
 The fits have the default specular structure, not one global lobe: a global lobe misfits a sample of two
 materials, and estimated normals that bend its highlights would then win the test (docs/design.md §4).
 """

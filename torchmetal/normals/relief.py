@@ -58,7 +58,8 @@ class ReliefFit:
     Attributes:
         heights: (gh, gw) float64 control points in scene units (before the high-pass), or None (flat).
         s, alpha: (3,) float64 specular strength and exponent.
-        loss: the mean squared error over the valid observations it was fitted on.
+        loss: the fit's cost: the mean squared error over the valid observations it was fitted on, plus the
+            relief's slope penalty (:data:`SMOOTH`)
         iterations: L-BFGS iterations.
     """
 
@@ -129,14 +130,14 @@ def _slope_square(heights: Tensor, size: tuple[float, float]) -> Tensor:
     return sx.square().mean() + sy.square().mean()
 
 
-def _shading(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(a, b, lit) (N, 3, H, W): the diffuse factor E·max(n·l, 0), the specular term E·s·lobe and where n·l > 0."""
+def _shading(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
+    """(a, b) (N, 3, H, W): the diffuse factor E·max(n·l, 0) and the specular term E·s·lobe (0 where n·l ≤ 0)."""
     dt = normals.dtype
     geom = shading_geometry(normals, capture.lights.to(dt), capture.intensities.to(dt), capture.cameras.to(dt), capture.size)
     lit = geom.n_dot_l > 0
     a = geom.irradiance * geom.n_dot_l.clamp_min(0.0)
     b = torch.where(lit, geom.irradiance * s.view(1, 3, 1, 1) * specular_lobe(geom.spec_q, alpha), torch.zeros_like(a))
-    return a, b, lit.expand_as(a)
+    return a, b
 
 
 def _texture(a: Tensor, b: Tensor, y: Tensor, weight: Tensor) -> Tensor:
@@ -158,9 +159,9 @@ def render_heldout(fit: ReliefFit, train: Capture, hold: Capture) -> Tensor:
     (both captures of one sample, at the resolution the fit's normals are wanted)."""
     with torch.no_grad():
         n = fit_normals(fit, train)
-        a, b, lit = _shading(train, n, fit.s, fit.alpha)
-        tex = _texture(a, b, train.images.double(), (valid_pixels(train) & lit).double())
-        a, b, _ = _shading(hold, n, fit.s, fit.alpha)
+        a, b = _shading(train, n, fit.s, fit.alpha)
+        tex = _texture(a, b, train.images.double(), valid_pixels(train).double())
+        a, b = _shading(hold, n, fit.s, fit.alpha)
         return a * tex + b
 
 
@@ -194,7 +195,7 @@ def _fit(capture: Capture, heights: Tensor | None, s: Tensor, alpha: Tensor, ite
     def value_grad(x: Tensor) -> tuple[float, Tensor]:
         x = x.detach().requires_grad_(True)
         n = flat if shape is None else relief_normals(x[6:].view(shape), (capture.height, capture.width), capture.size)
-        a, b, _ = _shading(capture, n, x[:3].exp(), x[3:6].exp())
+        a, b = _shading(capture, n, x[:3].exp(), x[3:6].exp())
         # an unlit observation counts (its render is 0): else tilting a pixel away from the light would drop it
         r = (y - a * _texture(a, b, y, weight) - b) * weight
         loss = r.square().sum() / count
@@ -216,7 +217,7 @@ def with_relief(capture: Capture, *, res: int = RES) -> tuple[Capture, dict]:
     normals = relief_normals(fit.heights, (capture.height, capture.width), capture.size).to(capture.images.dtype)
     tilt = torch.rad2deg(torch.acos(fit_normals(fit, ds)[2].clamp(-1.0, 1.0)))  # at the fit's resolution
     report = {"mode": "relief", "fit_resolution": [ds.height, ds.width], "grid": list(fit.heights.shape),
-              "iterations": fit.iterations, "rmse": math.sqrt(fit.loss), "s": fit.s.tolist(), "alpha": fit.alpha.tolist(),
+              "iterations": fit.iterations, "cost": fit.loss, "s": fit.s.tolist(), "alpha": fit.alpha.tolist(),
               "tilt_mean_deg": float(tilt.mean()), "tilt_p99_deg": float(tilt.flatten().quantile(0.99))}
     return replace(capture, normals=normals), report
 
