@@ -98,12 +98,9 @@ def decision_records(first: FitResult, fit: FitResult, normals_report: dict | No
     """Every choice made on left-out shots, in the order made, as :class:`~torchmetal.fit.decision.Decision`
     dicts: the clipping, normals, the light calibration, the lobe and the weights (``first``, the first fit, chose
     them), the final fit's specular choices (evidence, clusters, relabelling, gloss maps), then the flake choices."""
-    out = []
-    if clipping_report and clipping_report.get("decision"):
-        out.append(clipping_report["decision"])
-    out += [normals_report[k] for k in ("decision", "relief_decision") if (normals_report or {}).get(k)]
-    if light_report and light_report.get("decision"):
-        out.append(light_report["decision"])
+    stages = ((clipping_report, "decision"), (normals_report, "decision"), (normals_report, "relief_decision"),
+              (light_report, "decision"))
+    out = [report[k] for report, k in stages if (report or {}).get(k)]
     out += [d for d in first.decisions if d["name"] in FIRST_FIT_CHOICES]  # the refits keep these
     out += [d for d in fit.decisions if d["name"] not in FIRST_FIT_CHOICES]
     flakes = {} if flake_result is None else flake_result.report

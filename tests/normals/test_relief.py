@@ -8,7 +8,7 @@ import torch
 
 from torchmetal.geometry import shading_geometry
 from torchmetal.normals import choose_relief, with_normals
-from torchmetal.normals.relief import downsample, fit_relief, grid_shape, high_pass, relief_normals
+from torchmetal.normals.relief import fit_relief, grid_shape, high_pass, relief_normals
 from torchmetal.phong import phong_shading
 from torchmetal.synth import synth_capture
 
@@ -55,16 +55,6 @@ def test_relief_normals_lean_away_from_a_bump():
     assert n[1, 24, 32] > 0.05 and n[1, 40, 32] < -0.05  # above (smaller row) leans up (+y)
     assert torch.allclose(relief_normals(torch.zeros(8, 8, dtype=torch.float64), (20, 30), (1.0, 1.0))[2],
                           torch.ones(20, 30, dtype=torch.float64))
-
-
-def test_downsample_keeps_pixels_on_the_sample():
-    cap = synth_capture(size=(50, 37), shots=3, seed=1).capture
-    sat = torch.zeros_like(cap.saturated)
-    sat[1, 2, 0, 0] = True
-    ds = downsample(replace(cap, saturated=sat), 4)
-    assert ds.images.shape == (3, 3, 12, 9) and ds.saturated[1, 2, 0, 0] and int(ds.saturated.sum()) == 1
-    assert torch.allclose(ds.images[0, :, 0, 0], cap.images[0, :, :4, :4].mean((-2, -1)))
-    assert ds.size == pytest.approx((cap.size[0] * 36 / 37, cap.size[1] * 48 / 50))
 
 
 def test_fit_recovers_an_embossing(embossed):

@@ -41,7 +41,7 @@ def task_real(cfg: dict) -> dict:
     if cfg.get("max_shots") and cap.num_shots > int(cfg["max_shots"]):
         cap = cap.subset(list(range(int(cfg["max_shots"]))))
     if cfg.get("downsample"):
-        cap = _downsample(cap, int(cfg["downsample"]))
+        cap = cap.downsampled(int(cfg["downsample"]))
     name = Path(cfg["dir"]).name
     out = {"name": name, "shots": int(cap.images.shape[0]), "size": list(cap.images.shape[-2:])}
     gallery = Path(cfg["gallery"]) if cfg.get("gallery") else None
@@ -200,7 +200,7 @@ def task_realflakes(cfg: dict) -> dict:
 
     cap = load_capture(cfg["dir"])
     if cfg.get("downsample"):
-        cap = _downsample(cap, int(cfg["downsample"]))
+        cap = cap.downsampled(int(cfg["downsample"]))
     n = cap.num_shots
     hold = int(cfg.get("holdout", n // 2)) % n
     fit_cap, one = cap.subset([k for k in range(n) if k != hold]), cap.subset([hold])
@@ -227,27 +227,3 @@ def task_realflakes(cfg: dict) -> dict:
         out["overlay"] = str(save_detection_overlay(cfg["overlay"], fit_cap.images[k], parts, gain=min(gain, 8.0)))
         out["overlay_particles"] = len(parts)
     return out
-
-
-def _downsample(cap, factor: int):
-    """Box-downsample a capture by an integer factor (for --quick runs on real data)."""
-    import dataclasses
-
-    import torch.nn.functional as F
-
-    if factor <= 1:
-        return cap
-    changes = {"images": F.avg_pool2d(cap.images, factor)}
-    for name in ("normals",):
-        v = getattr(cap, name, None)
-        if v is not None:
-            changes[name] = F.normalize(F.avg_pool2d(v[None] if v.dim() == 3 else v, factor), dim=-3).reshape(3, *changes["images"].shape[-2:])
-    mask = getattr(cap, "mask", None)
-    if mask is not None:
-        mm = F.avg_pool2d(mask.float().reshape(1, 1, *mask.shape[-2:]), factor) > 0.999
-        changes["mask"] = mm.reshape(*mask.shape[:-2], *changes["images"].shape[-2:]).to(mask.dtype)
-    sat = getattr(cap, "saturated", None)
-    if sat is not None:
-        changes["saturated"] = F.max_pool2d(sat.float().reshape(-1, 1, *sat.shape[-2:]), factor).reshape(
-            *sat.shape[:-2], *changes["images"].shape[-2:]).to(sat.dtype)
-    return dataclasses.replace(cap, **changes)

@@ -204,6 +204,27 @@ class Capture:
             color_space=self.color_space,
         )
 
+    def downsampled(self, factor: int) -> "Capture":
+        """The capture box-downsampled by ``factor``: a pixel's mean colour and normal; inside the mask where its
+        whole block is; saturated where any of its block is. Rows and columns beyond whole blocks are dropped,
+        split between both edges, and the surface shrinks with them: each pixel's centre is its block's centre
+        (within half a pixel of the capture's where an odd number of rows or columns is dropped)."""
+        if factor <= 1:
+            return self
+        h, w = self.height // factor, self.width // factor
+        r0, c0 = (self.height - h * factor) // 2, (self.width - w * factor) // 2
+        crop = lambda t: t[..., r0 : r0 + h * factor, c0 : c0 + w * factor]  # noqa: E731
+        pool = torch.nn.functional.avg_pool2d
+        images = pool(crop(self.images), factor)
+        mask = pool(crop(self.mask).double().unsqueeze(0), factor)[0] > 1.0 - 1e-9
+        saturated = torch.nn.functional.max_pool2d(crop(self.saturated).to(images.dtype), factor) > 0
+        normals = None if self.flat else torch.nn.functional.normalize(pool(crop(self.normals).unsqueeze(0), factor)[0], dim=0)
+        return Capture(
+            images=images, normals=normals, mask=mask, lights=self.lights, intensities=self.intensities,
+            cameras=self.cameras, size=(self.size[0] * w * factor / self.width, self.size[1] * h * factor / self.height),
+            saturated=saturated, names=list(self.names), color_space=self.color_space,
+        )
+
     def __repr__(self) -> str:
         kinds = {0.0: "directional", 1.0: "point"}
         lights = sorted({kinds.get(float(w), "?") for w in self.lights[:, 3].tolist()})

@@ -35,7 +35,7 @@ from torchmetal.fit.decision import Z_MIN, Decision, paired_choice
 from torchmetal.fit.holdout import valid_pixels
 from torchmetal.fit.shot_plan import shot_groups
 from torchmetal.normals.estimate import estimate_normals
-from torchmetal.normals.relief import RES, downsample, factor_for, fit_relief, render_heldout
+from torchmetal.normals.relief import RES, factor_for, fit_relief, render_heldout
 
 if TYPE_CHECKING:
     from torchmetal.fit.result import FitResult
@@ -142,7 +142,7 @@ def choose_relief(capture: Capture, *, res: int = RES, folds: int = FOLDS, **rul
     untested = _untested(capture, "relief", "relief", "a relief")
     if untested is not None:
         return untested
-    ds = downsample(capture, factor_for(capture, res))
+    ds = capture.downsampled(factor_for(capture, res))
 
     def group_errors(train: list[int], group: list[int]) -> tuple[Tensor, Tensor]:
         fit_on, hold = ds.subset(train), ds.subset(group)

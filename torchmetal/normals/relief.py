@@ -10,7 +10,7 @@ sees and does not carry to others. The relief keeps what is the surface's:
   its slow variations removed (h − G_σ∗h, σ = :data:`SIGMA` cells: a tilt wider than a few cells is the
   lights' error, not the embossing), bicubic to the pixels; normals ∝ (−∂h/∂x, −∂h/∂y, 1)
   (:func:`relief_normals`);
-* fitted on the capture box-downsampled to ≤ :data:`RES` pixels a side (:func:`downsample`): given the
+* fitted on the capture box-downsampled to ≤ :data:`RES` pixels a side (``Capture.downsampled``): given the
   normals and the global s, α (per channel), each pixel's texture is the least-squares closed form over its
   valid observations (the projected cost), and L-BFGS (:func:`torchmetal.lbfgs.minimize`) through autograd
   moves h, log s and log α together, from the flat plane's fit (:func:`fit_relief`).
@@ -75,22 +75,6 @@ def factor_for(capture: Capture, res: int = RES) -> int:
     return max(1, math.ceil(max(capture.height, capture.width) / res))
 
 
-def downsample(capture: Capture, factor: int) -> Capture:
-    """The capture box-downsampled by ``factor``: a pixel's mean colour; inside the mask where its whole
-    block is; saturated where any of its block is. Rows and columns beyond a whole block are dropped and
-    the surface size shrinks with them, so each pixel's centre stays on the sample where its block was."""
-    if factor <= 1:
-        return capture
-    h, w = capture.height // factor, capture.width // factor
-    crop = lambda t: t[..., : h * factor, : w * factor]  # noqa: E731
-    images = F.avg_pool2d(crop(capture.images), factor)
-    mask = F.avg_pool2d(crop(capture.mask).double().unsqueeze(0), factor)[0] > 1.0 - 1e-9
-    saturated = F.max_pool2d(crop(capture.saturated).to(images.dtype), factor) > 0
-    normals = None if capture.flat else F.normalize(F.avg_pool2d(crop(capture.normals).unsqueeze(0), factor)[0], dim=0)
-    size = (capture.size[0] * w * factor / capture.width, capture.size[1] * h * factor / capture.height)
-    return replace(capture, images=images, mask=mask, saturated=saturated, normals=normals, size=size)
-
-
 def grid_shape(h: int, w: int, cell: int = CELL) -> tuple[int, int]:
     """(gh, gw): control points of a height field over an h × w image, one every ``cell`` pixels (≥ 4 a side)."""
     return max(4, round(h / cell)), max(4, round(w / cell))
@@ -145,12 +129,15 @@ def _texture(a: Tensor, b: Tensor, y: Tensor, weight: Tensor) -> Tensor:
     return ((weight * a * (y - b)).sum(0) / (weight * a * a).sum(0).clamp_min(1e-300)).clamp_min(0.0)
 
 
+def _flat_normals(capture: Capture) -> Tensor:
+    """(3, H, W) float64 (0, 0, 1) at the resolution of ``capture``."""
+    return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).view(3, 1, 1).expand(3, capture.height, capture.width)
+
+
 def fit_normals(fit: ReliefFit, capture: Capture) -> Tensor:
     """(3, H, W) float64 normals of ``fit`` at the resolution and surface of ``capture``."""
     if fit.heights is None:
-        n = torch.zeros(3, capture.height, capture.width, dtype=torch.float64)
-        n[2] = 1.0
-        return n
+        return _flat_normals(capture)
     return relief_normals(fit.heights, (capture.height, capture.width), capture.size)
 
 
@@ -168,7 +155,7 @@ def render_heldout(fit: ReliefFit, train: Capture, hold: Capture) -> Tensor:
 def fit_relief(capture: Capture, *, start: ReliefFit | None = None, relief: bool = True, iters: int = ITERS,
                cell: int = CELL) -> ReliefFit:
     """The relief (``relief=True``) or the flat plane fitted to ``capture`` (already at the fit's resolution,
-    :func:`downsample`) with global s, α; from ``start``'s s, α (and heights), else from the flat fit's
+    ``Capture.downsampled``) with global s, α; from ``start``'s s, α (and heights), else from the flat fit's
     (:data:`ALPHA_STARTS`). Module docstring."""
     if relief and start is None:
         start = fit_relief(capture, relief=False)
@@ -185,7 +172,7 @@ def fit_relief(capture: Capture, *, start: ReliefFit | None = None, relief: bool
 def _fit(capture: Capture, heights: Tensor | None, s: Tensor, alpha: Tensor, iters: int, cell: int) -> ReliefFit:
     y = capture.images.double()
     valid = valid_pixels(capture)
-    flat = fit_normals(ReliefFit(None, s, alpha, math.nan, 0), capture)
+    flat = _flat_normals(capture)
     shape = None if heights is None else heights.shape
     x0 = torch.cat([s.clamp_min(1e-6).log(), alpha.clamp_min(1e-3).log()] + ([] if heights is None else [heights.reshape(-1)]))
     weight = valid.double()
@@ -212,7 +199,7 @@ def _fit(capture: Capture, heights: Tensor | None, s: Tensor, alpha: Tensor, ite
 def with_relief(capture: Capture, *, res: int = RES) -> tuple[Capture, dict]:
     """The capture with its relief's normals (fitted on all its shots at ≤ ``res`` pixels a side), and a
     report entry."""
-    ds = downsample(capture, factor_for(capture, res))
+    ds = capture.downsampled(factor_for(capture, res))
     fit = fit_relief(ds)
     normals = relief_normals(fit.heights, (capture.height, capture.width), capture.size).to(capture.images.dtype)
     tilt = torch.rad2deg(torch.acos(fit_normals(fit, ds)[2].clamp(-1.0, 1.0)))  # at the fit's resolution
@@ -222,4 +209,4 @@ def with_relief(capture: Capture, *, res: int = RES) -> tuple[Capture, dict]:
     return replace(capture, normals=normals), report
 
 
-__all__ = ["ReliefFit", "downsample", "factor_for", "fit_relief", "relief_normals", "render_heldout", "with_relief"]
+__all__ = ["ReliefFit", "factor_for", "fit_relief", "relief_normals", "render_heldout", "with_relief"]
