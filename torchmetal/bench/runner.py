@@ -29,6 +29,8 @@ gpu       fit 4096²×16, flake stage, renderer, ONNX CUDA provider where CUDA i
 robust    every fit option set on the zoo's flake scenes, the sharp-highlight sphere and the shared real
           captures: a material each, wall time against the numpy paper process; the flake stage's share
           of the fit on flake-free captures (torchmetal.bench.robust)
+uncertainty  coverage of the clean truth by the fit's 90 % intervals (s, α, texture) on random synthetic
+          scenes (torchmetal.bench.uncertainty)
 ========  ==================================================================================
 
 Outputs in ``--out`` (default ``bench-results/``): ``results.md``, ``results.csv``,
@@ -57,7 +59,7 @@ from torchmetal.bench.tables import ERR, MiB, _num, fmt, md_table, problem
 from torchmetal.bench.zoo_section import scene_sizes, zoo_jobs, zoo_markdown, zoo_scene_names
 
 SECTIONS = ("sweep", "load", "fit1024", "skip", "flakes", "onnx", "real", "realflakes", "zoo", "command", "onnx_kinds",
-            "gpu", "robust")
+            "gpu", "robust", "uncertainty")
 
 
 def _light_fitted(v: dict) -> str:
@@ -402,6 +404,15 @@ class Bench(SweepSection):
                                  say=self.say)
         self.raw["robust"] = res
         self.add(robust.markdown(res))
+
+    def run_uncertainty(self) -> None:
+        # on use: loads torch (torchmetal.bench.uncertainty: calibration of the fit's intervals, issue 43)
+        from torchmetal.bench import uncertainty
+
+        self.section("Uncertainty: coverage of the truth by the fit's 90 % intervals on random synthetic scenes")
+        res = uncertainty.run_section(100 if self.plan.name == "full" else 30, say=self.say)
+        self.raw["uncertainty"] = res
+        self.add(uncertainty.markdown(res))
 
     # -- output ---------------------------------------------------------------------------
 
