@@ -30,6 +30,7 @@ import torch
 from torchmetal.clipping import CLIPPING_MODES, with_clipping
 from torchmetal.errors import InputError
 from torchmetal.fit import FitResult, fit_phong
+from torchmetal.fit.uncertainty import fit_uncertainty
 from torchmetal.fit.shot_plan import ShotPlan, flake_holds
 from torchmetal.flakes.choice import HELD as FLAKE_HOLDS
 from torchmetal.flakes.choice import choose_observed, keep_flakes
@@ -271,6 +272,7 @@ def fit_material(
     material = state.material
     material.report["light"] = state.light_report
     material.report["clipping"] = state.clipping_report
+    material.report["uncertainty"] = fit_uncertainty(state.fit, capture)  # issue 43: intervals of s, α, the texture
     material.report["decisions"] = decision_records(state.first, state.fit, state.normals_report, state.flake_result,
                                                     state.light_report, state.clipping_report)
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
