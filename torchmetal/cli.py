@@ -69,11 +69,24 @@ def cmd_fit(args: argparse.Namespace) -> int:
     print(
         f"fitted {capture.num_shots} shots {capture.height}x{capture.width} in {rep['total_time']:.2f} s: "
         f"rmse {rep['rmse']:.4g}, s {[round(v, 4) for v in result.material.s.tolist()]}, "
-        f"alpha {[round(v, 1) for v in result.material.alpha.tolist()]}, lobe {result.material.lobe}, "
+        f"alpha {[round(v, 1) for v in result.material.alpha.tolist()]}{_pm_text(rep.get('uncertainty'))}, lobe {result.material.lobe}, "
         f"flakes {'none' if flakes is None else _density_text(flakes)}{_light_text(rep.get('light'))}; "
         f"skipped: {'; '.join(rep['skipped']) or 'nothing'} -> {args.output}"
     )
     return 0
+
+
+def _pm_text(unc: dict | None) -> str:
+    """The fit line's 90 % intervals of a global specular (issue 43): " (α 80 ± 6 / 81 ± 6 / 79 ± 7, s 0.50 ± 0.01 / …)";
+    per cluster they are in the report only; a note when no shot saw a highlight."""
+    g = (unc or {}).get("globals")
+    if not g or len(g["s"]["value"]) != 1:
+        return ""
+    if g["method"][0][0] == "unseen":
+        return " (no highlight seen: s, alpha not measured)"
+    pm = lambda k, f: " / ".join(f"{v:{f}} ± {e:{f}}" if e is not None else f"{v:{f}} (bound)"  # noqa: E731
+                                 for v, e in zip(g[k]["value"][0], g[k]["pm"][0]))
+    return f" (90 %: α {pm('alpha', '.3g')}, s {pm('s', '.3g')})"
 
 
 def _light_text(light: dict | None) -> str:
