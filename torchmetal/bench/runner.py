@@ -31,6 +31,8 @@ robust    every fit option set on the zoo's flake scenes, the sharp-highlight sp
           of the fit on flake-free captures (torchmetal.bench.robust)
 uncertainty  coverage of the clean truth by the fit's 90 % intervals (s, α, texture) on random synthetic
           scenes (torchmetal.bench.uncertainty)
+selection the default's choices on randomized scenes with known truth: false positives, misses, the default
+          against the best fixed option set and the paper scheme (torchmetal.bench.selection)
 ========  ==================================================================================
 
 Outputs in ``--out`` (default ``bench-results/``): ``results.md``, ``results.csv``,
@@ -59,7 +61,7 @@ from torchmetal.bench.tables import ERR, MiB, _num, fmt, md_table, problem
 from torchmetal.bench.zoo_section import scene_sizes, zoo_jobs, zoo_markdown, zoo_scene_names
 
 SECTIONS = ("sweep", "load", "fit1024", "skip", "flakes", "onnx", "real", "realflakes", "zoo", "command", "onnx_kinds",
-            "gpu", "robust", "uncertainty")
+            "gpu", "robust", "uncertainty", "selection")
 
 
 def _light_fitted(v: dict) -> str:
@@ -413,6 +415,20 @@ class Bench(SweepSection):
         res = uncertainty.run_section(100 if self.plan.name == "full" else 30, say=self.say)
         self.raw["uncertainty"] = res
         self.add(uncertainty.markdown(res))
+
+    def run_selection(self) -> None:
+        from torchmetal.bench import selection  # the random scenes' fits (torchmetal.bench.selection)
+
+        n = selection.scene_count(self.plan.name == "quick")
+        self.section(f"Selection: the default's choices on {n} random scenes (torchmetal.synth.random_scenes)")
+        if self.plan.threads:
+            import torch
+
+            torch.set_num_threads(self.plan.threads)
+        res = selection.run_section(range(n), workdir=self.tmp, say=self.say, jsonl=self.out / "selection.jsonl")
+        self.raw["selection"] = res["choices"] | {"overall": res["overall"]}
+        (self.out / "selection.json").write_text(json.dumps(res, indent=1, default=str))
+        self.add(selection.markdown(res))
 
     # -- output ---------------------------------------------------------------------------
 
