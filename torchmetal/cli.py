@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 
 # Verbs that live beside their feature: each module imports only argparse at the top and has
 # ``register(sub)`` that adds its sub-parser(s), whose ``func`` does the heavy imports.
-EXTRA_VERBS: tuple[str, ...] = ("torchmetal.viewer.cli", "torchmetal.scale.cli", "torchmetal.photos.cli")
+EXTRA_VERBS: tuple[str, ...] = ("torchmetal.viewer.cli", "torchmetal.scale.cli", "torchmetal.photos.cli", "torchmetal.plan.cli")
 
 
 def _vec(n: int):

@@ -1,0 +1,106 @@
+"""torchmetal plan: plan.json per shared DESIGN §2.5, K shots best first, the figure, one-line errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from torchmetal.cli import main
+from torchmetal.errors import InputError
+from torchmetal.plan.core import PlanOptions, Scene, camera_frame, expected_error, fisher_sums, plan_shots, shot_terms
+from torchmetal.plan.run import plan_directory
+from torchmetal.synth.zoo import Scene as ZooScene
+from torchmetal.synth.zoo import make_case
+
+
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory):
+    case = make_case(ZooScene("plan", size=40, shots=4, held=1, layout="hemisphere", s=0.5, alpha=60.0, seed=43902),
+                     tmp_path_factory.mktemp("plan"))
+    return case.capture_dir
+
+
+def _scene(lights=None) -> Scene:
+    """A flat 24² sample, global Phong, past flash shots at ``lights`` (camera = light)."""
+    lights = torch.zeros(0, 4, dtype=torch.float64) if lights is None else lights
+    return Scene(texture=torch.full((3, 24, 24), 0.3, dtype=torch.float64), s=torch.full((1, 3), 0.5, dtype=torch.float64),
+                 alpha=torch.full((1, 3), 60.0, dtype=torch.float64), labels=None, normals=None, size=(0.1, 0.1),
+                 lobe="phong", lights=lights, cameras=lights.clone(), intensities=torch.ones(lights.shape[0], 3, dtype=torch.float64))
+
+
+def test_plan_json_exact_and_figure(capture_dir, tmp_path):
+    out = tmp_path / "p"
+    assert main(["plan", str(capture_dir), "-n", "2", "-o", str(out)]) == 0
+    doc = json.loads((out / "plan.json").read_text())
+    assert list(doc) == ["shots"] and len(doc["shots"]) == 2
+    for shot in doc["shots"]:
+        assert list(shot) == ["light", "camera"]
+        assert len(shot["light"]) == 4 and shot["light"][3] == 1 and len(shot["camera"]) == 4 and shot["camera"][3] == 1
+        assert shot["camera"][2] > 0 and shot["light"][2] > 0
+    png = (out / "plan.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+
+
+def test_best_first_and_distinct():
+    plan = plan_shots(_scene(), PlanOptions(shots=3, azimuths=8))
+    assert plan.lights.shape == (3, 4)
+    # greedy: each shot is scored given the ones before it, so the scores cannot rise
+    assert bool((plan.scores[1:] <= plan.scores[:-1] + 1e-12).all()), plan.scores
+    assert len({tuple(c) for c in plan.cameras.tolist()}) == 3
+
+
+def test_a_seen_highlight_is_not_asked_for_again():
+    """Past shots straight above the sample cover its centre: the first planned shot looks elsewhere or at another tilt."""
+    above = torch.tensor([[0.0, 0.0, 0.5, 1.0], [0.0, 0.0, 0.35, 1.0], [0.0, 0.0, 0.7, 1.0]], dtype=torch.float64)
+    plan = plan_shots(_scene(above), PlanOptions(shots=1, distance=(1.0,), azimuths=8))
+    cam = plan.cameras[0, :3]
+    assert float(cam[:2].norm()) > 1e-6  # not straight above again
+    assert float(plan.cover_gain[0]) > 0
+
+
+def test_information_grows_and_error_drops():
+    sc = _scene(torch.tensor([[0.05, 0.0, 0.5, 1.0]], dtype=torch.float64))
+    rows, cols = slice(0, 24, 2), slice(0, 24, 2)
+    t = shot_terms(sc, rows, cols, sc.lights, sc.cameras, sc.intensities)
+    S = fisher_sums(t)
+    assert S.shape == (6, 3, 144) and bool((S[0] > 0).all())
+    e1 = expected_error(S, S, None, 1)
+    e2 = expected_error(2 * S, S, None, 1)
+    assert float(e2) < float(e1)
+
+
+def test_camera_frame_is_a_rotation_looking_at_the_target():
+    cam = torch.tensor([[0.1, -0.2, 0.3]], dtype=torch.float64)
+    R = camera_frame(cam, torch.zeros(3, dtype=torch.float64))[0]
+    assert torch.allclose(R @ R.T, torch.eye(3, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(R[2], -cam[0] / cam[0].norm())
+    assert float(torch.det(R)) > 0
+
+
+def test_bad_input(tmp_path, capsys):
+    with pytest.raises(InputError, match="at least 1 shot"):
+        plan_shots(_scene(), PlanOptions(shots=0))
+    with pytest.raises(InputError, match="capture .* or a material"):
+        plan_directory(tmp_path, tmp_path / "out")
+    assert main(["plan", str(tmp_path), "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("torchmetal plan: error:")
+
+
+def test_material_with_and_without_its_capture(capture_dir, tmp_path):
+    from torchmetal.fit import fit_phong
+    from torchmetal.fit.uncertainty import fit_uncertainty
+    from torchmetal.io.capture import load_capture
+    from torchmetal.material import save_material
+
+    cap = load_capture(capture_dir)
+    fit = fit_phong(cap, specular="global", lobe="phong")
+    save_material(fit.to_material({"uncertainty": fit_uncertainty(fit, cap)}), tmp_path / "m")
+    plan, seconds = plan_directory(tmp_path / "m", tmp_path / "o1", options=PlanOptions(shots=2), capture=capture_dir)
+    assert plan.lights.shape == (2, 4) and seconds > 0
+    blind, _ = plan_directory(tmp_path / "m", tmp_path / "o2", options=PlanOptions(shots=1))
+    assert any("no past" in n for n in blind.notes)
+    with pytest.raises(InputError, match="capture already"):
+        plan_directory(capture_dir, tmp_path / "o3", capture=capture_dir)

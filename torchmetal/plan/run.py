@@ -1,0 +1,159 @@
+"""``torchmetal plan``'s work: a capture or a material in, DIR/plan.json and DIR/plan.png out.
+
+A capture is fitted first, quickly (downsampled to at most :data:`FIT_SIDE` pixels a side, global Phong
+specular: the plan needs the fit's information, not its last digit); a material brings its fit, its noise
+model (the report's ``uncertainty.noise``) and, with ``capture=``, the past shots' positions (capture.json
+only: no image is read). A material without its capture is planned as if no photo had been taken.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import torch
+
+from torchmetal.errors import InputError
+from torchmetal.plan.core import Plan, PlanOptions, Scene, plan_shots
+
+FIT_SIDE = 128
+
+
+def scene_from_fit(fit, capture, noise: dict | None) -> Scene:
+    """A :class:`Scene` from a FitResult and the capture it was fitted to."""
+    labels = fit.spec_labels
+    s, a = (fit.cluster_s, fit.cluster_alpha) if labels is not None else (fit.s.view(1, 3), fit.alpha.view(1, 3))
+    return Scene(texture=fit.texture.detach().double(), s=s.detach().double(), alpha=a.detach().double(), labels=labels,
+                 normals=None if capture.flat else capture.normals.double(), size=capture.size, lobe=fit.lobe,
+                 lights=capture.lights.double(), cameras=capture.cameras.double(),
+                 intensities=capture.intensities.double(), noise=noise)
+
+
+def scene_from_capture(path: Path) -> Scene:
+    """Fit the capture at ``path`` (downsampled, global specular) and make its :class:`Scene`."""
+    from torchmetal.fit import fit_phong
+    from torchmetal.fit.uncertainty import UncertaintyOptions, estimate_uncertainty
+    from torchmetal.io.capture import load_capture
+
+    cap = load_capture(path)
+    cap = cap.downsampled(max(1, math.ceil(max(cap.height, cap.width) / FIT_SIDE)))
+    fit = fit_phong(cap, specular="global", lobe="phong")
+    noise = estimate_uncertainty(fit, cap, UncertaintyOptions(jackknife="off")).noise
+    return scene_from_fit(fit, cap, noise)
+
+
+def past_shots(capture_dir: Path) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(lights, cameras, intensities) of a capture directory, from its capture.json alone."""
+    from torchmetal.io.capture import parse_meta, read_meta
+
+    meta_file = Path(capture_dir) / "capture.json"
+    shots = parse_meta(read_meta(meta_file), str(meta_file))[-1]
+    f = lambda key: torch.tensor([getattr(s, key) for s in shots], dtype=torch.float64)  # noqa: E731
+    return f("light"), f("camera"), f("intensity")
+
+
+def scene_from_material(path: Path, capture_dir: Path | None) -> Scene:
+    """A :class:`Scene` from a material directory (and its capture's positions)."""
+    from torchmetal.material import load_material
+
+    m = load_material(path)
+    if m.spec_labels is not None and m.cluster_s is not None:
+        s, a, labels = m.cluster_s, m.cluster_alpha, m.spec_labels
+    else:
+        s, a, labels = m.s.view(1, 3), m.alpha.view(1, 3), None
+    if capture_dir is not None:
+        lights, cams, inten = past_shots(capture_dir)
+    else:
+        lights, cams, inten = (torch.zeros(0, 4, dtype=torch.float64), torch.zeros(0, 4, dtype=torch.float64),
+                               torch.zeros(0, 3, dtype=torch.float64))
+    noise = ((m.report or {}).get("uncertainty") or {}).get("noise")
+    noise = None if not noise else {k: torch.tensor(v, dtype=torch.float64) for k, v in noise.items()}
+    return Scene(texture=m.texture.double(), s=s.double(), alpha=a.double(), labels=labels,
+                 normals=None if m.normals is None else m.normals.double(), size=m.size, lobe=m.lobe, lights=lights,
+                 cameras=cams, intensities=inten, noise=noise)
+
+
+def plan_directory(source: str | Path, out_dir: str | Path, *, options: PlanOptions | None = None,
+                   capture: str | Path | None = None) -> tuple[Plan, float]:
+    """Plan from a capture or material directory; write ``out_dir``/plan.json and plan.png. Returns (plan, the
+    seconds the plan itself took: the fit of a capture and the files' reading not included)."""
+    src = Path(source)
+    if (src / "capture.json").is_file():
+        if capture is not None:
+            raise InputError(f"plan: --capture is for a material; {src} is a capture already")
+        scene = scene_from_capture(src)
+    elif (src / "material.json").is_file():
+        if capture is not None and not (Path(capture) / "capture.json").is_file():
+            raise InputError(f"plan: --capture: expected a capture directory (capture.json), found {capture}")
+        scene = scene_from_material(src, None if capture is None else Path(capture))
+    else:
+        raise InputError(f"plan: expected a capture (capture.json) or a material (material.json) directory, found {src}")
+    t0 = time.perf_counter()
+    plan = plan_shots(scene, options)
+    dt = time.perf_counter() - t0
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "plan.json").write_text(json.dumps(plan.to_json(), indent=1))
+    draw_plan(scene, plan, out / "plan.png")
+    return plan, dt
+
+
+def draw_plan(scene: Scene, plan: Plan, path: Path) -> None:
+    """plan.png: the sample with where the highlight has been seen (and where each planned shot puts it), and a top
+    view of the past and planned positions in the capture's frame."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    tex = scene.texture.clamp(0, 1).permute(1, 2, 0).numpy()
+    img = np.where(tex <= 0.0031308, 12.92 * tex, 1.055 * np.power(tex, 1 / 2.4) - 0.055)
+    w, h = scene.size
+    ext = (-w / 2, w / 2, -h / 2, h / 2)
+    fig, ax = plt.subplots(1, 2, figsize=(11, 5.2))
+    ax[0].imshow(img, extent=ext)
+    seen = plan.coverage.numpy().astype(float)
+    ax[0].imshow(np.ma.masked_where(seen > 0, np.ones_like(seen)), extent=ext, cmap="Reds", alpha=0.45, vmin=0, vmax=1.5)
+    for i, m in enumerate(plan.planned_cover.numpy()):
+        if m.any():
+            yy, xx = np.nonzero(m)
+            cx = ext[0] + (xx.mean() + 0.5) / m.shape[1] * w
+            cy = ext[3] - (yy.mean() + 0.5) / m.shape[0] * h
+            ax[0].contour(np.linspace(ext[0], ext[1], m.shape[1]), np.linspace(ext[3], ext[2], m.shape[0]), m.astype(float),
+                          levels=[0.5], colors=[f"C{i % 10}"])
+            ax[0].text(cx, cy, str(i + 1), color="white", ha="center", va="center", fontsize=13, weight="bold")
+    ax[0].set_title(f"red: highlight never seen ({1 - seen.mean():.0%})\n1..{len(plan.scores)}: planned shots' hotspots", fontsize=10)
+    ax[0].set_xlabel("x")
+    ax[0].set_ylabel("y")
+    a = ax[1]
+    a.add_patch(plt.Rectangle((-w / 2, -h / 2), w, h, fill=False, color="k"))
+    if scene.cameras.shape[0]:
+        pc = scene.cameras[scene.cameras[:, 3] == 1]
+        pl = scene.lights[scene.lights[:, 3] == 1]
+        a.scatter(pc[:, 0], pc[:, 1], c="0.5", marker="o", label="past cameras")
+        a.scatter(pl[:, 0], pl[:, 1], c="0.5", marker="x", label="past lights")
+        a.legend(loc="lower right", fontsize=8)
+    for i, (cam, lt) in enumerate(zip(plan.cameras.tolist(), plan.lights.tolist())):
+        a.scatter([cam[0]], [cam[1]], c=f"C{i % 10}", marker="o", s=80)
+        a.annotate(f"{i + 1}: z {cam[2]:.2f}", (cam[0], cam[1]), textcoords="offset points", xytext=(6, 6))
+        a.scatter([lt[0]], [lt[1]], c=f"C{i % 10}", marker="*", s=60)
+    a.set_aspect("equal")
+    a.set_title("top view, capture frame: o camera, * flash\nplanned shots numbered, best first", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def describe(plan: Plan, seconds: float) -> str:
+    """The verb's printout: one line per planned shot (capture frame), best first."""
+    lines = [f"planned {len(plan.scores)} shots from {plan.candidates} reachable positions in {seconds:.2f} s "
+             f"(highlight seen on {float(plan.coverage.double().mean()):.0%} of the sample so far)"]
+    for i, (lt, cm, de, cg) in enumerate(zip(plan.lights.tolist(), plan.cameras.tolist(), plan.error_drop.tolist(),
+                                             plan.cover_gain.tolist())):
+        lines.append(f"  {i + 1}: camera ({cm[0]:.3f}, {cm[1]:.3f}, {cm[2]:.3f}), flash ({lt[0]:.3f}, {lt[1]:.3f}, {lt[2]:.3f}): "
+                     f"expected held-out variance -{de:.0%}, highlight on +{cg:.0%} of the sample")
+    lines += [f"  note: {n}" for n in plan.notes]
+    return "\n".join(lines)
