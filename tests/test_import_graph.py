@@ -72,7 +72,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("pipeline", ("torchmetal.pipeline",)),
     ("outputs", ("torchmetal.onnx_export", "torchmetal.formats", "torchmetal.report", "torchmetal.viewer.site",
                  "torchmetal.viewer.three", "torchmetal.viewer.browser")),
-    ("tools", ("torchmetal.bench", "torchmetal.scale", "torchmetal.photos", "torchmetal.demo", "torchmetal.viewer")),
+    ("tools", ("torchmetal.bench", "torchmetal.scale", "torchmetal.photos", "torchmetal.demo", "torchmetal.viewer",
+               "torchmetal.plan")),
     ("entry", ("torchmetal.cli", "torchmetal.__main__")),
 ]
 
