@@ -31,6 +31,8 @@ robust    every fit option set on the zoo's flake scenes, the sharp-highlight sp
           of the fit on flake-free captures (torchmetal.bench.robust)
 uncertainty  coverage of the clean truth by the fit's 90 % intervals (s, α, texture) on random synthetic
           scenes (torchmetal.bench.uncertainty)
+plan      the capture plan's next shot against a random reachable and a fixed one: held-out error after the
+          refit on random synthetic scenes (torchmetal.bench.plan)
 selection the default's choices on randomized scenes with known truth: false positives, misses, the default
           against the best fixed option set and the paper scheme (torchmetal.bench.selection)
 ========  ==================================================================================
@@ -61,7 +63,7 @@ from torchmetal.bench.tables import ERR, MiB, _num, fmt, md_table, problem
 from torchmetal.bench.zoo_section import scene_sizes, zoo_jobs, zoo_markdown, zoo_scene_names
 
 SECTIONS = ("sweep", "load", "fit1024", "skip", "flakes", "onnx", "real", "realflakes", "zoo", "command", "onnx_kinds",
-            "gpu", "robust", "uncertainty", "selection")
+            "gpu", "robust", "uncertainty", "selection", "plan")
 
 
 def _light_fitted(v: dict) -> str:
@@ -406,6 +408,15 @@ class Bench(SweepSection):
                                  say=self.say)
         self.raw["robust"] = res
         self.add(robust.markdown(res))
+
+    def run_plan(self) -> None:
+        # on use: loads torch (torchmetal.bench.plan: the planned shot against a random and a fixed one, issue 43)
+        from torchmetal.bench import plan as plan_bench
+
+        self.section("Capture plan: one more shot, planned vs random reachable vs fixed overhead, held-out error")
+        res = plan_bench.run_section(30 if self.plan.name == "full" else 8, say=self.say)
+        self.raw["plan"] = res
+        self.add(plan_bench.markdown(res))
 
     def run_uncertainty(self) -> None:
         # on use: loads torch (torchmetal.bench.uncertainty: calibration of the fit's intervals, issue 43)
