@@ -366,10 +366,15 @@ def markdown(res: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m torchmetal.bench.selection FIRST LAST OUT_DIR``: scenes FIRST..LAST−1 alone (no other
-    section), resumable through ``OUT_DIR/selection.jsonl``; writes selection.md and selection.json there."""
+    section), resumable through ``OUT_DIR/selection.jsonl``; writes selection.md and selection.json there.
+    ``python -m torchmetal.bench.selection --table JSONL``: the table of the scenes a jsonl holds."""
     import sys
 
     args = sys.argv[1:] if argv is None else argv
+    if args and args[0] == "--table":  # the table of the scenes a (running or stopped) jsonl holds so far
+        rows = [json.loads(line) for line in Path(args[1]).read_text().splitlines() if line.strip()]
+        print(markdown(summarise(rows)))
+        return 0
     first, last, out = int(args[0]), int(args[1]), Path(args[2])
     out.mkdir(parents=True, exist_ok=True)
     res = run_section(range(first, last), jsonl=out / "selection.jsonl")
