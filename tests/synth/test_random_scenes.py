@@ -131,3 +131,10 @@ def test_materials_and_gloss_in_the_truth(tmp_path, drawn):
     gloss = with_size(next(r for r in drawn if r.gloss and len(r.materials) == 1), 32)
     ta = make_random_case(gloss, tmp_path / "s").truth.alpha
     assert ta.max() / ta.min() > 1.5
+
+
+def test_flakes_under_directional_lights(tmp_path, drawn):
+    """Directional lights and flakes together (the zoo has no such scene): their glints render."""
+    rs = with_size(next(r for r in drawn if r.lighting == "directional" and r.scene.flakes is not None), 32)
+    case = make_random_case(rs, tmp_path / "d")
+    assert np.isfinite(case.clean).all() and case.flake_pixels.any()

@@ -81,6 +81,7 @@ def flake_glints(truth: Truth, l: np.ndarray, v: np.ndarray, e: np.ndarray) -> n
     """(3, n, n) the flakes' glints in one shot: directions to the light ``l`` and camera ``v`` (3, n, n), irradiance ``e``."""
     fl, spec = truth.flakes, truth.flakes["spec"]
     n = truth.texture.shape[-1]
+    e = np.broadcast_to(e, (3, n, n))  # a directional light's irradiance is (3, 1, 1): indexed per pixel below
     out = np.zeros((3, n, n))
     cy, cx = centre_pixels(fl, n)
     h = unit(l[:, cy, cx] + v[:, cy, cx])  # (3, F) half vector at each flake
