@@ -25,7 +25,8 @@ one module.
 The layers, lowest first (derived from the graph; a layer may import itself and anything below):
 
 1. core: the package itself (exceptions, lazily resolved names), errors, memory, checks,
-   geometry, lbfgs, phong, lobes: numerics on tensors, nothing about files or flakes.
+   geometry, lbfgs, phong, lobes: numerics on tensors, nothing about files or flakes; and the selection's
+   rule and shot plan (torchmetal.select, .rule, .plan), which the fit's own choices use.
 2. io: captures and images on disk (:mod:`torchmetal.io`).
 3. model: the forward model and its scores: the flake model and its field
    (flakes.model, field, observed, placement, filters, md), material, renderer, metrics, and
@@ -33,14 +34,16 @@ The layers, lowest first (derived from the graph; a layer may import itself and 
 4. fit: the Phong fit (:mod:`torchmetal.fit`; ``torchmetal.normals``, the normal estimation
    that is leaving fit/, keeps its place; ``torchmetal.lightcal`` and ``torchmetal.clipping``, the capture's
    nuisances chosen with fits).
-5. flakes: flake estimation (the rest of :mod:`torchmetal.flakes`: detection, statistics,
+5. select: the selection harness, its screens and the choices made before the fit (select.harness, .screens, .choices),
+   which fit candidates with the fit.
+6. flakes: flake estimation (the rest of :mod:`torchmetal.flakes`: detection, statistics,
    choice, stage); it may use the fit, not the other way round.
-6. pipeline: fit + flakes → material.
-7. outputs: what a fitted material is turned into: onnx_export, formats, report, and the web
+7. pipeline: fit + flakes → material.
+8. outputs: what a fitted material is turned into: onnx_export, formats, report, and the web
    page's parts that formats.web writes and formats.parity drives (viewer.site, viewer.three,
    viewer.browser).
-8. tools: bench, scale, photos, demo and the rest of viewer (server, view verb, fps).
-9. entry: the command line (cli, __main__).
+9. tools: bench, scale, photos, demo and the rest of viewer (server, view verb, fps).
+10. entry: the command line (cli, __main__).
 """
 
 from __future__ import annotations
@@ -64,10 +67,12 @@ KNOWN_PENDING_CYCLES: list[set[str]] = []
 #: it, except the package itself, which names only its own ``__init__``; the most specific entry wins.
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("core", ("torchmetal", "torchmetal.errors", "torchmetal.memory", "torchmetal.checks", "torchmetal.geometry",
-              "torchmetal.lbfgs", "torchmetal.phong", "torchmetal.lobes")),
+              "torchmetal.lbfgs", "torchmetal.phong", "torchmetal.lobes", "torchmetal.select", "torchmetal.select.rule",
+              "torchmetal.select.plan")),
     ("io", ("torchmetal.io",)),
     ("model", ("torchmetal.flakes.model", "torchmetal.material", "torchmetal.renderer", "torchmetal.metrics", "torchmetal.synth")),
     ("fit", ("torchmetal.fit", "torchmetal.normals", "torchmetal.lightcal", "torchmetal.clipping")),
+    ("select", ("torchmetal.select.harness", "torchmetal.select.choices", "torchmetal.select.screens")),
     ("flakes", ("torchmetal.flakes",)),
     ("pipeline", ("torchmetal.pipeline",)),
     ("outputs", ("torchmetal.onnx_export", "torchmetal.formats", "torchmetal.report", "torchmetal.viewer.site",

@@ -13,6 +13,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+import torchmetal.flakes.run as flake_run
 from torchmetal.demo import DEMO_FLAKES
 from torchmetal.errors import InputError
 from torchmetal.fit.result import skip_stages
@@ -91,12 +92,12 @@ def test_same_capture_same_material():
 def test_glint_observations_leave_the_coat_fit_shot_by_shot():
     """The coating's refit leaves out each detection (grown by 1 px) in the shot that saw it, as a saturated
     observation; the pixel stays in the mask for its other shots."""
-    from torchmetal.pipeline import _without_glints
+    from torchmetal.flakes.run import without_glints
 
     cap = _capture(0, "procedural", False, "ring", flake_seed=20).capture.subset([0, 1, 2])
     labels = torch.zeros(3, SIZE, SIZE, dtype=torch.int64)
     labels[1, 10, 20] = 7
-    out = _without_glints(cap, labels)
+    out = without_glints(cap, labels)
     assert torch.equal(out.mask, cap.mask)
     added = out.saturated & ~cap.saturated
     assert added[1, :, 9:12, 19:22].all() and int(added.sum()) == 3 * 9  # shot 1 only, 3×3, every channel
@@ -107,7 +108,6 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
     """When the left-out shots' MD says no (torchmetal.flakes.choice.keep_flakes), the material is the one
     flakes="off" gives — the first fit, no refit away from the detections, no sparkles — and the report
     says why; when it says yes, the flakes stay with its numbers in the report."""
-    import torchmetal.pipeline as pipeline
 
     flakes = FlakeModel(**DEMO_FLAKES, seed=20)
     cap = synth_capture(size=128, shots=8, seed=0, noise=0.005, bits=16, exposure=0.8, flakes=flakes).capture
@@ -126,7 +126,7 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
                             "gloss maps", "specular colour", "observed flakes", "flakes", "density map"}
     times = kept.report["stage_times"]  # the total counts the flake choices too
     assert kept.report["total_time"] >= times["flakes"] + times["flakes.observed"] + times["flakes.choice"]
-    monkeypatch.setattr(pipeline, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))
+    monkeypatch.setattr(flake_run, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))
     dropped, off = fit_material(cap, seed=0), fit_material(cap, seed=0, flakes="off")
     m = dropped.material
     assert m.flakes is None and m.observed_flakes is None and dropped.flakes.model is None
@@ -181,19 +181,19 @@ def test_the_statistics_refit_keeps_the_first_fits_clusters():
     the first fit did (the relabelling trial was 10 s of the real card's 18 s refit)."""
     from types import SimpleNamespace
 
-    from torchmetal.pipeline import _same_clusters
+    from torchmetal.flakes.run import same_clusters
 
-    assert _same_clusters(SimpleNamespace(specular="global", selection={"k": 1})) == {}
-    assert _same_clusters(SimpleNamespace(specular="maps", selection=None)) == {}
-    kept = _same_clusters(SimpleNamespace(specular="clustered", selection={"k": 4, "relabel": False}))
+    assert same_clusters(SimpleNamespace(specular="global", selection={"k": 1})) == {}
+    assert same_clusters(SimpleNamespace(specular="maps", selection=None)) == {}
+    kept = same_clusters(SimpleNamespace(specular="clustered", selection={"k": 4, "relabel": False}))
     assert kept == {"clusters": (4,), "relabel": False}
-    assert _same_clusters(SimpleNamespace(specular="clustered", selection={"k": 2, "relabel": True}))["relabel"]
+    assert same_clusters(SimpleNamespace(specular="clustered", selection={"k": 2, "relabel": True}))["relabel"]
 
 
 def test_glints_with_a_small_share_of_the_residual_leave_the_coating_fit_alone(monkeypatch):
     """Detections holding under REFIT_ENERGY_SHARE of the first fit's squared residual cannot steer it: the
     coating is the first fit (its texture re-solved under them), as the report says; above it, refitted."""
-    import torchmetal.pipeline as P
+    import torchmetal.flakes.run as P
 
     cap = _capture(0, "procedural", False, "ring", flake_seed=20).capture.subset(list(range(8)))
     refitted = fit_material(cap, flakes="on", seed=0)
@@ -223,6 +223,7 @@ def test_one_shot_plan_for_every_choice_on_left_out_shots(monkeypatch):
         return real(*a, **kw)
 
     monkeypatch.setattr(P, "fit_phong", spy)
+    monkeypatch.setattr(flake_run, "fit_phong", spy)
     cap = _capture(0, "procedural", False, "ring", flake_seed=20).capture.subset(list(range(8)))
     res = fit_material(cap, flakes="auto", seed=0)
     first_plan = res.material.report["shot_plan"]
@@ -238,7 +239,6 @@ def test_the_density_choice_reuses_the_observed_choices_renders(monkeypatch, tmp
     """The statistical flake material's renders of the plan's flake shots, made by the observed-flakes choice,
     are the density-map choice's uniform candidate: the same scores, without rendering them again."""
     import torchmetal.flakes.density_choice as dc
-    import torchmetal.pipeline as P
     from torchmetal.io.capture import load_capture
     from torchmetal.synth.zoo import SCENES, make_case
 
@@ -248,8 +248,8 @@ def test_the_density_choice_reuses_the_observed_choices_renders(monkeypatch, tmp
     monkeypatch.setattr(dc, "render_held", lambda m, c, shots: calls.append(list(shots)) or real_render(m, c, shots))
     shared = fit_material(cap, flakes="auto", seed=0)
     n_shared, calls[:] = len(calls), []
-    real_choice = P.choose_density_map
-    monkeypatch.setattr(P, "choose_density_map", lambda *a, **kw: real_choice(*a, **{**kw, "renders": None}))
+    real_choice = flake_run.choose_density_map
+    monkeypatch.setattr(flake_run, "choose_density_map", lambda *a, **kw: real_choice(*a, **{**kw, "renders": None}))
     alone = fit_material(cap, flakes="auto", seed=0)
     a, b = shared.flakes.report["density_map_choice"], alone.flakes.report["density_map_choice"]
     assert a["held"] and shared.material.observed_flakes is None  # the uniform candidate was scored

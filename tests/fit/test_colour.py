@@ -36,7 +36,7 @@ def test_white_fit_has_one_s_and_no_higher_cost_than_its_start():
 
 def test_a_white_decision_gives_the_full_fit_one_s(monkeypatch):
     from torchmetal.fit import decisions
-    from torchmetal.fit.decision import Decision
+    from torchmetal.select.rule import Decision
 
     cap = synth_capture(size=48, shots=6, s=(0.5, 0.5, 0.5), alpha=(40.0, 40.0, 40.0), texture="procedural", seed=1,
                         noise=0.01).capture

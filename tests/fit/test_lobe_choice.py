@@ -11,10 +11,10 @@ from tests.fit.helpers import replace
 from tests.fit.test_lobes import lobe_capture
 from torchmetal.fit import fit_phong
 from torchmetal.fit.clusters import heldout_mse
-from torchmetal.fit.decision import paired_z
 from torchmetal.fit.lobe_choice import choose_lobe, fit_lobe, heldout_errors
 from torchmetal.fit.problem import build_observations
 from torchmetal.fit.refine import texture_map
+from torchmetal.select.rule import paired_z
 
 
 def noisy(lobe: str, sigma: float = 0.004, seed: int = 1, **kw):

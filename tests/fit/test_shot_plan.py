@@ -3,7 +3,7 @@
 import torch
 
 from torchmetal.fit import fit_phong
-from torchmetal.fit.shot_plan import ShotPlan, flake_holds, shot_groups
+from torchmetal.select.plan import ShotPlan, flake_holds, shot_groups
 from torchmetal.synth import synth_capture
 
 

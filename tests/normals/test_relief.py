@@ -1,5 +1,5 @@
 """normals="relief" (torchmetal.normals.relief): an embossing as a high-passed height field, fitted with the
-global Phong terms and kept where left-out shots prefer it."""
+global Phong terms (the choice on left-out shots: tests/select/test_choices.py)."""
 
 from dataclasses import replace
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchmetal.geometry import shading_geometry
-from torchmetal.normals import choose_relief, with_normals
+from torchmetal.normals import with_normals
 from torchmetal.normals.relief import fit_relief, grid_shape, high_pass, relief_normals
 from torchmetal.phong import phong_shading
 from torchmetal.synth import synth_capture
@@ -66,23 +66,6 @@ def test_fit_recovers_an_embossing(embossed):
     err = _angle_deg(est, truth)[4:-4, 4:-4].mean()
     assert tilt > 3.0 and err < 0.5 * tilt, (float(tilt), float(err))
     assert fit.loss < 0.5 * flat.loss
-
-
-def test_auto_takes_the_relief_of_an_embossed_sample_and_not_of_a_flat_one(embossed):
-    cap, _ = embossed
-    mode, d = choose_relief(cap)
-    assert mode == "relief" == d.chosen and d.z["relief"] > 4, d.reason
-    flat = synth_capture(size=SIZE, shots=8, seed=4, noise=0.003).capture
-    out, rep = with_normals(flat, "auto")
-    assert out.flat and rep["chosen"] == "flat"
-    assert rep["relief_decision"]["chosen"] == "flat" and rep["relief_decision"]["mse"]  # tested, flat kept
-
-
-def test_given_normals_and_too_few_shots_are_not_tested(embossed):
-    cap, truth = embossed
-    assert choose_relief(replace(cap, normals=truth))[0] == "given"
-    mode, d = choose_relief(cap.subset([0, 1, 2]))
-    assert mode == "flat" and not d.mse
 
 
 def test_relief_mode_reports_its_fit(embossed):

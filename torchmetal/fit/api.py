@@ -29,7 +29,6 @@ from torchmetal.checks import check_finite
 from torchmetal.errors import FitError, InputError
 from torchmetal.fit.clusters import heldout_mse, relabel_pixels
 from torchmetal.fit.colour import fit_white
-from torchmetal.fit.decisions import subsample_decisions
 from torchmetal.fit.gloss import fit_gloss_maps
 from torchmetal.fit.lobe_choice import choose_lobe
 from torchmetal.fit.paper import paper_scheme
@@ -50,12 +49,13 @@ from torchmetal.fit.run import FitRun
 from torchmetal.geometry import is_flat
 from torchmetal.lobes import LOBES, check_lobe
 from torchmetal.memory import pixels_per_chunk, release_free_memory, streams_geometry
+from torchmetal.fit.decisions import subsample_decisions
 
 if TYPE_CHECKING:
-    from torchmetal.fit.decisions import SubsampleDecisions
     from torchmetal.fit.lobe_choice import LobeSelection
-    from torchmetal.fit.shot_plan import ShotPlan
     from torchmetal.io.capture import Capture
+    from torchmetal.select.plan import ShotPlan
+    from torchmetal.fit.decisions import SubsampleDecisions
 
 SCHEMES = ("paper", "refine")
 SPECULARS = ("auto", "global", "clustered", "maps", "none")
@@ -150,12 +150,12 @@ def fit_phong(
             channel fitted to the residuals (:func:`~torchmetal.fit.refine.noise_model`: read noise, shot
             noise, the 8-bit sRGB step that grows with the value); False (the default here): every observation
             alike; "auto": noise weights where the shot with the most specular energy, left out of both fits,
-            is predicted better with them (the paired rule of :mod:`torchmetal.fit.decision`; a "weights"
+            is predicted better with them (the paired rule of :mod:`torchmetal.select.rule`; a "weights"
             decision; ``fit_material``'s default). Only with scheme="refine". The residuals also hold misfit
             (see :func:`~torchmetal.fit.refine.noise_model`): the held-out shot is what tells the two apart.
         relabel: for kept clusters, try moving pixels between them (:func:`~torchmetal.fit.clusters.relabel_pixels`,
             kept where the held-out shot prefers it); False: never (a refit keeping an earlier fit's structure).
-        plan: the shots the choices leave out (:mod:`torchmetal.fit.shot_plan`), e.g. an earlier fit's
+        plan: the shots the choices leave out (:mod:`torchmetal.select.plan`), e.g. an earlier fit's
             ``shot_plan`` for a refit of the same capture; None: planned from this fit's first subsample fit.
 
     Returns:

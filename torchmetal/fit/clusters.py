@@ -8,7 +8,7 @@ Pixels are grouped by k-means on per-pixel features, standardised:
 :func:`choose_specular` fits the global model and K-cluster models (colour, specular or both
 feature sets) on all shots but one (on a pixel subsample) and compares their errors on the shot
 left out; clustered specular is chosen only when it lowers those errors beyond noise (the paired rule
-of :mod:`torchmetal.fit.decision`). Clusters without highlight evidence keep the global s, α.
+of :mod:`torchmetal.select.rule`). Clusters without highlight evidence keep the global s, α.
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchmetal.fit.decision import MIN_GAIN_ABS, Decision, paired_choice
 from torchmetal.fit.lm import solve_2x2
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations, weighted
 from torchmetal.fit.refine import SpecFit, chunk_model, fit_specular, pinned_terms, spec_sums, texture_map
+from torchmetal.select.rule import MIN_GAIN_ABS, Decision, paired_choice
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -322,7 +322,7 @@ def heldout_mse(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor, l
 def heldout_errors(hold: Observations, texture: Tensor, s: Tensor, alpha: Tensor, labels: Tensor | None = None) -> Tensor:
     """Squared errors (M,) float64 of the valid held-out observations, in a fixed order (the valid
     set does not depend on the model, so two candidates' errors pair up element by element for
-    :func:`~torchmetal.fit.decision.paired_choice`). The texture is clamped at 0 as in :func:`heldout_mse`;
+    :func:`~torchmetal.select.rule.paired_choice`). The texture is clamped at 0 as in :func:`heldout_mse`;
     s, α (K, 3) per element, ``labels`` (P,) the fit's pixel labels when K > 1."""
     texture = texture.clamp_min(0.0)
     out = []
@@ -387,7 +387,7 @@ def choose_specular(
     relabel: bool = True,
 ) -> Selection:
     """Fit global and K-cluster specular on all shots but ``hold``; keep global unless a clustered
-    candidate lowers ``hold``'s errors beyond noise (:func:`~torchmetal.fit.decision.paired_choice`).
+    candidate lowers ``hold``'s errors beyond noise (:func:`~torchmetal.select.rule.paired_choice`).
 
     ``force`` picks the lowest held-out MSE among the clustered candidates (specular="clustered");
     ``hold=None`` (too few shots) ranks them by in-sample error and always picks one. Otherwise,

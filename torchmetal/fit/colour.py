@@ -5,7 +5,7 @@ Given α, the projected cost of each channel is A − 2sB + s²C (:mod:`torchmet
 for the three channels is optimal at ΣB / ΣC. :func:`fit_white` alternates that closed form with the LM
 on β at s fixed (:func:`~torchmetal.fit.refine.fit_specular`'s ``s_fixed``): each step lowers the cost.
 :func:`choose_colour` fits both on every shot but the selection's held-out one and keeps per-channel s
-unless white predicts that shot better beyond noise (:func:`~torchmetal.fit.decision.paired_choice`).
+unless white predicts that shot better beyond noise (:func:`~torchmetal.select.rule.paired_choice`).
 Measured on the shared real captures (one global lobe, three held-out shots): the embossed gold paper's
 per-channel fit made its specular bluish (s 0.10 / 0.14 / 0.20, its gold in the diffuse), and white
 predicts its left-out shots better (MSE 0.01658 vs 0.01666, z 6.9; s tinted like the diffuse: 0.01987);
@@ -21,9 +21,9 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.clusters import fit_without_hold, heldout_errors, mean_square
-from torchmetal.fit.decision import MIN_GAIN_ABS, Decision, paired_choice
 from torchmetal.fit.problem import Observations, Weighting
 from torchmetal.fit.refine import SpecFit, evaluate_specular, fit_specular, spec_sums, texture_map
+from torchmetal.select.rule import MIN_GAIN_ABS, Decision, paired_choice
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture

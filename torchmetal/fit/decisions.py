@@ -25,7 +25,6 @@ from torchmetal.fit.clusters import (
     mean_square,
 )
 from torchmetal.fit.colour import choose_colour
-from torchmetal.fit.decision import MIN_GAIN_ABS, paired_choice
 from torchmetal.fit.gloss import choose_maps
 from torchmetal.fit.lobe_choice import LOBE_GRID
 from torchmetal.fit.paper import paper_scheme
@@ -40,7 +39,9 @@ from torchmetal.fit.refine import (
     texture_map,
 )
 from torchmetal.fit.run import FitRun
-from torchmetal.fit.shot_plan import ShotPlan, shot_plan
+from torchmetal.fit.shot_plan import shot_plan
+from torchmetal.select.plan import ShotPlan
+from torchmetal.select.rule import MIN_GAIN_ABS, paired_choice
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -81,7 +82,7 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
     ``noise``: weigh each observation by its expected variance (:func:`~torchmetal.fit.refine.noise_model`,
     fitted to the subsample fit's residuals); "auto": where a held-out shot prefers it (:func:`_weights_decision`).
     ``relabel``: False skips the relabelling trial of kept clusters. ``plan``: the shots to hold out
-    (:mod:`torchmetal.fit.shot_plan`; None: planned from this capture's first subsample fit)."""
+    (:mod:`torchmetal.select.plan`; None: planned from this capture's first subsample fit)."""
     imgs = capture.images
     dt = compute_dtype(imgs)
     n_shots, _, h, w = imgs.shape

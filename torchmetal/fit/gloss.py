@@ -22,7 +22,7 @@ a Jacobi sweep per LM iteration), plus a ridge prior towards the base fit (globa
 with C_ref, H_ref the median pooled curvatures at the base, so pixels with much less highlight
 evidence than typical (no mirror direction seen, outside the mask) keep the base terms.
 :func:`choose_maps` fits the base and the maps on all shots but one and keeps the maps only
-when they lower that shot's errors beyond noise (the paired rule of :mod:`torchmetal.fit.decision`).
+when they lower that shot's errors beyond noise (the paired rule of :mod:`torchmetal.select.rule`).
 """
 
 from __future__ import annotations
@@ -36,7 +36,6 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchmetal.fit.clusters import colour_features, heldout_errors, mean_square
-from torchmetal.fit.decision import MIN_GAIN_ABS, Decision, paired_choice
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations
 from torchmetal.fit.refine import (
@@ -51,6 +50,7 @@ from torchmetal.fit.refine import (
     spec_sums,
     texture_map,
 )
+from torchmetal.select.rule import MIN_GAIN_ABS, Decision, paired_choice
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -256,7 +256,7 @@ def choose_maps(
 ) -> MapsSelection:
     """Fit the base specular (global, or clustered with ``labeler``) and gloss maps from it on all
     shots but ``hold``; keep the maps when they lower ``hold``'s errors beyond noise
-    (:func:`~torchmetal.fit.decision.paired_choice`; ``base_errors`` (M,): the errors to beat on the same
+    (:func:`~torchmetal.select.rule.paired_choice`; ``base_errors`` (M,): the errors to beat on the same
     held-out observations, default the base's own; ``pinned`` (K, 3): base elements held at their
     terms, as in :func:`~torchmetal.fit.clusters.fit_clustered`).
 

@@ -26,7 +26,7 @@ def valid_pixels(capture: Capture) -> Tensor:
 
 def valid_mean_square(capture: Capture) -> float:
     """Mean square of the capture's valid observations (:func:`valid_pixels`; 0.0 without one): the scale of a
-    held-out signal, against which a decision's gain is float rounding below :data:`~torchmetal.fit.decision.MIN_GAIN_ABS`."""
+    held-out signal, against which a decision's gain is float rounding below :data:`~torchmetal.select.rule.MIN_GAIN_ABS`."""
     v = valid_pixels(capture)
     return float(capture.images.double()[v].square().mean()) if bool(v.any()) else 0.0
 

@@ -1,7 +1,7 @@
 """``lobe="auto"``: pick the specular lobe (phong, blinn, ggx) on shots left out of the fit.
 
 On the selection subsample (the same strided pixel grid as the cluster choice), the capture's shot plan
-(:mod:`torchmetal.fit.shot_plan`; without one, a global Phong fit on all shots) ranks the shots by
+(:mod:`torchmetal.select.plan`; without one, a global Phong fit on all shots) ranks the shots by
 predicted specular energy; the ``holds`` most telling ones
 (every shot, up to 12) are left out, in up to ``FOLDS`` groups dealt round-robin down that ranking (one shot
 per group for up to 6 of them). For each candidate lobe: a coarse α grid on all shots, then per group the
@@ -10,7 +10,7 @@ and the squared errors of rendering the group's valid observations. (A grid per 
 cost 14 s on the zoo's 66-shot sphere, 2 s this way; the LM ends at the fold's own optimum either way.)
 
 Phong — docs/design.md §2.2's model — is kept unless another lobe's errors are lower beyond noise
-(:func:`~torchmetal.fit.decision.paired_choice`: paired z over the same observations). So a Phong-like
+(:func:`~torchmetal.select.rule.paired_choice`: paired z over the same observations). So a Phong-like
 sample keeps the paper's lobe.
 """
 
@@ -23,11 +23,12 @@ import torch
 from torch import Tensor
 
 from torchmetal.fit.clusters import evidence, heldout_errors
-from torchmetal.fit.decision import MIN_GAIN, Z_MIN, heldout_psnr, paired_choice
 from torchmetal.fit.problem import Observations, build_observations
 from torchmetal.fit.refine import SpecFit, fit_specular, grid_beta, texture_map
-from torchmetal.fit.shot_plan import ShotPlan, shot_plan
+from torchmetal.fit.shot_plan import shot_plan
 from torchmetal.lobes import LOBES
+from torchmetal.select.plan import ShotPlan
+from torchmetal.select.rule import MIN_GAIN, Z_MIN, heldout_psnr, paired_choice
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -72,7 +73,7 @@ def choose_lobe(
     pixel grid of ``stride``; keep the lowest held-out MSE, Phong unless beaten beyond noise (module docstring).
     With ``labeler`` (:class:`~torchmetal.fit.clusters.Labeler`, the kept specular clusters) every lobe is
     fitted per cluster: the lobes compete on the specular structure the fit will use (one global lobe
-    averaged over two Phong materials looks like GGX's tail). With ``plan`` (:mod:`torchmetal.fit.shot_plan`, the
+    averaged over two Phong materials looks like GGX's tail). With ``plan`` (:mod:`torchmetal.select.plan`, the
     capture's), its first ``holds`` shots are left out; without, the ranking of the base lobe's own fit."""
     n = int(capture.images.shape[0])
     if n < 3:

@@ -21,7 +21,7 @@ from torchmetal.material import Material
 from torchmetal.phong import PhongModel
 
 if TYPE_CHECKING:
-    from torchmetal.fit.shot_plan import ShotPlan
+    from torchmetal.select.plan import ShotPlan
 
 
 class IterationCounts(dict):
@@ -94,11 +94,11 @@ class FitResult:
         flat: True when every normal is (0, 0, 1).
         lobe: the specular lobe ("phong", docs/design.md §2.2; "blinn"; "ggx"), see :mod:`torchmetal.lobes`.
         lobe_selection: the held-out comparison behind lobe="auto", if any.
-        decisions: the :class:`~torchmetal.fit.decision.Decision` records (as dicts) of every choice made
+        decisions: the :class:`~torchmetal.select.rule.Decision` records (as dicts) of every choice made
             on left-out shots (specular evidence, clusters, relabelling, gloss maps, lobe), in order.
         noise: the noise model the least squares were weighted by, {"a": [3], "b": [3]} (variance
             a + b·ŷ per channel, :func:`~torchmetal.fit.refine.noise_model`), or None (unweighted).
-        shot_plan: the shots those choices left out (:class:`~torchmetal.fit.shot_plan.ShotPlan`; None
+        shot_plan: the shots those choices left out (:class:`~torchmetal.select.plan.ShotPlan`; None
             without a specular fit to plan by); a refit of the same capture is given it.
     """
 

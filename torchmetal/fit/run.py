@@ -19,7 +19,7 @@ class FitRun:
         self.iterations = IterationCounts()
         self.skipped: list[str] = []
         self.decisions: list[dict] = []  # Decision.to_dict() of each choice made on left-out shots, in order
-        self.plan = None  # the ShotPlan those choices held out (torchmetal.fit.shot_plan), once made
+        self.plan = None  # the ShotPlan those choices held out (torchmetal.select.plan), once made
         self.bar = None
         if progress:
             from tqdm.auto import tqdm  # deferred: in a notebook tqdm.auto imports ipywidgets

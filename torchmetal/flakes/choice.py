@@ -25,11 +25,11 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from torchmetal.fit.decision import Decision
-from torchmetal.fit.shot_plan import flake_holds
 from torchmetal.flakes.estimate.observed_flakes import observed_flakes
 from torchmetal.metrics import md, psnr
 from torchmetal.renderer import MaterialRenderer
+from torchmetal.select.plan import flake_holds
+from torchmetal.select.rule import Decision
 
 if TYPE_CHECKING:
     from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
@@ -45,7 +45,7 @@ MD_WINDOW = 16  # MD's block (px) in the left-out scores: smaller images cannot 
 
 def held_shots(particles: Particles, flake_id: torch.Tensor, num_shots: int, count: int) -> list[int]:
     """Up to ``count`` shots with the most associated detections (ties: the lower index):
-    :func:`~torchmetal.fit.shot_plan.flake_holds` of the particles."""
+    :func:`~torchmetal.select.plan.flake_holds` of the particles."""
     return flake_holds(particles.shot, flake_id, num_shots, count)
 
 
@@ -101,7 +101,7 @@ def choose_observed(capture: Capture, material: Material, flake_result: FlakeSta
         capture: the fitted capture; material: the material with its statistical flake model
             (``material.flakes``) and no observed flakes; flake_result: the flake stage's result.
         held: how many shots to leave out; shots: which (the capture's shot plan,
-            :mod:`torchmetal.fit.shot_plan`; None: the ``held`` with most associated detections).
+            :mod:`torchmetal.select.plan`; None: the ``held`` with most associated detections).
         renders: when given, receives the statistical material's render of each left-out shot (shot →
             (3, H, W)), which :func:`~torchmetal.flakes.density_choice.choose_density_map` can reuse.
 

@@ -26,7 +26,6 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from torchmetal.fit.decision import Decision
 from torchmetal.flakes.choice import (
     HELD,
     MD_WINDOW,
@@ -40,6 +39,7 @@ from torchmetal.flakes.estimate.density_map import DETECT_MODES, estimate_map, w
 from torchmetal.flakes.model.field import map_blocks
 from torchmetal.flakes.model.filters import box_mean, max_filter
 from torchmetal.metrics import md
+from torchmetal.select.rule import Decision
 
 if TYPE_CHECKING:
     from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
@@ -100,7 +100,7 @@ def choose_density_map(capture: Capture, material: Material, flake_result: Flake
         capture: the fitted capture; material: the material with its kept flake model (and observed
             flakes, or None); flake_result: the flake stage's result (particles, flake_id).
         held: how many shots to leave out; shots: which (the capture's shot plan,
-            :mod:`torchmetal.fit.shot_plan`; None: the ``held`` with most associated detections).
+            :mod:`torchmetal.select.plan`; None: the ``held`` with most associated detections).
         renders: ``material``'s renders of left-out shots the caller already has (shot → (3, H, W), e.g.
             :func:`~torchmetal.flakes.choice.choose_observed`'s), for the uniform candidate.
 

@@ -76,6 +76,8 @@ class Capture:
         names: N image paths as in capture.json (relative to the capture directory).
         color_space: encoding of the source files ("srgb" or "linear"); ``images`` are always
             linear.
+        normals_given: True when the capture came with its own normal map (normals.npy, or ``normals``
+            passed in), flat or not: the fit keeps it (shared DESIGN 2.5); False for the default (0, 0, 1).
 
     Built in Python, the missing optional fields get their defaults and everything is checked
     (:meth:`validate`); a bad field raises :class:`CaptureError`.
@@ -91,12 +93,15 @@ class Capture:
     saturated: Tensor | None = None
     names: list[str] = field(default_factory=list)
     color_space: str = "linear"
+    normals_given: bool | None = None  # None: whether ``normals`` was passed
 
     def __post_init__(self) -> None:
         x = self.images
         if not isinstance(x, Tensor) or x.dim() != 4 or x.shape[1] != 3:
             raise shape_error("images", "(N, 3, H, W)", x)
         n, _, h, w = x.shape
+        # a replace() that keeps normals carries the flag over; normals=None always means none given
+        self.normals_given = self.normals is not None and self.normals_given is not False
         if self.normals is None:  # flat: one (3,) normal seen as (3, H, W) — no per-pixel storage
             self.normals = torch.tensor([0.0, 0.0, 1.0], dtype=x.dtype, device=x.device).view(3, 1, 1).expand(3, h, w)
         if self.mask is None:
@@ -184,6 +189,7 @@ class Capture:
             images=move(self.images), normals=move(self.normals), mask=move(self.mask),
             lights=move(self.lights), intensities=move(self.intensities), cameras=move(self.cameras),
             size=self.size, saturated=move(self.saturated), names=list(self.names), color_space=self.color_space,
+            normals_given=self.normals_given,
         )
 
     def subset(self, indices: Sequence[int] | Tensor | slice) -> "Capture":
@@ -201,7 +207,7 @@ class Capture:
             images=pick(self.images), normals=self.normals, mask=self.mask, lights=pick(self.lights),
             intensities=pick(self.intensities), cameras=pick(self.cameras), size=self.size,
             saturated=pick(self.saturated), names=[self.names[i] for i in idx.tolist()],
-            color_space=self.color_space,
+            color_space=self.color_space, normals_given=self.normals_given,
         )
 
     def downsampled(self, factor: int) -> "Capture":
@@ -218,11 +224,13 @@ class Capture:
         images = pool(crop(self.images), factor)
         mask = pool(crop(self.mask).double().unsqueeze(0), factor)[0] > 1.0 - 1e-9
         saturated = torch.nn.functional.max_pool2d(crop(self.saturated).to(images.dtype), factor) > 0
-        normals = None if self.flat else torch.nn.functional.normalize(pool(crop(self.normals).unsqueeze(0), factor)[0], dim=0)
+        normals = torch.nn.functional.normalize(pool(crop(self.normals).unsqueeze(0), factor)[0], dim=0)
         return Capture(
-            images=images, normals=normals, mask=mask, lights=self.lights, intensities=self.intensities,
-            cameras=self.cameras, size=(self.size[0] * w * factor / self.width, self.size[1] * h * factor / self.height),
+            images=images, normals=None if self.flat and not self.normals_given else normals, mask=mask,
+            lights=self.lights, intensities=self.intensities, cameras=self.cameras,
+            size=(self.size[0] * w * factor / self.width, self.size[1] * h * factor / self.height),
             saturated=saturated, names=list(self.names), color_space=self.color_space,
+            normals_given=self.normals_given,
         )
 
     def __repr__(self) -> str:

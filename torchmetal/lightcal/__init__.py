@@ -25,11 +25,11 @@ not see gets the flash's move and the falloff, :meth:`LightCalibration.for_unsee
 - :mod:`~torchmetal.lightcal.positions`: the offsets, by Levenberg–Marquardt per shot or shared;
 - :mod:`~torchmetal.lightcal.estimate`: the exponent and gains from a fit's log-ratio residuals, and the
   offsets alternated with the fit;
-- :mod:`~torchmetal.lightcal.choice`: ``light="auto"``: the capture's lights or the flash's move, decided
-  on left-out shots (:func:`~torchmetal.fit.decision.paired_choice`); the rest only when asked for.
+- :mod:`~torchmetal.lightcal.modes`: the calibration a fit uses, by mode (:func:`with_light`); ``light="auto"``
+  (the capture's lights or the flash's move) is decided on left-out shots by :mod:`torchmetal.select.choices`.
 """
 
-from torchmetal.lightcal.choice import LIGHT_MODES, choose_light, with_light
 from torchmetal.lightcal.model import LightCalibration
+from torchmetal.lightcal.modes import LIGHT_MODES, with_light
 
-__all__ = ["LIGHT_MODES", "LightCalibration", "choose_light", "with_light"]
+__all__ = ["LIGHT_MODES", "LightCalibration", "with_light"]

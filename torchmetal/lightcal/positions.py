@@ -111,10 +111,10 @@ def material_offsets(material: Material, capture: Capture, factor: Tensor | None
                      max_pixels: int = PIXELS) -> Tensor:
     """(N, 3) offsets of the point lights of ``capture`` (shots of ``material``'s sample it was not fitted
     on) fitted to their photos with the material held fixed: its coating (the lobe's shading, no sparkles)
-    on a pixel grid of ≤ ``max_pixels`` (:func:`~torchmetal.normals.choice.stride_grid`); ``factor``
+    on a pixel grid of ≤ ``max_pixels`` (:func:`~torchmetal.io.grid.stride_grid`); ``factor``
     (N, 1, H, W) or (N, 1, 1, 1): a light calibration's factor the render is multiplied by."""
+    from torchmetal.io.grid import stride_grid, strided_capture
     from torchmetal.lobes import lobe_render  # on use: lobes → phong → geometry (no circle, fewer imports)
-    from torchmetal.normals.choice import stride_grid, strided_capture
 
     h, w = int(capture.images.shape[-2]), int(capture.images.shape[-1])
     if (h, w) != (material.height, material.width):

@@ -1,7 +1,7 @@
 """Normals from the photos: per-pixel photometric stereo with the known lights, refined with the
 Phong terms (``fit --normals``; docs/design.md §2.2, the choice in §4).
 
-Modules: the estimate, the core its steps share, the steps in the order they run, and the choice:
+Modules: the estimate, the core its steps share, the steps in the order they run, and the modes:
 
 * :mod:`~torchmetal.normals.estimate`: :func:`estimate_normals`, the whole estimate stage by stage;
 * :mod:`~torchmetal.normals.core`: what the steps share (row chunks of observations, normals ↔ surface
@@ -16,12 +16,10 @@ Modules: the estimate, the core its steps share, the steps in the order they run
 * :mod:`~torchmetal.normals.flat`: flat where the photos cannot tell (:func:`flat_where_unresolved`);
 * :mod:`~torchmetal.normals.relief`: an embossing's relief, a high-passed height field fitted with the
   global Phong terms (:func:`with_relief`);
-* :mod:`~torchmetal.normals.choice`: ``normals="auto"``, estimated, relief or flat as left-out shots prefer
-  (:func:`choose_normals`, :func:`choose_relief`);
-* :mod:`~torchmetal.normals.modes`: the normals a fit uses, by mode (:func:`with_normals`).
+* :mod:`~torchmetal.normals.modes`: the normals a fit uses, by mode (:func:`with_normals`); ``normals="auto"``
+  is decided on left-out shots by :mod:`torchmetal.select.choices` (normals, relief).
 """
 
-from torchmetal.normals.choice import choose_normals, choose_relief, pixel_errors, strided_capture
 from torchmetal.normals.estimate import NormalsEstimate, angular_error, estimate_normals
 from torchmetal.normals.flat import flat_where_unresolved
 from torchmetal.normals.joint import joint_refine, try_weak_lobe
@@ -32,8 +30,7 @@ from torchmetal.normals.relief import with_relief
 from torchmetal.normals.restart import restart_and_settle
 
 __all__ = [
-    "NORMALS_MODES", "NormalsEstimate", "estimate_normals", "with_normals", "choose_normals", "choose_relief",
-    "with_relief", "strided_capture",
-    "pixel_errors", "refine_normals", "joint_refine", "try_weak_lobe", "restart_and_settle", "median_where_as_good",
+    "NORMALS_MODES", "NormalsEstimate", "estimate_normals", "with_normals", "with_relief",
+    "refine_normals", "joint_refine", "try_weak_lobe", "restart_and_settle", "median_where_as_good",
     "flat_where_unresolved", "angular_error",
 ]

@@ -1,17 +1,15 @@
 """The normals a fit uses (``fit --normals auto|given|flat|estimate|relief``): the capture's own, the flat
-plane, the estimate from the photos, the embossing's relief, or (``auto``) the one shots left out of the
-fit prefer."""
+plane, the estimate from the photos or the embossing's relief. ``auto`` is chosen on shots left out of the
+fit by :mod:`torchmetal.select.choices` (the normals and relief choices), which then calls :func:`with_normals`."""
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import torch
 
 from torchmetal.errors import InputError
-from torchmetal.normals.choice import choose_normals, choose_relief
 from torchmetal.normals.estimate import estimate_normals
 from torchmetal.normals.relief import with_relief
 
@@ -24,28 +22,16 @@ NORMALS_MODES = ("auto", "given", "flat", "estimate", "relief")
 def with_normals(capture: Capture, mode: str, **kw: Any) -> tuple[Capture, dict]:
     """The capture with the normals ``mode`` asks for, and a report entry.
 
-    "auto": the capture's own when it has them, else "estimate" or "flat" as shots left out of the fit
-    prefer (:func:`~torchmetal.normals.choice.choose_normals`; the report's "decision" says why), and
-    where they keep flat, "relief" if they prefer it (:func:`~torchmetal.normals.choice.choose_relief`;
-    the report's "relief_decision"); "given": the capture's own (its normals.npy, flat (0, 0, 1) without
-    one); "flat": (0, 0, 1) everywhere; "estimate": :func:`~torchmetal.normals.estimate.estimate_normals`
-    (``kw`` passed on); "relief": :func:`~torchmetal.normals.relief.with_relief`.
+    "given": the capture's own (its normals.npy, flat (0, 0, 1) without one); "flat": (0, 0, 1) everywhere;
+    "estimate": :func:`~torchmetal.normals.estimate.estimate_normals` (``kw`` passed on); "relief":
+    :func:`~torchmetal.normals.relief.with_relief`. "auto" is the selection's (module docstring).
 
     Returns:
         (capture, report dict).
     """
-    if mode not in NORMALS_MODES:
-        raise InputError(f"normals: expected one of {list(NORMALS_MODES)}, found {mode!r}")
-    if mode == "auto":
-        t0 = time.perf_counter()
-        chosen, decision = choose_normals(capture, fit_kwargs=kw.get("fit_kwargs"))
-        record = {"decision": decision.to_dict(), "decision_time": time.perf_counter() - t0}
-        if chosen == "flat":
-            t0 = time.perf_counter()
-            chosen, relief = choose_relief(capture)
-            record |= {"relief_decision": relief.to_dict(), "relief_decision_time": time.perf_counter() - t0}
-        cap, report = with_normals(capture, chosen, **kw)
-        return cap, {**report, "mode": "auto", "chosen": chosen, **record}
+    if mode not in NORMALS_MODES or mode == "auto":
+        raise InputError(f"normals: expected one of {[m for m in NORMALS_MODES if m != 'auto']} here (auto is chosen "
+                         f"by torchmetal.select.choices, as fit_material does), found {mode!r}")
     if mode == "given":
         return capture, {"mode": "given", "flat": capture.flat}
     if mode == "flat":

@@ -1,10 +1,10 @@
-"""The one held-out decision rule (torchmetal.fit.decision): paired z over the same observations."""
+"""The one held-out decision rule (torchmetal.select.rule): paired z over the same observations."""
 
 import math
 
 import torch
 
-from torchmetal.fit.decision import Z_MIN, Decision, paired_choice, paired_z
+from torchmetal.select.rule import Z_MIN, Decision, paired_choice, paired_z
 
 
 def test_paired_z_signs():

@@ -44,12 +44,14 @@ class Decision:
     pixels: int = 0  # pixels the decision looked at
     reason: str = ""
     scores: dict = field(default_factory=dict)  # candidate → other held-out scores ({"md": …}) where MSE is not the rule
+    seconds: float = 0.0  # what the choice cost, where the harness ran it
 
     def to_dict(self) -> dict:
         psnr = heldout_psnr(self.mse)
         return {"name": self.name, "candidates": list(self.candidates), "chosen": self.chosen,
                 "reference": self.reference, "mse": dict(self.mse), "psnr_heldout": psnr, "z": dict(self.z),
-                "holds": list(self.holds), "pixels": self.pixels, "reason": self.reason, "scores": dict(self.scores)}
+                "holds": list(self.holds), "pixels": self.pixels, "reason": self.reason, "scores": dict(self.scores),
+                "seconds": self.seconds}
 
 
 def heldout_psnr(mse: dict) -> dict:

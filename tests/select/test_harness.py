@@ -1,0 +1,69 @@
+"""The selection harness (torchmetal.select.harness) on a declared toy choice: untested cases, the screen, the
+folds, pairing, futility, the record."""
+
+import math
+
+import torch
+
+from torchmetal.select.harness import Choice, Context, Screen, decide, observation_errors, pixel_errors
+from torchmetal.synth import synth_capture
+
+CAP = synth_capture(size=16, shots=7, seed=0, noise=0.0).capture
+
+
+def _toy(scale: dict, **kw) -> Choice:
+    """Candidate c renders the held-out photos times (1 + scale[c]): its errors grow with scale."""
+    def fit(train, c, ctx):
+        assert train.num_shots >= 4 and c in scale
+        fits.append((train.num_shots, c))
+        return lambda hold: hold.images * (1.0 + scale[c] * (1.0 + 0.1 * torch.rand(hold.images.shape, generator=torch.Generator().manual_seed(1))))
+
+    fits: list = []
+    choice = Choice("toy", tuple(scale), fit=fit, errors=observation_errors, grid=lambda c: c, **kw)
+    return choice, fits
+
+
+def test_the_better_extension_wins_on_every_fold():
+    choice, fits = _toy({"ref": 0.1, "ext": 0.01})
+    d = decide(choice, CAP, Context(model={}))
+    assert d.chosen == "ext" and d.reference == "ref" and d.z["ext"] > 4 and d.seconds > 0
+    assert len(d.holds) == 3 and sorted(k for g in d.holds for k in g) == list(range(7))
+    assert len(fits) == 6 and all(n == 7 - len(g) for (n, _), g in zip(fits[::2], d.holds))
+
+
+def test_a_worse_extension_stops_after_one_fold():
+    choice, fits = _toy({"ref": 0.01, "ext": 0.1})
+    d = decide(choice, CAP, Context(model={}))
+    assert d.chosen == "ref" and len(d.holds) == 1 and "stopped after 1 of 3" in d.reason and len(fits) == 2
+
+
+def test_untested_and_screened_cases_fit_nothing():
+    choice, fits = _toy({"ref": 0.1, "ext": 0.01}, untested=lambda c, ctx: "not today")
+    d = decide(choice, CAP, Context(model={}))
+    assert d.chosen == "ref" and d.reason == "not today" and not fits
+    choice, fits = _toy({"ref": 0.1, "ext": 0.01}, screen=lambda g, ctx: Screen(False, "nothing to gain", {"x": 1.0}))
+    d = decide(choice, CAP, Context(model={}))
+    assert d.chosen == "ref" and "nothing to gain" in d.reason and d.scores["screen"]["x"] == 1.0 and not fits
+    choice, fits = _toy({"ref": 0.1, "ext": 0.01}, min_shots=8)
+    assert decide(choice, CAP, Context(model={})).reason.endswith("found 7") and not fits
+
+
+def test_an_abstaining_candidate_keeps_the_reference():
+    choice = Choice("toy", ("ref", "ext"), fit=lambda t, c, ctx: None if c == "ext" else (lambda h: h.images),
+                    errors=observation_errors, grid=lambda c: c)
+    d = decide(choice, CAP, Context(model={}))
+    assert d.chosen == "ref" and "could not be tested" in d.reason
+
+
+def test_error_measures():
+    hold = CAP.subset([0, 1])
+    pred = hold.images + 0.1
+    e = observation_errors(pred, hold)
+    assert e.shape == (2 * 3 * 16 * 16,) and torch.allclose(e, torch.full_like(e, 0.01))
+    p = pixel_errors(pred, hold)
+    assert p.shape == (256,) and torch.allclose(p, torch.full_like(p, 0.01))
+    sat = hold.saturated.clone()
+    sat[:, :, 0, 0] = True
+    from dataclasses import replace
+
+    assert math.isnan(float(pixel_errors(pred, replace(hold, saturated=sat))[0]))

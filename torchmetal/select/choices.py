@@ -1,0 +1,201 @@
+"""The choices made before the Phong fit, each declared for the harness (:mod:`torchmetal.select.harness`).
+
+They follow one reference fit (:func:`reference_context`): the default Phong fit on a ≤ 128² pixel grid of
+the capture makes the coating's own choices once (lobe, specular structure, weights), and every candidate of
+the choices below is then fitted with that model — the model the final fit will use — so that a candidate
+fit repeats none of them and no candidate is scored against a simpler stand-in (a global lobe on a
+two-material sample misfits, and estimated normals, a relief or a moved light then "explain" the misfit).
+
+============ ============================= ================ ============================================
+choice       candidates (reference first)  error (paired)   screen (skips the test)
+============ ============================= ================ ============================================
+clipping     channel, pixel                per observation  no observation partly clipped
+normals      flat, estimate                per-pixel median the residual follows no tilt (tilt_screen)
+relief       flat, relief                  per-pixel median as normals, on its downsampled grid
+light        off, flash                    per-pixel median moving every light gains < 0.5 % in-sample
+============ ============================= ================ ============================================
+
+A capture's own normal map is kept untested, flat or not. Adding a choice: declare a :class:`Choice` here
+and add it to :data:`PREFIT`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import torch
+
+from torchmetal.clipping import partly_clipped, pixel_clipped
+from torchmetal.fit.api import fit_phong
+from torchmetal.io.grid import strided_capture
+from torchmetal.lightcal.estimate import calibrate_positions
+from torchmetal.normals.estimate import estimate_normals
+from torchmetal.normals.relief import RES, factor_for, fit_normals, fit_relief
+from torchmetal.select.harness import Choice, Context, Screen, decide, kept, observation_errors, pixel_errors
+from torchmetal.select.rule import Decision
+from torchmetal.select.screens import light_screen, tilt_screen
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
+
+REFERENCE_PIXELS = 128 * 128  # the reference fit's grid
+NORMALS_PIXELS = 64 * 64  # per-pixel photometric stereo needs no more to say whether the sample has relief
+CLIPPING_PIXELS = 128 * 128  # clipping sits in highlights, a few of its pixels each
+LIGHT_PIXELS = 128 * 128
+NORMALS_GAIN = 0.05  # a normal map (two parameters a pixel) must lower the per-pixel median held-out error by 5 %
+CLIPPING_GAIN = 0.005  # dropping data must pay for itself (docs/design.md §4)
+LIGHT_GAIN = 0.02  # the flash's move: 2 % (docs/design.md §4)
+
+
+def model_of(fit) -> dict:
+    """:func:`~torchmetal.fit.fit_phong` options that refit ``fit``'s model without choosing it again."""
+    model = {"lobe": fit.lobe, "specular": fit.specular if fit.specular != "none" else "none",
+             "noise_weights": fit.noise is not None}
+    sel = fit.selection or {}
+    if fit.specular == "clustered" and sel.get("k"):
+        model |= {"clusters": (int(sel["k"]),), "relabel": bool(sel.get("relabel"))}
+    return model
+
+
+def reference_context(capture: Capture, fit_kwargs: dict) -> tuple[Context, float]:
+    """The reference fit on the capture's grid (``fit_kwargs``: the fit's own options, ``lobe``/``noise_weights``
+    "auto" where the final fit chooses them) and the :class:`~torchmetal.select.harness.Context` it gives;
+    also its seconds (the report's stage time)."""
+    t0 = time.perf_counter()
+    ref = fit_phong(strided_capture(capture, REFERENCE_PIXELS), **fit_kwargs)
+    keep = {k: fit_kwargs[k] for k in ("scheme", "tol", "max_iters") if k in fit_kwargs}
+    return Context(model={**keep, **model_of(ref)}), time.perf_counter() - t0
+
+
+def _fit(train: Capture, ctx: Context):
+    return fit_phong(train, **ctx.model)
+
+
+def _render(fit):
+    return lambda hold: fit.render(hold.lights, hold.intensities, hold.cameras)
+
+
+def _reference_screen(screen):
+    """A screen of the reference model fitted on the whole grid."""
+    return lambda grid, ctx: screen(_fit(grid, ctx), grid)
+
+
+# ----------------------------------------------------------------------------- clipping
+
+
+def _clipping_untested(capture: Capture, ctx: Context) -> str | None:
+    return None if partly_clipped(capture) else "no observation has some but not all channels clipped"
+
+
+def _clipping_fit(train: Capture, candidate: str, ctx: Context):
+    return _render(_fit(pixel_clipped(train) if candidate == "pixel" else train, ctx))
+
+
+CLIPPING = Choice(
+    "clipping", ("channel", "pixel"), fit=_clipping_fit, errors=observation_errors,
+    grid=lambda c: strided_capture(c, CLIPPING_PIXELS),
+    hold=lambda grid, group: pixel_clipped(grid).subset(group),  # no channel clipped: valid under either reading
+    rule={"min_gain": CLIPPING_GAIN}, untested=_clipping_untested, min_shots=3)
+
+
+# ----------------------------------------------------------------------------- normals
+
+
+def _given(capture: Capture, ctx: Context) -> str | None:
+    return "the capture's own normals (normals.npy)" if capture.normals_given else None
+
+
+def _normals_fit(train: Capture, candidate: str, ctx: Context):
+    if candidate == "estimate":
+        train = replace(train, normals=estimate_normals(train, fit_kwargs=ctx.model).normals)
+    return _render(_fit(train, ctx))
+
+
+NORMALS = Choice(
+    "normals", ("flat", "estimate"), fit=_normals_fit, errors=pixel_errors,
+    grid=lambda c: strided_capture(c, NORMALS_PIXELS), follows=("clipping",),
+    rule={"min_gain": NORMALS_GAIN}, untested=_given, screen=_reference_screen(tilt_screen), floor=0.0)
+
+
+# ----------------------------------------------------------------------------- relief
+
+
+def _relief_untested(capture: Capture, ctx: Context) -> str | None:
+    if capture.normals_given:
+        return "the capture's own normals (normals.npy)"
+    if ctx.chosen.get("normals") == "estimate":
+        return "estimated normals kept"
+    return None
+
+
+def _relief_fit(train: Capture, candidate: str, ctx: Context):
+    if candidate == "relief":  # the heights from the relief's own fit; the rendering model is the final one
+        train = replace(train, normals=fit_normals(fit_relief(train), train).to(train.images.dtype))
+    return _render(_fit(train, ctx))
+
+
+def _typical(d: Decision, errors: dict) -> None:
+    """A relief that wins must also lower the typical pixel's error (the median of the per-pixel relative
+    changes): an embossing shows in every pixel of it, a flake's glint in a few (docs/design.md §4)."""
+    if d.chosen != "relief":
+        return
+    flat, alt = torch.cat(errors["flat"]), torch.cat(errors["relief"])
+    seen = ~torch.isnan(flat) & ~torch.isnan(alt) & (flat > 0)
+    change = float(((alt[seen] - flat[seen]) / flat[seen]).median()) if bool(seen.any()) else float("inf")
+    better = float((alt[seen] < flat[seen]).double().mean()) if bool(seen.any()) else 0.0
+    if change >= 0.0:
+        d.chosen = "flat"
+        d.reason += (f"; but the typical pixel's error does not fall (median change {100 * change:+.1f} %, better on "
+                     f"{100 * better:.0f} % of pixels: a few pixels' gain, glints, not a relief): flat kept")
+    else:
+        d.reason += f"; the typical pixel's error falls too (median change {100 * change:+.1f} %, better on {100 * better:.0f} % of pixels)"
+
+
+RELIEF = Choice(
+    "relief", ("flat", "relief"), fit=_relief_fit, errors=pixel_errors,
+    grid=lambda c: c.downsampled(factor_for(c, RES)), follows=("clipping", "normals"),
+    rule={"min_gain": NORMALS_GAIN}, untested=_relief_untested, screen=_reference_screen(tilt_screen),
+    check=_typical, floor=0.0)
+
+
+# ----------------------------------------------------------------------------- light
+
+
+def _light_untested(capture: Capture, ctx: Context) -> str | None:
+    if not bool((capture.lights[:, 3] > 0).any()):
+        return "directional lights only: no falloff or position to calibrate"
+    if ctx.model.get("specular") == "none":  # a diffuse-only fit's misfit moves the lights as readily as a misplaced flash
+        return "the reference fit kept no specular lobe (no highlight on the grid): capture's lights kept"
+    return None
+
+
+def _light_fit(train: Capture, candidate: str, ctx: Context):
+    if candidate == "off":
+        return _render(_fit(train, ctx))
+    cal, fit = calibrate_positions(train, fit_kwargs=ctx.model, shared=True)
+    unseen = cal.for_unseen()
+    return lambda hold: fit.render(unseen.lights(hold), hold.intensities, hold.cameras) * unseen.factor(hold)
+
+
+LIGHT = Choice(
+    "light", ("off", "flash"), fit=_light_fit, errors=pixel_errors,
+    grid=lambda c: strided_capture(c, LIGHT_PIXELS), follows=("clipping", "normals", "relief"),
+    rule={"min_gain": LIGHT_GAIN}, untested=_light_untested, screen=_reference_screen(light_screen))
+
+
+#: the choices before the Phong fit, in the order they are made
+PREFIT = (CLIPPING, NORMALS, RELIEF, LIGHT)
+DEFAULT_FIT = {"lobe": "auto", "noise_weights": "auto"}  # the reference fit's options where a caller gives none
+
+
+def choose(choice: Choice, capture: Capture, *, fit_kwargs: dict | None = None, chosen: dict | None = None) -> Decision:
+    """``choice`` decided on ``capture`` alone (its own reference fit; ``chosen``: the choices it follows), as
+    :func:`~torchmetal.pipeline.fit_material` decides it in turn."""
+    ctx, _ = reference_context(capture, {**DEFAULT_FIT, **(fit_kwargs or {})})
+    ctx.chosen.update(chosen or {})
+    return decide(choice, capture, ctx)
+
+__all__ = ["CLIPPING", "LIGHT", "NORMALS", "PREFIT", "RELIEF", "Context", "Screen", "choose", "kept", "model_of",
+           "reference_context"]

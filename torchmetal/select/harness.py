@@ -1,0 +1,186 @@
+"""The one harness every choice made before the Phong fit runs through.
+
+A choice is declared (:class:`Choice`): its name, its candidates (the simplest first: the reference, kept
+unless another predicts left-out shots better beyond noise), how a candidate is fitted on a set of shots, its
+error measure, the pixel grid it is decided on, the choices it follows, and a cheap screen. The harness
+(:func:`decide`) owns the rest, the same for every choice:
+
+1. untested cases (the choice's own reason, too few shots) keep the reference and say why;
+2. the screen reads the reference fit's residuals on the grid (:mod:`torchmetal.select.screens`); where it
+   says the extension cannot matter, the reference is kept without a candidate fit;
+3. the shots are dealt into groups (:func:`~torchmetal.select.plan.shot_groups`); for each, every candidate is
+   fitted on the other shots **with the model the final fit will use** (``Context.model``: the lobe, specular
+   structure and weights the reference fit chose, so no candidate fit makes those choices again) and renders
+   the group; the errors pair up across candidates and the paired rule (:func:`~torchmetal.select.rule.paired_choice`)
+   decides on all groups so far;
+4. futility: once every extension predicts worse beyond noise, the remaining groups are not fitted;
+5. the :class:`~torchmetal.select.rule.Decision` record, with the screen's reading and the seconds it took.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable
+
+import torch
+from torch import Tensor
+
+from torchmetal.select.plan import shot_groups
+from torchmetal.select.rule import MIN_GAIN_ABS, Z_MIN, Decision, paired_choice
+
+if TYPE_CHECKING:
+    from torchmetal.io.capture import Capture
+
+Predict = Callable[["Capture"], Tensor]  # a fitted candidate: held-out shots (M shots) → its render (M, 3, H, W)
+
+
+@dataclass(frozen=True)
+class Screen:
+    """A screen's verdict: whether the candidates' test runs, why, and what it read."""
+
+    run: bool
+    reason: str
+    reading: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Context:
+    """What every test is given.
+
+    Attributes:
+        model: :func:`~torchmetal.fit.fit_phong` options of the model the final fit will use (lobe, specular
+            structure, cluster count, weights, tol, max_iters), chosen once by the reference fit
+            (:func:`torchmetal.select.choices.reference_model`).
+        chosen: the choices made so far (name → chosen candidate), for the ones a choice follows.
+    """
+
+    model: dict
+    chosen: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Choice:
+    """A choice declared (module docstring).
+
+    Attributes:
+        name: the Decision's name.
+        candidates: the reference first, then its extensions.
+        fit: ``fit(train, candidate, ctx)`` → a :data:`Predict` for held-out shots, or None where the candidate
+            cannot be tested on these shots (the test then keeps the reference: an abstention).
+        errors: ``errors(render, hold)`` → (M,) float64 errors that pair up across candidates (NaN: unseen).
+        grid: the capture the test runs on (a pixel grid or a downsampled copy).
+        hold: ``hold(grid, group)`` → the held-out shots as scored (default ``grid.subset(group)``).
+        follows: the choices made before this one (their outcome is in ``Context``).
+        rule: :func:`~torchmetal.select.rule.paired_choice` options (``z_min``, ``min_gain``).
+        untested: ``untested(capture, ctx)`` → a reason to keep the reference without a test, or None.
+        screen: ``screen(grid, ctx)`` → :class:`Screen` (None: always tested).
+        check: ``check(decision, errors)`` may overrule the rule's outcome (and says so in the reason).
+        folds: shot groups left out in turn; min_shots: fewer shots keep the reference untested.
+        floor: the rule's absolute floor as a fraction of the held-out signal's mean square (rounding noise).
+    """
+
+    name: str
+    candidates: tuple[str, ...]
+    fit: Callable[..., Predict | None]
+    errors: Callable[[Tensor, Capture], Tensor]
+    grid: Callable[[Capture], Capture]
+    hold: Callable[[Capture, list[int]], Capture] | None = None
+    follows: tuple[str, ...] = ()
+    rule: dict = field(default_factory=dict)
+    untested: Callable[[Capture, Context], str | None] | None = None
+    screen: Callable[[Capture, Context], Screen] | None = None
+    check: Callable[[Decision, dict], None] | None = None
+    folds: int = 3
+    min_shots: int = 4
+    floor: float = MIN_GAIN_ABS
+
+    @property
+    def reference(self) -> str:
+        return self.candidates[0]
+
+
+def kept(choice: Choice, reason: str, **extra) -> Decision:
+    """The reference kept without a test, and why."""
+    return Decision(choice.name, choice.candidates, choice.reference, reference=choice.reference, reason=reason, **extra)
+
+
+def decide(choice: Choice, capture: Capture, ctx: Context) -> Decision:
+    """Run ``choice`` on ``capture`` (module docstring); the Decision's ``seconds`` is its whole cost."""
+    t0 = time.perf_counter()
+    d = _decide(choice, capture, ctx)
+    d.seconds = time.perf_counter() - t0
+    return d
+
+
+def _decide(choice: Choice, capture: Capture, ctx: Context) -> Decision:
+    n = capture.num_shots
+    reason = choice.untested(capture, ctx) if choice.untested is not None else None
+    if reason is None and n < choice.min_shots:
+        reason = f"a left-out test of the {choice.name} needs >= {choice.min_shots} shots, found {n}"
+    if reason is not None:
+        return kept(choice, reason)
+    grid = choice.grid(capture)
+    screen = choice.screen(grid, ctx) if choice.screen is not None else None
+    scores = {"screen": {"run": screen.run, "reason": screen.reason, **screen.reading}} if screen else {}
+    if screen is not None and not screen.run:
+        return kept(choice, f"not tested: {screen.reason}", scores=scores)
+    groups = shot_groups(n, choice.folds)
+    errors: dict[str, list[Tensor]] = {c: [] for c in choice.candidates}
+    rule = dict(choice.rule)
+    z_min = rule.get("z_min", Z_MIN)
+    d = None
+    for i, group in enumerate(groups):
+        train = grid.subset([k for k in range(n) if k not in group])
+        hold = choice.hold(grid, list(group)) if choice.hold is not None else grid.subset(list(group))
+        preds = {c: choice.fit(train, c, ctx) for c in choice.candidates}
+        if any(p is None for p in preds.values()):
+            return kept(choice, f"a candidate could not be tested without shots {list(group)} "
+                                f"({', '.join(c for c, p in preds.items() if p is None)}): {choice.reference} kept",
+                        scores=scores, holds=groups[: i + 1])
+        for c, predict in preds.items():
+            with torch.no_grad():
+                errors[c].append(choice.errors(predict(hold), hold))
+        d = _paired(choice, errors, rule, grid)
+        if choice.check is not None:
+            choice.check(d, errors)
+        if i + 1 < len(groups) and all(z < -z_min for z in d.z.values()):
+            d.reason += f"; stopped after {i + 1} of {len(groups)} shot groups (every extension worse beyond noise)"
+            groups = groups[: i + 1]
+            break
+    d.holds = groups
+    d.pixels = int(grid.height * grid.width)
+    d.scores.update(scores)
+    return d
+
+
+def _paired(choice: Choice, errors: dict[str, list[Tensor]], rule: dict, grid: Capture) -> Decision:
+    """The paired rule on the groups' errors so far, over the observations every candidate saw."""
+    cat = {c: torch.cat(e) for c, e in errors.items()}
+    seen = ~torch.isnan(torch.stack(list(cat.values()))).any(0)
+    floor = choice.floor * _mean_square(grid) if choice.floor else 0.0
+    return paired_choice(choice.name, {c: e[seen] for c, e in cat.items()}, choice.reference,
+                         **{"floor": floor, **rule})
+
+
+def _mean_square(capture: Capture) -> float:
+    """Mean square of the capture's valid observations (the held-out signal's scale)."""
+    v = capture.mask.bool().unsqueeze(0).expand_as(capture.images) & ~capture.saturated
+    return float(capture.images.double()[v].square().mean()) if bool(v.any()) else 0.0
+
+
+def observation_errors(pred: Tensor, hold: Capture) -> Tensor:
+    """(M,) float64 squared errors on ``hold``'s valid observations (shot-major): per-observation pairing."""
+    v = hold.mask.bool().unsqueeze(0).expand_as(hold.images) & ~hold.saturated
+    return (pred - hold.images).double().square()[v]
+
+
+def pixel_errors(pred: Tensor, hold: Capture) -> Tensor:
+    """(P,) float64: per mask pixel, the median over ``hold``'s valid observations (shots × channels) of the
+    squared error; NaN where the pixel has none. The median, not the mean: a surface's shape or a light's
+    place shows in every shot of a pixel, a glint in one (docs/design.md §4)."""
+    v = hold.mask.bool().unsqueeze(0).expand_as(hold.images) & ~hold.saturated
+    sq = torch.where(v, (pred - hold.images).double() ** 2, torch.full_like(pred, math.nan, dtype=torch.float64))
+    inside = hold.mask.reshape(-1).bool()
+    return sq.permute(1, 0, 2, 3).reshape(-1, sq.shape[-2] * sq.shape[-1])[:, inside].nanmedian(0).values
