@@ -372,7 +372,7 @@ class TestBoundedEstimates:
 
     def test_a_model_the_checks_refuse_is_no_model_with_its_reason(self, small, monkeypatch):
         det, geo = small
-        monkeypatch.setattr(S, "fit_colour", lambda obs, fit: ((1e21, 1e21, 1e21), ((1.0, 0, 0), (0, 1.0, 0), (0, 0, 1.0))))
+        monkeypatch.setattr(S, "fit_colour", lambda obs, fit, **kw: ((1e21, 1e21, 1e21), ((1.0, 0, 0), (0, 1.0, 0), (0, 0, 1.0))))
         res = S.flake_statistics(det, geo)
         # fitted, not degenerate, then refused by the model's own checks: the MaterialError's one-line reason
         assert res.model is None and "density" in res.report and "degenerate" not in res.report and "skipped" in res.report

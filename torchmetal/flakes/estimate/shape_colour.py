@@ -10,6 +10,7 @@ import math
 
 import torch
 
+from torchmetal.errors import InputError
 from torchmetal.flakes.estimate.association import FlakeObservations
 from torchmetal.flakes.estimate.glint_model import GlintFit, truncated_moments
 
@@ -51,22 +52,29 @@ def fit_shapes(obs: FlakeObservations, *, min_snr: float = 8.0) -> dict:
     }
 
 
-def fit_colour(obs: FlakeObservations, fit: GlintFit, *, min_snr: float = 8.0) -> tuple[tuple, tuple]:
+def fit_colour(obs: FlakeObservations, fit: GlintFit, *, min_snr: float = 8.0,
+               peak_weight: float = 1.0) -> tuple[tuple, tuple]:
     """Colour mean and covariance of the glint reflectance.
 
     The peak glint of a detection is A·g with g ≤ 1, so raw peaks underestimate the flake's
-    colour; the glint falloff is corrected through the fitted amplitude distribution:
-    mean = E[A | floor < A < ceiling] × mean chroma (chroma = colour / channel mean is independent of g;
-    the ceiling, the brightest amplitude the detections support, bounds the colour by the data).
+    colour; the glint falloff is corrected through the fitted amplitude distribution, and A itself is
+    the colour times the brightest pixel's footprint weight (``peak_weight``, its mean:
+    :func:`~torchmetal.flakes.model.field.mean_peak_weight`; below 1 for fine flakes, which the field
+    renders with the same weights): mean = E[A | floor < A < ceiling] / peak_weight × mean chroma
+    (chroma = colour / channel mean is independent of g; the ceiling, the brightest amplitude the
+    detections support, bounds the colour by the data).
     Chroma outside [0, 3] per channel (a detection whose mean colour is ≈ 0 or negative: a
     texture edge, not a glint) is left out.
     """
+    if not (math.isfinite(peak_weight) and 0.0 < peak_weight <= 1.0):
+        raise InputError(f"fit_colour: expected a peak_weight in (0, 1], found {peak_weight!r}")
     plausible = ((obs.chroma >= 0) & (obs.chroma <= 3)).all(1)
     sel = (obs.snr >= min_snr) & plausible
     if int(sel.sum()) < 10:
         sel = plausible if int(plausible.sum()) >= 1 else torch.ones_like(sel)
     ch = obs.chroma[sel].double()
     mean_a, var_a = truncated_moments(fit.log_amp_mean, fit.log_amp_std, fit.log_amp_floor, fit.log_amp_ceiling)
+    mean_a, var_a = mean_a / peak_weight, var_a / peak_weight**2
     cm = ch.mean(0)
     mean = (mean_a * cm).clamp_min(0.0)
     # chroma covariance minus its measurement noise (per channel ≈ √3·σ/(amp·√area)), PSD-clipped

@@ -36,6 +36,7 @@ from torchmetal.flakes.estimate.shape_colour import fit_colour, fit_shapes
 from torchmetal.flakes.estimate.shot_geometry import Geometry
 from torchmetal.flakes.estimate.visibility import cell_grid
 from torchmetal.flakes.model import MAX_DENSITY, MIN_CELL, FlakeModel
+from torchmetal.flakes.model.field import mean_peak_weight
 
 TILT_RANGE = (0.01, 1.5)  # radians: the flake-normal slope spread the model can hold (a best point at the
 # upper bound after DEGENERATE_AFTER evaluations is no flake layer: the likelihood stops, no model)
@@ -394,14 +395,17 @@ def _fitted_model(report: dict, obs: FlakeObservations, gfit: GlintFit, times: d
     """Shapes and colours on top of the glint fit: the :class:`FlakeModel` (None when it refuses a value),
     its numbers in ``report``."""
     shapes = fit_shapes(obs)
-    cmean, ccov = fit_colour(obs, gfit)
+    # the amplitudes are peak pixels: the colour is theirs over the field's own brightest footprint weight
+    peak = mean_peak_weight(shapes["area_log_mean"], min(shapes["area_log_std"], 5.0), shapes["aspect_mean"],
+                            shapes["aspect_std"])
+    cmean, ccov = fit_colour(obs, gfit, peak_weight=peak)
     times["shape_colour"] = time.perf_counter() - t3
     density = min(gfit.density, MAX_DENSITY)
     if gfit.density > MAX_DENSITY:  # a near-solid layer of flakes: drawn as dense as the hash field can
         report["density_clamped"] = (f"fitted density {gfit.density:.3g}/px exceeds the flake field's capacity "
                                      f"{MAX_DENSITY:.3g}/px (one flake per {MIN_CELL}×{MIN_CELL} px cell): rendered at capacity")
     report.update({
-        "density": gfit.density, "density_rendered": density, "tilt_sigma": gfit.tilt_sigma, "glint_sigma": gfit.glint_sigma,
+        "density": gfit.density, "density_rendered": density, "peak_weight": peak, "tilt_sigma": gfit.tilt_sigma, "glint_sigma": gfit.glint_sigma,
         "detected_fraction": count / max(1.0, gfit.density * valid_px / n),
         "std_err": gfit.std_err, "identified": gfit.identified, "iterations": gfit.iterations,
         "multi_shot_flakes": int((obs.detected.sum(1) > 1).sum()), "times": times,
