@@ -104,3 +104,18 @@ def test_bad_options(fitted):
     with pytest.raises(InputError, match="size"):
         estimate_uncertainty(fit, cap.downsampled(2))
     assert math.isclose(UncertaintyOptions().level, 0.9)
+
+
+def test_pixel_budget_scales_to_the_full_capture(fitted):
+    """A strided pass (48² → stride 3 under 2^8 pixels) scales H, M to every pixel: s and α's std within 15 % of
+    the full pass's; the texture's summary and its spread map keep the full map's scale and shape."""
+    _, cap, fit, full = fitted[10]
+    assert full.stride == 1
+    grid = estimate_uncertainty(fit, cap, UncertaintyOptions(max_pixels=1 << 8))
+    assert grid.stride == 3 and grid.texture_grid.shape == (3, 16, 16)
+    assert torch.allclose(grid.s_std, full.s_std, rtol=0.15) and torch.allclose(grid.beta_std, full.beta_std, rtol=0.15)
+    assert grid.texture_std.shape == fit.texture.shape
+    med = lambda u: u.to_dict()["texture"]["g"]["std_median"]  # noqa: E731
+    assert math.isclose(med(grid), med(full), rel_tol=0.1)
+    exact = estimate_uncertainty(fit, cap, UncertaintyOptions(max_pixels=1 << 8, texture_map=True))
+    assert exact.stride == 1 and torch.equal(exact.texture_std, full.texture_std)

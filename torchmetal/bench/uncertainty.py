@@ -7,7 +7,7 @@ model (global Phong, no flakes). Each is fitted (``fit_phong``, global specular,
 the clean truth falls inside, per parameter kind: s and α (one per channel and scene) and the texture
 (every pixel). Target: 85–95 % each.
 
-``python -m torchmetal.bench.uncertainty [N]`` runs it alone.
+``python -m torchmetal.bench.uncertainty [N [MAX_PIXELS]]`` runs it alone (MAX_PIXELS 1024: the strided pass).
 """
 
 from __future__ import annotations
@@ -35,8 +35,10 @@ def random_scene(i: int, size: int | None = None):
                  alpha=float(math.exp(rng.uniform(math.log(20.0), math.log(300.0)))), seed=SEED0 + i)
 
 
-def score_scene(scene, work: str, level: float = 0.9) -> dict:
-    """Fit one scene and count its truths inside the intervals."""
+def score_scene(scene, work: str, level: float = 0.9, max_pixels: int | None = None) -> dict:
+    """Fit one scene and count its truths inside the intervals. ``max_pixels``: the curvature pass's pixel
+    budget (None: the default, 2^16, above every scene here; 2^10 forces stride 2–3 on them, the case of a
+    1 MP capture under the default: the grid's sums scaled to the full pixel count)."""
     import torch
 
     from torchmetal.fit import fit_phong
@@ -49,7 +51,8 @@ def score_scene(scene, work: str, level: float = 0.9) -> dict:
     t0 = time.perf_counter()
     fit = fit_phong(cap, specular="global", lobe="phong")
     t1 = time.perf_counter()
-    u = estimate_uncertainty(fit, cap, UncertaintyOptions(level=level))
+    o = UncertaintyOptions(level=level) if max_pixels is None else UncertaintyOptions(level=level, max_pixels=max_pixels)
+    u = estimate_uncertainty(fit, cap, o)
     t2 = time.perf_counter()
     s_in = ((u.s_lo[0] <= scene.s) & (scene.s <= u.s_hi[0])).tolist()
     a_in = ((u.alpha_lo[0] <= scene.alpha) & (scene.alpha <= u.alpha_hi[0])).tolist()
@@ -62,16 +65,17 @@ def score_scene(scene, work: str, level: float = 0.9) -> dict:
             "s_fit": u.s[0].tolist(), "alpha_fit": u.alpha[0].tolist(), "s_pm": ((u.s_hi - u.s_lo)[0] / 2).tolist(),
             "alpha_pm": ((u.alpha_hi - u.alpha_lo)[0] / 2).tolist(), "method": u.method[0],
             "s_in": s_in, "alpha_in": a_in, "texture_in": int(inside.sum()), "texture_n": int(fin.sum()),
-            "fit_s": t1 - t0, "uncertainty_s": t2 - t1}
+            "stride": u.stride, "fit_s": t1 - t0, "uncertainty_s": t2 - t1}
 
 
-def run_section(n: int = 100, *, size: int | None = None, level: float = 0.9, say=print) -> dict:
+def run_section(n: int = 100, *, size: int | None = None, level: float = 0.9, max_pixels: int | None = None,
+                say=print) -> dict:
     """Score ``n`` random scenes; returns {"rows": [...], "coverage": {kind: fraction}, "n": {kind: count}}."""
     rows = []
     for i in range(n):
         with tempfile.TemporaryDirectory(prefix="tm-calib-") as d:
             try:
-                rows.append(score_scene(random_scene(i, size), d, level))
+                rows.append(score_scene(random_scene(i, size), d, level, max_pixels))
             except Exception as e:  # noqa: BLE001 - a bench row records any failure and goes on
                 rows.append({"scene": f"calib{i}", "error": f"{type(e).__name__}: {e}".splitlines()[0]})
         if say is not None and "error" not in rows[-1]:
@@ -84,8 +88,9 @@ def run_section(n: int = 100, *, size: int | None = None, level: float = 0.9, sa
            "texture": sum(r["texture_in"] for r in ok) / max(1, sum(r["texture_n"] for r in ok)),
            "texture_scene_median": float(np.median([r["texture_in"] / max(1, r["texture_n"]) for r in ok])) if ok else math.nan}
     counts = {"s": 3 * len(seen), "alpha": 3 * len(seen), "texture": sum(r["texture_n"] for r in ok)}
+    strides = sorted({r["stride"] for r in ok})
     return {"rows": rows, "coverage": cov, "n": counts, "level": level, "errors": len(rows) - len(ok),
-            "unseen": len(ok) - len(seen)}
+            "unseen": len(ok) - len(seen), "strides": strides, "max_pixels": max_pixels}
 
 
 def _frac(v: list) -> float:
@@ -97,7 +102,8 @@ def markdown(res: dict) -> str:
     lvl = res["level"]
     lines = [f"Coverage of the clean truth by the {lvl:.0%} intervals (target {lvl - 0.05:.0%}–{lvl + 0.05:.0%}); "
              f"{len(res['rows'])} random scenes (seeds {SEED0}+i), {res['errors']} failed; s and α over the scenes whose "
-             f"fit saw a highlight ({res['unseen']} did not: their s in [0, ∞), α anywhere, not counted).", "",
+             f"fit saw a highlight ({res['unseen']} did not: their s in [0, ∞), α anywhere, not counted). Curvature pass "
+             f"stride {', '.join(map(str, res.get('strides', [])))} (pixel budget {res.get('max_pixels') or 'default'}).", "",
              "| parameter | intervals | truth inside |", "|---|---:|---:|"]
     for k, name in (("s", "s (per channel)"), ("alpha", "α (per channel)"), ("texture", "texture (per pixel)")):
         lines.append(f"| {name} | {res['n'][k]} | {res['coverage'][k]:.1%} |")
@@ -115,5 +121,5 @@ def markdown(res: dict) -> str:
 
 
 if __name__ == "__main__":
-    res = run_section(int(sys.argv[1]) if len(sys.argv) > 1 else 100)
+    res = run_section(int(sys.argv[1]) if len(sys.argv) > 1 else 100, max_pixels=int(sys.argv[2]) if len(sys.argv) > 2 else None)
     print(markdown(res))

@@ -2,7 +2,7 @@
 
 ``fit_uncertainty(fit, capture, UncertaintyOptions()) -> dict`` (JSON-able, the material report's
 ``"uncertainty"``); :func:`estimate_uncertainty` returns the same as an :class:`Uncertainty` with the
-per-pixel texture standard deviation (3, H, W) kept as a tensor.
+texture's standard deviation kept as a tensor (on the pass's grid; ``texture_map=True`` for every pixel).
 
 **Curvature (Gauss–Newton / Laplace).** The model I = a·d + s·b(β), β = log α (docs/design.md §2.2), is
 linear in the texture d (one unknown per pixel and channel) and in s. With the texture profiled out —
@@ -24,6 +24,13 @@ h = w·a²/Σ w·a² is the observation's leverage on its pixel's texture: a pix
 of its N residual degrees of freedom on its texture, so plain r² would understate v by about 1/N (25 % at
 4 shots) and the intervals would not cover. Between bins v is interpolated linearly (clamped at the ends).
 The mean, not a median: a glint's residual is part of the error the texture really has there.
+
+**A pixel budget.** The pass runs on a strided grid of at most ``max_pixels`` (2^16) pixels; H and M are sums
+over pixels, so the grid's are scaled by each element's full/grid pixel count (the sandwich covariance shrinks
+by that factor: the information of the whole capture). The texture's standard deviation is per pixel and
+does not depend on the stride; it is known on the grid (the report keeps its median and p90), and
+``texture_map=True`` runs the pass on every pixel for the exact map (on 1 MP × 7, 2026-12-06, load ~5 on 2
+cores: 0.2 s on the grid against 2.2 s for the fit; 5–6 s for every pixel).
 
 **Where curvature is not valid**, refits with shots left out (jackknife over shots): an element at a
 bound (α at 1 or 10⁴, s at 0) or with a singular H. Each refit is the variable-projection LM
@@ -61,22 +68,33 @@ if TYPE_CHECKING:
 JACKKNIFE_MODES = ("bounds", "always", "off")
 BOUND_TOL = 1e-4  # β within this of a bound, or s below this fraction of its channel's largest: at a bound
 SINGULAR_REL = 1e-9  # det H / (H_ss·H_ββ) below this: s and β not separable, curvature not valid
+KEEP_OBSERVATIONS = 1 << 21  # pixels × shots up to which the grid's per-chunk terms are kept for both passes (~120 MB)
 
 
 @dataclass(frozen=True)
 class UncertaintyOptions:
     """level: two-sided probability of the intervals; max_pixels: pixel budget of the curvature pass (a
-    stride beyond it; the texture's standard deviation is then spread to its stride block); bins: quantile
-    bins of the noise variance's model; jackknife: "bounds" (refits where curvature is not valid),
-    "always", "off"; jackknife_pixels: pixel budget of each refit; samples: residuals kept per channel
-    for the variance model."""
+    stride beyond it: the global sums H, M are scaled to the full pixel count, the texture's standard
+    deviation is known on the grid — its summary is the grid's, its map spreads each grid pixel to its
+    stride block); texture_map: run the pass on every pixel instead (the exact per-pixel map of the
+    texture's standard deviation, at the cost of a pass over the whole capture: 5 s on 1 MP × 7, twice the
+    fit); bins: quantile bins of the noise variance's model; jackknife: "bounds" (refits where curvature
+    is not valid), "always", "off"; jackknife_pixels: pixel budget of each refit; samples: residuals kept
+    per channel for the variance model.
+
+    Why 2^16 pixels: the pipeline runs this after every fit and issue 41 wants every extra stage cheap
+    (≤ ~10 % of the fit). The curvature of s and α is a sum over the pixels the highlight crosses; a
+    uniform grid of 2^16 of them estimates it (scaled by full/grid pixels) to well under its own interval
+    (a 1 MP capture's highlight still spans thousands of grid pixels), and the texture's std is a smooth
+    function of the local shading and value, so its median and p90 from the grid are the image's."""
 
     level: float = 0.9
-    max_pixels: int = 1 << 22
+    max_pixels: int = 1 << 16
+    texture_map: bool = False
     bins: int = 16
     jackknife: str = "bounds"
     jackknife_pixels: int = 1 << 14
-    samples: int = 1 << 18
+    samples: int = 1 << 16
 
     def checked(self) -> UncertaintyOptions:
         if not 0.0 < self.level < 1.0:
@@ -103,7 +121,10 @@ class Uncertainty:
             3 shots: the interval is the curvature's where it exists, else the point) | "unseen" (no highlight
             evidence: s in [0, ∞), α anywhere; JSON null for ∞).
         jack_s_std, jack_beta_std: (K, 3) jackknife standard deviations, or None when none ran.
-        texture_std: (3, H, W) standard deviation of the texture per pixel (inf where no shot saw it).
+        texture_grid: (3, h, w) standard deviation of the texture on the pass's grid (every ``stride``-th
+            pixel from ``stride // 2``; inf where no shot saw it); :attr:`texture_std` is the (3, H, W) map.
+        stride: the grid's stride (1: every pixel, ``UncertaintyOptions.texture_map``).
+        size_hw: (H, W) of the capture.
         noise: {"y": (3, B) bin values, "var": (3, B) variance} — the model of v(ŷ).
         shots: shots the fit saw.
     """
@@ -119,9 +140,11 @@ class Uncertainty:
     alpha_lo: Tensor
     alpha_hi: Tensor
     method: list
-    texture_std: Tensor
+    texture_grid: Tensor
     noise: dict
     shots: int
+    stride: int = 1
+    size_hw: tuple[int, int] | None = None
     jack_s_std: Tensor | None = None
     jack_beta_std: Tensor | None = None
     globals_: bool = True
@@ -129,6 +152,12 @@ class Uncertainty:
     @property
     def z(self) -> float:
         return NormalDist().inv_cdf(0.5 + 0.5 * self.level)
+
+    @property
+    def texture_std(self) -> Tensor:
+        """(3, H, W) float32 standard deviation of the texture per pixel: exact with ``stride`` 1, else each grid
+        pixel's value spread over its stride block (made on each call: 1 MP is 12 MB)."""
+        return _full_resolution(self.texture_grid, self.stride, *(self.size_hw or self.texture_grid.shape[-2:]))
 
     def texture_interval(self, texture: Tensor) -> tuple[Tensor, Tensor]:
         """(lo, hi) (3, H, W) of the fitted ``texture`` (3, H, W)."""
@@ -138,14 +167,16 @@ class Uncertainty:
     def to_dict(self) -> dict:
         """JSON-able: per element value, interval and ± (half its width), the texture's summary."""
         r = lambda t, n=6: [[round(float(v), n) if math.isfinite(v) else None for v in row] for row in t.tolist()]  # noqa: E731
-        fin = torch.isfinite(self.texture_std)
+        # the summary from the grid: each grid pixel stands for its stride block (unseen counted in full pixels)
+        grid = self.texture_grid.reshape(3, -1)
+        fin = torch.isfinite(grid)
         tex = {}
         for c, name in enumerate("rgb"):
-            v = self.texture_std[c][fin[c]]
-            tex[name] = None if v.numel() == 0 else {
-                "std_median": float(v.median()), "std_p90": float(torch.quantile(v.float()[:: max(1, v.numel() // 100000)], 0.9)),
-                "unseen": int((~fin[c]).sum())}
-        out = {"level": self.level, "shots": self.shots, "texture": tex,
+            v = grid[c][fin[c]]
+            q = None if v.numel() == 0 else torch.quantile(v.float()[:: max(1, v.numel() // 16384)],
+                                                           torch.tensor([0.5, 0.9])).tolist()
+            tex[name] = None if q is None else {"std_median": q[0], "std_p90": q[1], "unseen": int((~fin[c]).sum()) * self.stride**2}
+        out = {"level": self.level, "shots": self.shots, "texture": tex, "stride": self.stride,
                "noise": {"y": r(self.noise["y"], 6), "var": r(self.noise["var"], 9)}}
         if not self.globals_:
             out["globals"] = None
@@ -174,11 +205,15 @@ def estimate_uncertainty(fit: FitResult, capture: Capture, options: UncertaintyO
     if tuple(fit.texture.shape[-2:]) != (capture.height, capture.width):
         raise InputError(f"fit_uncertainty: expected a capture of the fit's size {tuple(fit.texture.shape[-2:])}, "
                          f"found {(capture.height, capture.width)}")
-    stride = grid_stride(capture.height, capture.width, o.max_pixels)
-    obs = build_observations(capture, stride=stride, lobe=fit.lobe, stream=True)
+    stride = 1 if o.texture_map else grid_stride(capture.height, capture.width, o.max_pixels)
+    # every pixel: streamed (stored geometry would weigh as much as the capture); a grid: stored, and its chunks'
+    # terms kept between the two passes (noise model, curvature) when they are small
+    obs = build_observations(capture, stride=stride, lobe=fit.lobe, stream=stride == 1)
     grid = _grid_fit(fit, obs, stride)
-    noise = _noise_model(obs, grid, o)
-    sums = _curvature_sums(obs, grid, noise)
+    small = obs.num_pixels * obs.num_shots <= KEEP_OBSERVATIONS
+    chunks = list(_chunks(obs, grid)) if small else None
+    noise = _noise_model(obs, grid, o, chunks)
+    sums = _scaled(_curvature_sums(obs, grid, noise, chunks), _pixel_scale(fit, capture, grid, stride))
     k = grid["k"]
     s_el, a_el = _elements(fit)
     beta = torch.log(a_el.double())
@@ -193,7 +228,7 @@ def estimate_uncertainty(fit: FitResult, capture: Capture, options: UncertaintyO
     z = NormalDist().inv_cdf(0.5 + 0.5 * o.level)
     jack = None
     if fit.specular == "none":  # no highlight evidence: the photos bound neither s from above nor α
-        return _unseen(fit, capture, o, sums, grid, obs, stride, noise, s_el, a_el)
+        return _unseen(capture, o, sums, grid, obs, stride, noise, s_el, a_el)
     if grid["globals"] and o.jackknife != "off" and capture.num_shots >= 3 and (o.jackknife == "always" or not bool(valid.all())):
         jack = _jackknife(fit, capture, o)
     half_s, half_b = z * s_std, z * b_std
@@ -223,17 +258,16 @@ def estimate_uncertainty(fit: FitResult, capture: Capture, options: UncertaintyO
     if jack is not None:
         var_s = torch.where(valid, var_s, jack[0] ** 2)
         var_b = torch.where(valid, var_b, jack[1] ** 2)
-    tex_var = _texture_variance(sums, grid, var_s, var_b, c_sb)
-    tex_std = _full_resolution(tex_var.sqrt(), obs, stride, capture)
+    tex_std = _texture_variance(sums, grid, var_s, var_b, c_sb).sqrt().float().view(3, obs.height, obs.width)
     return Uncertainty(
         level=o.level, s=s64, alpha=a_el.double(), s_std=s_std, beta_std=b_std, cov_sb=cov_sb, s_lo=s_lo, s_hi=s_hi,
-        alpha_lo=a_lo, alpha_hi=a_hi, method=method, texture_std=tex_std, noise=noise, shots=capture.num_shots,
-        jack_s_std=None if jack is None else jack[0], jack_beta_std=None if jack is None else jack[1],
+        alpha_lo=a_lo, alpha_hi=a_hi, method=method, texture_grid=tex_std, noise=noise, shots=capture.num_shots,
+        stride=stride, size_hw=(capture.height, capture.width), jack_s_std=None if jack is None else jack[0], jack_beta_std=None if jack is None else jack[1],
         globals_=grid["globals"],
     )
 
 
-def _unseen(fit: FitResult, capture: Capture, o: UncertaintyOptions, sums: dict, grid: dict, obs: Observations, stride: int,
+def _unseen(capture: Capture, o: UncertaintyOptions, sums: dict, grid: dict, obs: Observations, stride: int,
             noise: dict, s_el: Tensor, a_el: Tensor) -> Uncertainty:
     """The intervals of a fit that found no highlight (``specular="none"``, s = 0): s in [0, ∞) and α anywhere in
     its range — a specular term whose highlight no shot saw is not measured, and saying so is the honest
@@ -241,12 +275,13 @@ def _unseen(fit: FitResult, capture: Capture, o: UncertaintyOptions, sums: dict,
     k = int(s_el.shape[0])
     nan = torch.full((k, 3), math.nan, dtype=torch.float64)
     zeros = torch.zeros(k, 3, dtype=torch.float64)
-    tex_std = _full_resolution(_texture_variance(sums, grid, zeros, zeros, zeros).sqrt(), obs, stride, capture)
+    tex_std = _texture_variance(sums, grid, zeros, zeros, zeros).sqrt().float().view(3, obs.height, obs.width)
     return Uncertainty(
         level=o.level, s=s_el.double(), alpha=a_el.double(), s_std=nan, beta_std=nan, cov_sb=nan, s_lo=zeros,
         s_hi=torch.full_like(zeros, math.inf), alpha_lo=torch.full_like(zeros, ALPHA_MIN),
-        alpha_hi=torch.full_like(zeros, ALPHA_MAX), method=[["unseen"] * 3 for _ in range(k)], texture_std=tex_std,
-        noise=noise, shots=capture.num_shots, globals_=grid["globals"])
+        alpha_hi=torch.full_like(zeros, ALPHA_MAX), method=[["unseen"] * 3 for _ in range(k)], texture_grid=tex_std,
+        noise=noise, shots=capture.num_shots, stride=stride, size_hw=(capture.height, capture.width),
+        globals_=grid["globals"])
 
 
 # --------------------------------------------------------------------------------------- the passes
@@ -298,22 +333,25 @@ def _chunks(obs: Observations, grid: dict):
         yield p0, p1, y.double(), a, b, t, w, pred, s
 
 
-def _noise_model(obs: Observations, grid: dict, o: UncertaintyOptions) -> dict:
-    """v(ŷ) per channel: bins of the model value, each bin's mean of r²/(1 − h) (module docstring)."""
+def _noise_model(obs: Observations, grid: dict, o: UncertaintyOptions, chunks: list | None = None) -> dict:
+    """v(ŷ) per channel: bins of the model value, each bin's mean of r²/(1 − h) (module docstring). ``chunks``:
+    :func:`_chunks`'s output kept (else recomputed)."""
     xs: list[list[Tensor]] = [[], [], []]
     rs: list[list[Tensor]] = [[], [], []]
     budget = max(64, o.samples // max(1, len(obs.chunks)))
-    for _, _, y, a, _, _, w, pred, _ in _chunks(obs, grid):
+    for _, _, y, a, _, _, w, pred, _ in chunks if chunks is not None else _chunks(obs, grid):
+        # a subsample of whole pixels (every step-th column: a pixel's leverage needs all its shots), drawn
+        # before any arithmetic — the variance model needs ~samples residuals, not the grid's millions
+        step = max(1, y.shape[0] * y.shape[-1] // budget)
+        y, a, w, pred = (x[..., ::step] for x in (y, a, w, pred))
         saa = (w * a * a).sum(0, keepdim=True)
         h = torch.where(saa > 0, w * a * a / saa.clamp_min(1e-300), torch.ones_like(a))
         r2 = (y - pred) ** 2 / (1.0 - h).clamp_min(1e-3)
         ok = (w > 0) & (h < 0.99)
         for c in range(3):
             m = ok[:, c]
-            v, e = pred[:, c][m], r2[:, c][m]
-            step = max(1, v.numel() // budget)
-            xs[c].append(v[::step])
-            rs[c].append(e[::step])
+            xs[c].append(pred[:, c][m])
+            rs[c].append(r2[:, c][m])
     ys, vs = [], []
     for c in range(3):
         x = torch.cat(xs[c]) if xs[c] else torch.zeros(0, dtype=torch.float64)
@@ -343,16 +381,16 @@ def noise_variance(noise: dict, pred: Tensor) -> Tensor:
     return out
 
 
-def _curvature_sums(obs: Observations, grid: dict, noise: dict) -> dict:
+def _curvature_sums(obs: Observations, grid: dict, noise: dict, chunks: list | None = None) -> dict:
     """Per element H and M (K, 3, 2, 2) (module docstring) and per pixel: the texture's local variance, e_b and
-    s·e_c (3, P) and each pixel's element (P,) or None."""
+    s·e_c (3, P) and each pixel's element (P,) or None. ``chunks``: :func:`_chunks`'s output kept."""
     k, labels = grid["k"], grid["labels"]
     p = obs.num_pixels
     H = torch.zeros(3, k, 3, dtype=torch.float64)  # (channel, element, [bb, bc, cc])
     M = torch.zeros_like(H)
     local = torch.zeros(3, p, dtype=torch.float64)
     eb_all, ec_all = torch.zeros_like(local), torch.zeros_like(local)
-    for p0, p1, _, a, b, t, w, pred, s in _chunks(obs, grid):
+    for p0, p1, _, a, b, t, w, pred, s in chunks if chunks is not None else _chunks(obs, grid):
         v = noise_variance(noise, pred)
         wa = w * a
         saa = (wa * a).sum(0)
@@ -398,16 +436,41 @@ def _texture_variance(sums: dict, grid: dict, var_s: Tensor, var_b: Tensor, c_sb
     return sums["local"] + glob.clamp_min(0.0)
 
 
-def _full_resolution(std: Tensor, obs: Observations, stride: int, capture: Capture) -> Tensor:
-    """(3, P) on the grid → (3, H, W) float32; each grid pixel's value spread over its stride block."""
-    m = std.view(3, obs.height, obs.width).float()
+def _pixel_scale(fit: FitResult, capture: Capture, grid: dict, stride: int) -> Tensor:
+    """(K,) float64: per element, its pixels inside the mask at full resolution over those on the grid — the
+    factor that turns the grid's sums H, M into the whole image's (1 with stride 1). Both H and M grow with
+    it, so the sandwich covariance H⁻¹MH⁻¹ shrinks by it: the full capture's information, not the grid's."""
+    k = grid["k"]
+    if stride == 1:
+        return torch.ones(k, dtype=torch.float64)
+    off = stride // 2
+    inside = torch.ones(capture.height, capture.width, dtype=torch.bool) if capture.mask is None else \
+        capture.mask.reshape(capture.height, capture.width).bool()
+    on = inside[off::stride, off::stride]
+    if grid["labels"] is None:
+        full, sub = inside.sum().double().view(1), on.sum().double().view(1)
+    else:
+        full = torch.bincount(fit.spec_labels.long()[inside], minlength=k).double()
+        sub = torch.bincount(grid["labels"][on.reshape(-1)], minlength=k).double()
+    return torch.where(sub > 0, full / sub.clamp_min(1.0), torch.ones_like(full))
+
+
+def _scaled(sums: dict, scale: Tensor) -> dict:
+    """``sums`` with H and M (K, 3, 2, 2) times ``scale`` (K,) (:func:`_pixel_scale`); the per-pixel parts as they are."""
+    f = scale.view(-1, 1, 1, 1)
+    return {**sums, "H": sums["H"] * f, "M": sums["M"] * f}
+
+
+def _full_resolution(std: Tensor, stride: int, height: int, width: int) -> Tensor:
+    """(3, h, w) on the grid → (3, H, W) float32; each grid pixel's value spread over its stride block."""
+    m = std.float()
     if stride == 1:
         return m
     big = m.repeat_interleave(stride, 1).repeat_interleave(stride, 2)
     off = stride // 2
     big = torch.cat([big[:, :1].expand(3, off, -1), big], 1) if off else big
     big = torch.cat([big[:, :, :1].expand(-1, -1, off), big], 2) if off else big
-    return big[:, : capture.height, : capture.width].contiguous()
+    return big[:, :height, :width].contiguous()
 
 
 def _jackknife(fit: FitResult, capture: Capture, o: UncertaintyOptions) -> tuple[Tensor, Tensor]:
