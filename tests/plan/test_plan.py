@@ -52,9 +52,10 @@ def test_best_first_and_distinct():
 
 
 def test_a_seen_highlight_is_not_asked_for_again():
-    """Past shots straight above the sample cover its centre: the first planned shot looks elsewhere or at another tilt."""
+    """Past shots straight above the sample cover its centre: with coverage weighed (0.5; the default 0.05 only breaks
+    near-ties of E, which here prefers the overhead view's diffuse light) the first planned shot looks elsewhere."""
     above = torch.tensor([[0.0, 0.0, 0.5, 1.0], [0.0, 0.0, 0.35, 1.0], [0.0, 0.0, 0.7, 1.0]], dtype=torch.float64)
-    plan = plan_shots(_scene(above), PlanOptions(shots=1, distance=(1.0,), azimuths=8))
+    plan = plan_shots(_scene(above), PlanOptions(shots=1, distance=(1.0,), azimuths=8, cover_weight=0.5))
     cam = plan.cameras[0, :3]
     assert float(cam[:2].norm()) > 1e-6  # not straight above again
     assert float(plan.cover_gain[0]) > 0
@@ -104,3 +105,13 @@ def test_material_with_and_without_its_capture(capture_dir, tmp_path):
     assert any("no past" in n for n in blind.notes)
     with pytest.raises(InputError, match="capture already"):
         plan_directory(capture_dir, tmp_path / "o3", capture=capture_dir)
+
+
+def test_no_highlight_seen_plans_for_coverage():
+    """A fit without a highlight (s = 0, α at its floor 1): coverage is that of a typical gloss, not of α = 1 (whose
+    lobe is 'hot' everywhere), and the first planned shot puts a hotspot where none has been."""
+    sc = _scene(torch.tensor([[0.3, 0.0, 0.2, 1.0], [-0.3, 0.0, 0.2, 1.0]], dtype=torch.float64))
+    sc.s, sc.alpha = torch.zeros(1, 3, dtype=torch.float64), torch.ones(1, 3, dtype=torch.float64)
+    plan = plan_shots(sc, PlanOptions(shots=1, azimuths=8))
+    assert float(plan.coverage.double().mean()) < 0.5
+    assert float(plan.cover_gain[0]) > 0
