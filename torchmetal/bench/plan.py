@@ -46,19 +46,9 @@ def _scene(i: int):
 
 def _with_shot(cap, case, light, inten, camera, rng):
     """The capture with one more shot rendered from the truth (noise, clipping, encoding as the scene's)."""
-    import torch
+    from torchmetal.plan.synthetic import take_shots
 
-    from torchmetal.io.capture import Capture
-    from torchmetal.synth.zoo_render import _encode, decode, render_clean
-
-    img = render_clean(case.truth, light.numpy(), inten.numpy(), camera.numpy())
-    lin, sat = decode(_encode(img, case.scene, rng), case.scene.encoding)
-    dt = cap.images.dtype
-    add = lambda t, x: torch.cat([t, torch.as_tensor(np.asarray(x), dtype=t.dtype).unsqueeze(0)])  # noqa: E731
-    return Capture(images=add(cap.images, lin.astype(np.float32)), normals=cap.normals, mask=cap.mask,
-                   lights=add(cap.lights, light), intensities=add(cap.intensities, inten), cameras=add(cap.cameras, camera),
-                   size=cap.size, saturated=torch.cat([cap.saturated, torch.as_tensor(sat).unsqueeze(0)]),
-                   names=[*cap.names, "added"], color_space=cap.color_space).to(dtype=dt)
+    return take_shots(cap, case, light.view(1, 4), camera.view(1, 4), inten.view(1, 3), rng, names=["added"])
 
 
 def held_views(case, lights, cams, inten, rng, n: int = HELD) -> dict:

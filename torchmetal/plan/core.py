@@ -115,7 +115,8 @@ class Plan:
     """lights, cameras (K, 4) best first; scores (K,) each with the shots before it; error_drop (K,) the
     relative drop of E; cover_gain (K,); coverage (H', W') bool where a past shot put a hotspot (planning grid);
     planned_cover (K, H', W') bool where each planned shot does; flash offset (3,) in the camera frame;
-    candidates: how many were scored; notes: what was assumed."""
+    candidates: how many were scored; notes: what was assumed; intensities (K, 3): the exposure each planned
+    shot was scored at (the past shots' level per squared light distance; not in plan.json)."""
 
     lights: Tensor
     cameras: Tensor
@@ -127,6 +128,7 @@ class Plan:
     offset: Tensor
     candidates: int
     notes: list
+    intensities: Tensor | None = None
 
     def to_json(self) -> dict:
         """DIR/plan.json's content, exactly shared DESIGN §2.5's: {"shots": [{"light": [x, y, z, 1], "camera": […]}]}."""
@@ -321,4 +323,5 @@ def plan_shots(scene: Scene, options: PlanOptions | None = None) -> Plan:
     idx = torch.tensor(chosen, dtype=torch.long)
     return Plan(lights=lights[idx], cameras=cams[idx], scores=torch.tensor(scores), error_drop=torch.tensor(drops),
                 cover_gain=torch.tensor(gains), coverage=past_cover.view(hr, wr), planned_cover=torch.stack(planned),
-                offset=flash_offset(scene.lights, scene.cameras)[0], candidates=int(lights.shape[0]), notes=notes)
+                offset=flash_offset(scene.lights, scene.cameras)[0], candidates=int(lights.shape[0]), notes=notes,
+                intensities=inten[idx])
