@@ -26,7 +26,8 @@ The layers, lowest first (derived from the graph; a layer may import itself and 
 
 1. core: the package itself (exceptions, lazily resolved names), errors, memory, checks,
    geometry, lbfgs, phong, lobes: numerics on tensors, nothing about files or flakes; and the selection's
-   rule and shot plan (torchmetal.select, .rule, .plan), which the fit's own choices use.
+   rule and shot plan (torchmetal.select, .rule, .plan), which the fit's own choices use; the fit's options
+   (torchmetal.config).
 2. io: captures and images on disk (:mod:`torchmetal.io`).
 3. model: the forward model and its scores: the flake model and its field
    (flakes.model, field, observed, placement, filters, md), material, renderer, metrics, and
@@ -68,7 +69,7 @@ KNOWN_PENDING_CYCLES: list[set[str]] = []
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("core", ("torchmetal", "torchmetal.errors", "torchmetal.memory", "torchmetal.checks", "torchmetal.geometry",
               "torchmetal.lbfgs", "torchmetal.phong", "torchmetal.lobes", "torchmetal.select", "torchmetal.select.rule",
-              "torchmetal.select.plan")),
+              "torchmetal.select.plan", "torchmetal.config")),
     ("io", ("torchmetal.io",)),
     ("model", ("torchmetal.flakes.model", "torchmetal.material", "torchmetal.renderer", "torchmetal.metrics", "torchmetal.synth")),
     ("fit", ("torchmetal.fit", "torchmetal.normals", "torchmetal.lightcal", "torchmetal.clipping")),

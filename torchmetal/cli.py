@@ -13,7 +13,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from torchmetal.errors import InputError, TorchmetalError
+from torchmetal.config import add_fit_arguments, check_tiled, config_from_args
+from torchmetal.errors import TorchmetalError
 from torchmetal.formats import FORMATS, default_output, export_material
 
 if TYPE_CHECKING:
@@ -109,22 +110,7 @@ def _fit_tiled(args: argparse.Namespace, scratch: list) -> tuple[PipelineResult,
     """``fit --tile``: the tiled fit (its scratch directory, beside the output, appended to ``scratch``)."""
     import tempfile
 
-    if args.normals not in ("given", "auto"):
-        raise InputError(f"--normals {args.normals}: expected 'given' or 'auto' with --tile (tiled fits use the "
-                         "capture's normals)")
-
-    if args.lobe not in ("phong", "auto"):
-        raise InputError(f"--lobe {args.lobe}: expected 'phong' or 'auto' with --tile (tiled fits use the paper's "
-                         "lobe)")
-    if args.weights == "noise":
-        raise InputError("--weights noise: expected 'auto' or 'uniform' with --tile (tiled fits weigh every observation "
-                         "alike)")
-    if args.light not in ("off", "auto"):
-        raise InputError(f"--light {args.light}: expected 'off' or 'auto' with --tile (tiled fits use no light "
-                         "calibration)")
-    if args.clipping == "pixel":
-        raise InputError("--clipping pixel: expected 'auto' or 'channel' with --tile (tiled fits read each channel's clip "
-                         "on its own)")
+    check_tiled(config_from_args(args, progress=False))  # what the tiled fit supports: torchmetal.config
     # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
     from torchmetal.scale.tiled import fit_tiled_material
 
@@ -147,12 +133,7 @@ def _fit_whole(args: argparse.Namespace) -> tuple[PipelineResult, Capture]:
     from torchmetal.pipeline import fit_material
 
     capture = load_capture(args.capture)
-    result = fit_material(
-        capture, scheme=args.scheme, specular=args.specular, flakes=args.flakes,
-        tol=args.tol, max_iters=args.max_iters, robust=None if args.robust == "none" else args.robust, seed=args.seed,
-        progress=not args.quiet, normals=args.normals, lobe=args.lobe, observed_flakes=args.observed_flakes,
-        weights=args.weights, light=args.light, clipping=args.clipping,
-    )
+    result = fit_material(capture, config_from_args(args, progress=not args.quiet))
     return result, capture
 
 
@@ -277,45 +258,7 @@ def _add_fit(sub: argparse._SubParsersAction) -> None:
     f = sub.add_parser("fit", help="fit a material to a capture directory")
     f.add_argument("capture", help="capture directory (docs/design.md §2.1)")
     f.add_argument("-o", "--output", required=True, help="material directory to write")
-    f.add_argument("--scheme", choices=["refine", "paper"], default="refine")
-    f.add_argument("--specular", choices=["auto", "global", "clustered", "maps", "none"], default="auto",
-                   help="auto: global, or clustered / gloss maps (per-pixel s, alpha) when a held-out shot says they help")
-    f.add_argument("--flakes", choices=["auto", "on", "off"], default="auto",
-                   help="flake model: auto keeps it when detections exceed noise and left-out shots' sparkle "
-                        "statistics (MD) are no further from the photos with it; on: whenever detections exceed noise")
-    f.add_argument("--robust", choices=["auto", "none", "huber", "cauchy"], default="auto",
-                   help="IRLS weights of the Phong fit (auto: least squares, Huber for the flake statistics)")
-    f.add_argument("--weights", choices=["auto", "uniform", "noise"], default="auto",
-                   help="least-squares weights: auto (default): noise where a held-out shot says it predicts "
-                        "better, else uniform; uniform: every observation alike; noise: each by the inverse of its "
-                        "expected noise variance, read + shot noise fitted to the residuals (tiled fits and "
-                        "--scheme paper: uniform)")
-    f.add_argument("--tol", type=float, default=1e-6, help="relative error change that stops the fit")
-    f.add_argument("--max-iters", type=int, default=100)
-    f.add_argument("--seed", type=int, default=0, help="seed of the flake field")
-    f.add_argument("--observed-flakes", choices=["auto", "on", "off"], nargs="?", const="on", default="auto",
-                   help="keep the flakes the shots saw where they are, the statistical field filling the rest "
-                        "(auto: when left-out shots say they render better; bare flag: on)")
-    f.add_argument("--lobe", choices=["auto", "phong", "blinn", "ggx"], default="auto",
-                   help="specular lobe: auto (default: chosen on left-out shots; phong unless another lobe predicts them "
-                        "better beyond noise), phong (docs/design.md §2.2), blinn, ggx (microfacet, Fresnel, shadowing); "
-                        "tiled fits and --scheme paper use phong")
-    f.add_argument("--normals", choices=["auto", "given", "flat", "estimate", "relief"], default="auto",
-                   help="auto (default): the capture's normals.npy when it has one, else estimated from the photos, "
-                        "or else an embossing's relief, where left-out shots prefer them to a flat plane; given: the "
-                        "capture's normals.npy (flat without one); flat: (0, 0, 1); estimate: from the photos "
-                        "(photometric stereo with the Phong terms); relief: a high-passed height field fitted with "
-                        "the Phong terms (phone-flash captures of embossed samples); tiled fits use the capture's")
-    f.add_argument("--light", choices=["auto", "off", "flash", "positions", "falloff", "gains"], default="auto",
-                   help="light calibration, nuisances of the capture (not the material): auto (default: the flash's one "
-                        "move of every light where left-out shots, under their lights moved alike, prefer it); off "
-                        "(the capture's lights); flash (that move always); positions (each shot's light moved to fit "
-                        "its photo); falloff (the flash's falloff from its axis); gains (falloff and a gain per shot); "
-                        "tiled fits use none")
-    f.add_argument("--clipping", choices=["auto", "channel", "pixel"], default="auto",
-                   help="how an observation with a clipped channel is read: auto (default: chosen on left-out shots); "
-                        "channel (the other channels stay valid: a linear sensor's clip); pixel (dropped in all three: "
-                        "a phone's processing leaves them wrong too); tiled fits use channel")
+    add_fit_arguments(f)  # every fit option, from torchmetal.config.FitConfig (the README's table too)
     f.add_argument("--export", action="store_true", help="also write renderer.onnx into the material")
     f.add_argument("--tile", type=int, default=None, metavar="N",
                    help="fit tile by tile (N x N pixels; memory bounded by the tile, not the capture; docs/scale.md)")

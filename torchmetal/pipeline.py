@@ -11,15 +11,16 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
-from torchmetal.clipping import CLIPPING_MODES, with_clipping
-from torchmetal.errors import InputError
+from torchmetal.clipping import with_clipping
+from torchmetal.config import FitConfig
 from torchmetal.fit import FitResult, fit_phong
 from torchmetal.fit.uncertainty import fit_uncertainty
 from torchmetal.flakes.estimate.results import FlakeStageResult
 from torchmetal.flakes.run import render_shots, stage_density, stage_flakes, stage_keep, stage_observed
 from torchmetal.io.capture import Capture
-from torchmetal.lightcal import LIGHT_MODES, LightCalibration, with_light
+from torchmetal.lightcal import LightCalibration, with_light
 from torchmetal.material import Material
 from torchmetal.normals import with_normals
 from torchmetal.select.choices import CLIPPING, LIGHT, NORMALS, RELIEF, reference_context
@@ -29,9 +30,6 @@ from torchmetal.select.rule import Decision
 
 __all__ = ["STAGES", "PipelineResult", "decision_records", "fit_material", "render_shots"]
 
-FLAKE_MODES = ("auto", "on", "off")
-OBSERVED_MODES = ("auto", "on", "off")
-WEIGHTS = ("auto", "noise", "uniform")
 
 
 @dataclass
@@ -64,87 +62,38 @@ def decision_records(first: FitResult, fit: FitResult, normals_report: dict | No
     return out
 
 
-def fit_material(
-    capture: Capture,
-    *,
-    scheme: str = "refine",
-    specular: str = "auto",
-    flakes: str = "auto",
-    tol: float = 1e-6,
-    max_iters: int = 100,
-    robust: str | None = "auto",
-    seed: int = 0,
-    observed_flakes: str | bool = "auto",
-    progress: bool = False,
-    lobe: str = "auto",
-    normals: str = "auto",
-    weights: str = "auto",
-    light: str = "auto",
-    clipping: str = "auto",
-) -> PipelineResult:
+def fit_material(capture: Capture, config: FitConfig | None = None, **options: Any) -> PipelineResult:
     """Fit a full material to a capture.
 
     Args:
         capture: a :class:`~torchmetal.io.capture.Capture`.
-        scheme, specular, tol, max_iters: passed to :func:`~torchmetal.fit.fit_phong`.
-        flakes: "auto" (fit a flake model when detections exceed noise, kept when the left-out shots'
-            sparkle statistics are no further from the photos with it than with the flake-free material:
-            :func:`~torchmetal.flakes.choice.keep_flakes`; else the material is the one "off" gives),
-            "on" (a model whenever detections exceed noise; the report says when none was found),
-            "off" (skip the stage).
-        robust: IRLS weights of the Phong fit (see :func:`~torchmetal.fit.fit_phong`); "auto" is
-            plain least squares, refitted with Huber weights when the flake stage finds glints
-            (see the module docstring).
-        seed: seed of the material's flake field.
-        observed_flakes: keep the flakes the fit shots saw where they are
-            (:mod:`torchmetal.flakes.estimate.observed_flakes`), the field filling the rest: "auto" when left-out
-            shots render better with them on PSNR and MD (:func:`~torchmetal.flakes.choice.choose_observed`), "on"/True
-            always, "off"/False never.
-        progress: show progress bars.
-        lobe: the specular lobe, "auto" (the default: chosen on held-out shots by the first fit,
-            :mod:`~torchmetal.fit.lobe_choice`; phong, docs/design.md §2.2, unless another lobe predicts them
-            better beyond noise; the refits keep that choice), "phong", "blinn" or "ggx".
-        normals: "auto" (the default: the capture's normals.npy when it has one; else estimated, or else the
-            embossing's relief, where left-out shots prefer them to the flat plane, :mod:`~torchmetal.normals.choice`),
-            "given" (the capture's normals.npy; flat without one), "flat" (0, 0, 1), "estimate" (photometric
-            stereo with the Phong terms, :func:`~torchmetal.normals.estimate_normals`) or "relief" (a high-passed
-            height field fitted with global Phong terms, :mod:`~torchmetal.normals.relief`); the material keeps them.
-        weights: "auto" (the default: noise weights where the first fit's held-out shot predicts better with
-            them, else plain least squares; the refits keep that choice), "uniform" (plain least squares) or
-            "noise" (each observation weighted by the inverse of its expected noise variance,
-            ``fit_phong(noise_weights=True)``).
-        light: the light calibration (:mod:`torchmetal.lightcal`: the flash's move, per-shot light
-            positions, the flash's falloff from its axis and per-shot gains, nuisances of the capture, not
-            the material): "auto" (the default: every point light moved alike — a flash beside the lens
-            where the capture put it elsewhere — where left-out shots, their lights moved the same way,
-            prefer it with Phong and GGX fits alike, docs/design.md §4), "off" (the capture's lights),
-            "flash" (that move always), "positions" (each shot's light moved to fit its photo), "falloff"
-            or "gains" (falloff and per-shot gains). ``result.light`` holds it: a
-            render compared with the capture's photos uses ``result.light.lights(capture)`` and is multiplied
-            by ``result.light.factor(capture)``.
-        clipping: how an observation with a clipped channel is read (:mod:`torchmetal.clipping`): "auto" (the
-            default: chosen on left-out shots), "channel" (the other channels stay valid: a linear sensor's
-            honest clip) or "pixel" (dropped in all three: a phone's processing leaves them wrong too).
+        config: a :class:`~torchmetal.config.FitConfig` (default: every option at its default: the automatic
+            choices decided on shots left out of the fit, docs/design.md §4).
+        options: flat keywords replacing ``config``'s (``normals="flat"``, ``lobe="ggx"``, ``flakes="off"``,
+            ``observed_flakes=True``, ``progress=True``, …: :meth:`FitConfig.of <torchmetal.config.FitConfig.of>`;
+            the README's option table lists them all, from the config).
 
     Returns:
         :class:`PipelineResult`; ``result.material.report`` holds per-stage times, iterations,
-        errors, the list of skipped stages and every choice's ``Decision`` record ("decisions").
+        errors, the list of skipped stages and every choice's ``Decision`` record ("decisions"). ``result.light``
+        holds the light calibration: a render compared with the capture's photos uses
+        ``result.light.lights(capture)`` and is multiplied by ``result.light.factor(capture)``.
 
-    The stages run in order (:data:`STAGES`), each ``(capture, state) → (capture, state)``: the clipping, normals,
-    the light calibration, the Phong fit, the flake stage, the material, then the flake choices (observed flakes, flakes or
-    none, the density map), each on shots left out; every choice's record ends in the report's "decisions"
-    (:func:`decision_records`).
+    The stages run in order (:data:`STAGES`), each ``(capture, state) → (capture, state)``: the choices before the
+    fit (clipping, normals, relief, light), the Phong fit, the flake stage, the material, then the flake choices
+    (observed flakes, flakes or none, the density map), each on shots left out; every choice's record ends in the
+    report's "decisions" (:func:`decision_records`).
     """
     t0 = time.perf_counter()
-    state = State(Options.checked(scheme=scheme, specular=specular, flakes=flakes, tol=tol, max_iters=max_iters,
-                                  robust=robust, seed=seed, observed=observed_flakes, progress=progress, lobe=lobe,
-                                  normals=normals, weights=weights, light=light, clipping=clipping))
+    state = State(FitConfig.of(config, **options))
     for stage in STAGES:
         capture, state = stage(capture, state)
     material = state.material
     material.report["light"] = state.light_report
     material.report["clipping"] = state.clipping_report
-    material.report["uncertainty"] = fit_uncertainty(state.fit, capture)  # issue 43: intervals of s, α, the texture
+    t1 = time.perf_counter()
+    material.report["uncertainty"] = fit_uncertainty(state.fit, capture)  # the intervals of s, α and the texture
+    state.stage_times["uncertainty"] = time.perf_counter() - t1
     material.report["decisions"] = decision_records(state.first, state.fit, state.normals_report, state.flake_result,
                                                     state.light_report, state.clipping_report)
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
@@ -153,52 +102,10 @@ def fit_material(
 
 
 @dataclass
-class Options:
-    """:func:`fit_material`'s arguments, checked."""
-
-    scheme: str
-    specular: str
-    flakes: str
-    tol: float
-    max_iters: int
-    robust: str | None
-    seed: int
-    observed: str
-    progress: bool
-    lobe: str
-    normals: str
-    weights: str
-    light: str = "auto"
-    clipping: str = "auto"
-
-    @classmethod
-    def checked(cls, *, observed: str | bool, **kw) -> Options:
-        """The options, each checked against its allowed values (one-line :class:`InputError` otherwise);
-        ``observed`` may be a bool (True: "on")."""
-        if kw["flakes"] not in FLAKE_MODES:
-            raise InputError(f"flakes: expected one of {FLAKE_MODES}, found {kw['flakes']!r}")
-        mode = {True: "on", False: "off"}.get(observed, observed) if isinstance(observed, (bool, str)) else None
-        if mode not in OBSERVED_MODES:
-            raise InputError(f"observed_flakes: expected one of {OBSERVED_MODES} or a bool, found {observed!r}")
-        if kw["weights"] not in WEIGHTS:
-            raise InputError(f"weights: expected one of {WEIGHTS}, found {kw['weights']!r}")
-        if kw["light"] not in LIGHT_MODES:
-            raise InputError(f"light: expected one of {list(LIGHT_MODES)}, found {kw['light']!r}")
-        if kw["clipping"] not in CLIPPING_MODES:
-            raise InputError(f"clipping: expected one of {list(CLIPPING_MODES)}, found {kw['clipping']!r}")
-        return cls(observed=mode, **kw)
-
-    def fit_kwargs(self) -> dict:
-        """:func:`~torchmetal.fit.fit_phong` arguments every fit of the run shares (``robust`` aside)."""
-        return dict(scheme=self.scheme, specular=self.specular, tol=self.tol, max_iters=self.max_iters,
-                    progress=self.progress, noise_weights="auto" if self.weights == "auto" else self.weights == "noise")
-
-
-@dataclass
 class State:
     """What the stages have made so far."""
 
-    opts: Options
+    opts: FitConfig
     clipping_report: dict | None = None
     normals_report: dict | None = None
     light: LightCalibration = field(default_factory=LightCalibration)
@@ -226,45 +133,47 @@ def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
     light, each as its option says or, "auto", decided on left-out shots with the model a reference fit chose."""
     o = st.opts
     t = time.perf_counter()
-    ctx = None
-    if "auto" in (o.clipping, o.normals, o.light):
-        ctx, st.stage_times["choices.reference"] = reference_context(capture, {**o.fit_kwargs(), "lobe": o.lobe})
-    fit_kwargs = ctx.model if ctx is not None else {"tol": o.tol, "max_iters": o.max_iters}
+    ctx = reference_context(capture, {**o.fit_kwargs(), "lobe": o.choices.lobe, "progress": False})  # fitted on first use
 
     def auto(choice, cap):
-        d = decide(choice, cap, ctx)
-        st.stage_times[f"choice.{choice.name}"] = d.seconds
+        was = ctx.resolved
+        d = decide(choice, cap, ctx)  # its seconds without the reference fit, which the first choice to need it makes
+        st.stage_times[f"choice.{choice.name}"] = d.seconds - (ctx.seconds if ctx.resolved and not was else 0.0)
         ctx.chosen[choice.name] = d.chosen
         return d
 
-    if o.clipping == "auto":
+    if o.choices.clipping == "auto":
         d = auto(CLIPPING, capture)
         capture, st.clipping_report = with_clipping(capture, d.chosen)
         st.clipping_report |= {"mode": "auto", "decision": d.to_dict()}
     else:
-        capture, st.clipping_report = with_clipping(capture, o.clipping)
-    if o.normals == "auto" and capture.normals_given:
+        capture, st.clipping_report = with_clipping(capture, o.choices.clipping)
+    if o.choices.normals == "auto" and capture.normals_given:
         chosen, record = "given", {"decision": Decision("normals", ("given",), "given",
                                                         reason="the capture's own normals (normals.npy)").to_dict()}
-    elif o.normals == "auto":
+    elif o.choices.normals == "auto":
         d = auto(NORMALS, capture)
         chosen, record = d.chosen, {"decision": d.to_dict()}
         if chosen == "flat":
             r = auto(RELIEF, capture)
             chosen, record["relief_decision"] = r.chosen, r.to_dict()
     else:
-        chosen, record = o.normals, {}
+        chosen, record = o.choices.normals, {}
     t2 = time.perf_counter()
+    # the fits that apply a choice use the reference's model where a test made it, else the plain options
+    fit_kwargs = ctx.model if ctx.resolved else {"tol": o.solver.tol, "max_iters": o.solver.max_iters}
     capture, st.normals_report = with_normals(capture, chosen, fit_kwargs=fit_kwargs)
-    st.normals_report |= {"mode": o.normals, "chosen": chosen, **record}
+    st.normals_report |= {"mode": o.choices.normals, "chosen": chosen, **record}
     st.stage_times["normals"] = time.perf_counter() - t2
-    if o.light == "auto":
+    if o.choices.light == "auto":
         d = auto(LIGHT, capture)
-        capture, st.light, st.light_report = with_light(capture, d.chosen, fit_kwargs=fit_kwargs)
+        capture, st.light, st.light_report = with_light(capture, d.chosen, fit_kwargs=ctx.model if ctx.resolved else fit_kwargs)
         st.light_report |= {"mode": "auto", "chosen": d.chosen, "decision": d.to_dict()}
     else:
-        capture, st.light, st.light_report = with_light(capture, o.light, fit_kwargs=fit_kwargs)
+        capture, st.light, st.light_report = with_light(capture, o.choices.light, fit_kwargs=fit_kwargs)
     st.stage_times["light"] = st.light_report["time"]
+    if ctx.resolved:
+        st.stage_times["choices.reference"] = ctx.seconds
     st.stage_times["choices"] = time.perf_counter() - t  # the reference fit, every choice, applying them
     return capture, st
 
@@ -272,7 +181,8 @@ def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
 def stage_phong(capture: Capture, st: State) -> tuple[Capture, State]:
     """The first Phong fit (lobe, specular structure: chosen on left-out shots)."""
     o = st.opts
-    st.first = st.fit = fit_phong(capture, robust=None if o.robust == "auto" else o.robust, lobe=o.lobe, **o.fit_kwargs())
+    st.first = st.fit = fit_phong(capture, robust=None if o.solver.robust in ("auto", "none") else o.solver.robust,
+                                  lobe=o.choices.lobe, **o.fit_kwargs())
     st.stage_times.update({f"phong.{k}": v for k, v in st.first.stage_times.items()})
     st.skipped = list(st.first.skipped)
     return capture, st

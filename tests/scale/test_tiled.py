@@ -92,7 +92,7 @@ def test_cli_fit_tile_equals_fit(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "x"), "--tile", "20", "--scheme", "paper"]) == 2
     assert main(["fit", str(tmp_path / "cap"), "-o", str(tmp_path / "x"), "--tile", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and "expected 'refine' with --tile" in err[0] and "tile: expected an int >= 1" in err[1]
+    assert len(err) == 2 and "--scheme paper: expected one of ['refine'] with --tile" in err[0] and "tile: expected an int >= 1" in err[1]
 
 
 def test_bad_arguments(tiled256):

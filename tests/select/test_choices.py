@@ -110,7 +110,7 @@ def test_a_flat_two_material_sample_takes_no_relief_normals_or_light_move():
     """Issue 41's misfire: a flat sample of two materials took a relief (and lost 28 dB) because the relief's
     test fitted one global lobe; every candidate is now fitted with the reference fit's model."""
     cap = two_materials()
-    ctx, _ = sc.reference_context(cap, dict(sc.DEFAULT_FIT))
+    ctx = sc.reference_context(cap, dict(sc.DEFAULT_FIT))
     assert ctx.model["specular"] == "clustered", ctx.model  # the final fit's model: two materials
     for choice in (NORMALS, RELIEF, LIGHT):
         d = sc.decide(choice, cap, ctx)
@@ -137,13 +137,17 @@ def _camera_processed(cap):
 
 def test_an_honest_sensor_keeps_each_channel():
     d = choose(CLIPPING, _clipped())
-    assert d.chosen == d.reference == "channel" and set(d.mse) == {"channel", "pixel"}, d.reason
+    assert d.chosen == d.reference == "channel", d.reason
+    assert d.scores["screen"]["residual_share"] >= 0 and d.scores["screen"]["observations"] > 0
+    forced = choose(replace(CLIPPING, screen=None), _clipped())  # tested, it keeps channel too
+    assert forced.chosen == "channel" and set(forced.mse) == {"channel", "pixel"}, forced.reason
 
 
 def test_a_processed_photo_drops_the_whole_observation():
     cap = _camera_processed(_clipped())
     d = choose(CLIPPING, cap)
     assert d.chosen == "pixel" and d.z["pixel"] > 4 and d.mse["pixel"] < d.mse["channel"], d.reason
+    assert d.scores["screen"]["run"] and d.scores["screen"]["residual_share"] > 0.005
     out, rep = with_clipping(cap, "pixel")
     assert rep["chosen"] == "pixel" and partly_clipped(out) == 0
 

@@ -25,7 +25,7 @@ def _toy(scale: dict, **kw) -> Choice:
 
 def test_the_better_extension_wins_on_every_fold():
     choice, fits = _toy({"ref": 0.1, "ext": 0.01})
-    d = decide(choice, CAP, Context(model={}))
+    d = decide(choice, CAP, Context.fixed({}))
     assert d.chosen == "ext" and d.reference == "ref" and d.z["ext"] > 4 and d.seconds > 0
     assert len(d.holds) == 3 and sorted(k for g in d.holds for k in g) == list(range(7))
     assert len(fits) == 6 and all(n == 7 - len(g) for (n, _), g in zip(fits[::2], d.holds))
@@ -33,25 +33,25 @@ def test_the_better_extension_wins_on_every_fold():
 
 def test_a_worse_extension_stops_after_one_fold():
     choice, fits = _toy({"ref": 0.01, "ext": 0.1})
-    d = decide(choice, CAP, Context(model={}))
+    d = decide(choice, CAP, Context.fixed({}))
     assert d.chosen == "ref" and len(d.holds) == 1 and "stopped after 1 of 3" in d.reason and len(fits) == 2
 
 
 def test_untested_and_screened_cases_fit_nothing():
     choice, fits = _toy({"ref": 0.1, "ext": 0.01}, untested=lambda c, ctx: "not today")
-    d = decide(choice, CAP, Context(model={}))
+    d = decide(choice, CAP, Context.fixed({}))
     assert d.chosen == "ref" and d.reason == "not today" and not fits
     choice, fits = _toy({"ref": 0.1, "ext": 0.01}, screen=lambda g, ctx: Screen(False, "nothing to gain", {"x": 1.0}))
-    d = decide(choice, CAP, Context(model={}))
+    d = decide(choice, CAP, Context.fixed({}))
     assert d.chosen == "ref" and "nothing to gain" in d.reason and d.scores["screen"]["x"] == 1.0 and not fits
     choice, fits = _toy({"ref": 0.1, "ext": 0.01}, min_shots=8)
-    assert decide(choice, CAP, Context(model={})).reason.endswith("found 7") and not fits
+    assert decide(choice, CAP, Context.fixed({})).reason.endswith("found 7") and not fits
 
 
 def test_an_abstaining_candidate_keeps_the_reference():
     choice = Choice("toy", ("ref", "ext"), fit=lambda t, c, ctx: None if c == "ext" else (lambda h: h.images),
                     errors=observation_errors, grid=lambda c: c)
-    d = decide(choice, CAP, Context(model={}))
+    d = decide(choice, CAP, Context.fixed({}))
     assert d.chosen == "ref" and "could not be tested" in d.reason
 
 

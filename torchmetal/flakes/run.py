@@ -169,7 +169,7 @@ def same_clusters(first: FitResult) -> dict:
 def stage_flakes(capture: Capture, st):
     """Detection, noise tests, the refits away from the glints and the flake statistics (:func:`flake_stage_with_refits`)."""
     o = st.opts
-    if o.flakes == "off":
+    if o.flakes.mode == "off":
         st.skipped.append("flakes: disabled by the caller")
         st.stage_times["flakes"] = 0.0
         return capture, st
@@ -177,15 +177,15 @@ def stage_flakes(capture: Capture, st):
     # refits keep the lobe and the weights the first fit chose, and hold out the same shots
     kw = {**o.fit_kwargs(), "lobe": st.first.lobe, "noise_weights": st.first.noise is not None,
           "plan": st.first.shot_plan}
-    two_fits = o.robust == "auto" and o.scheme == "refine"
+    two_fits = o.solver.robust == "auto" and o.solver.scheme == "refine"
     # the statistics' Huber refit keeps the first fit's specular structure (the trials of clusters and gloss
     # maps again cost more than the rest of the refit): its cluster count, and relabelling only where the first
     # fit relabelled (at full resolution it cost 10 s of the real card's 18 s refit); the coating's refit below
     # chooses it again, glints out
-    same = {**kw, "specular": st.first.specular if o.specular == "auto" else o.specular, **same_clusters(st.first)}
+    same = {**kw, "specular": st.first.specular if o.choices.specular == "auto" else o.choices.specular, **same_clusters(st.first)}
     refit = (lambda: fit_phong(capture, robust=ROBUST_GLINTS, **same)) if two_fits else None
     coat_fit = (lambda cap: fit_phong(cap, robust=None, **kw)) if two_fits else None
-    st.flake_result, coat, texture = flake_stage_with_refits(capture, st.first, o.seed, refit, coat_fit)
+    st.flake_result, coat, texture = flake_stage_with_refits(capture, st.first, o.flakes.seed, refit, coat_fit)
     st.stage_times["flakes"] = time.perf_counter() - t
     if st.flake_result.model is not None:
         if coat is not st.first:
@@ -208,7 +208,7 @@ def stage_flakes(capture: Capture, st):
 def stage_observed(capture: Capture, st):
     """The sample's own flakes where the fit shots saw them: always ("on"), never, or where left-out shots
     render better with them ("auto", :func:`~torchmetal.flakes.choice.choose_observed`)."""
-    mode, fr, m = st.opts.observed, st.flake_result, st.material
+    mode, fr, m = st.opts.flakes.observed, st.flake_result, st.material
     if m.flakes is None or mode == "off":
         return capture, st
     t = time.perf_counter()
@@ -225,7 +225,7 @@ def stage_keep(capture: Capture, st):
     """flakes="auto": flakes or none, by the left-out shots' sparkle statistics (MD,
     :func:`~torchmetal.flakes.choice.keep_flakes`); none gives the first fit's material, as flakes="off"."""
     fr = st.flake_result
-    if st.material.flakes is None or st.opts.flakes != "auto":
+    if st.material.flakes is None or st.opts.flakes.mode != "auto":
         return capture, st
     t = time.perf_counter()
     plain = st.first.to_material(report_extra=st.report(st.first, list(st.first.skipped)))

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchmetal.config import FitConfig, check_tiled
 from torchmetal.errors import FitError, InputError
 from torchmetal.fit.clusters import RELABEL_ROUNDS, LabelMap
 from torchmetal.fit.decisions import subsample_decisions
@@ -395,12 +396,7 @@ def fit_tiled_material(capture_path: str | os.PathLike, *, tile: int, scheme: st
     :func:`~torchmetal.pipeline.fit_material`; the tiled fit is the refine scheme by
     least squares (robust "auto" is that when no flakes are fitted), so other values are refused.
     """
-    if scheme != "refine":
-        raise InputError(f"scheme: expected 'refine' with --tile (the tiled fit is the refine scheme), found {scheme!r}")
-    if robust not in ("auto", None, "none"):
-        raise InputError(f"robust: expected 'auto' or 'none' with --tile (least squares), found {robust!r}")
-    if flakes == "on":
-        raise InputError("flakes: expected 'auto' or 'off' with --tile (flake detection needs whole images), found 'on'")
+    check_tiled(FitConfig.of(scheme=scheme, robust=robust, flakes=flakes))  # what it supports: torchmetal.config
     t0 = time.perf_counter()
     scratch = Path(scratch)
     skipped = []

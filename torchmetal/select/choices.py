@@ -9,7 +9,7 @@ two-material sample misfits, and estimated normals, a relief or a moved light th
 ============ ============================= ================ ============================================
 choice       candidates (reference first)  error (paired)   screen (skips the test)
 ============ ============================= ================ ============================================
-clipping     channel, pixel                per observation  no observation partly clipped
+clipping     channel, pixel                per observation  their other channels hold < 0.5 % of the residual
 normals      flat, estimate                per-pixel median the residual follows no tilt (tilt_screen)
 relief       flat, relief                  per-pixel median as normals, on its downsampled grid
 light        off, flash                    per-pixel median moving every light gains < 0.5 % in-sample
@@ -21,7 +21,6 @@ and add it to :data:`PREFIT`.
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -35,7 +34,7 @@ from torchmetal.normals.estimate import estimate_normals
 from torchmetal.normals.relief import RES, factor_for, fit_normals, fit_relief
 from torchmetal.select.harness import Choice, Context, Screen, decide, kept, observation_errors, pixel_errors
 from torchmetal.select.rule import Decision
-from torchmetal.select.screens import light_screen, tilt_screen
+from torchmetal.select.screens import clipping_screen, light_screen, tilt_screen
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -59,14 +58,12 @@ def model_of(fit) -> dict:
     return model
 
 
-def reference_context(capture: Capture, fit_kwargs: dict) -> tuple[Context, float]:
-    """The reference fit on the capture's grid (``fit_kwargs``: the fit's own options, ``lobe``/``noise_weights``
-    "auto" where the final fit chooses them) and the :class:`~torchmetal.select.harness.Context` it gives;
-    also its seconds (the report's stage time)."""
-    t0 = time.perf_counter()
-    ref = fit_phong(strided_capture(capture, REFERENCE_PIXELS), **fit_kwargs)
+def reference_context(capture: Capture, fit_kwargs: dict) -> Context:
+    """The :class:`~torchmetal.select.harness.Context` whose model is the reference fit's on the capture's grid
+    (``fit_kwargs``: the fit's own options, ``lobe``/``noise_weights`` "auto" where the final fit chooses them),
+    made on first use."""
     keep = {k: fit_kwargs[k] for k in ("scheme", "tol", "max_iters") if k in fit_kwargs}
-    return Context(model={**keep, **model_of(ref)}), time.perf_counter() - t0
+    return Context(reference=lambda: {**keep, **model_of(fit_phong(strided_capture(capture, REFERENCE_PIXELS), **fit_kwargs))})
 
 
 def _fit(train: Capture, ctx: Context):
@@ -97,7 +94,8 @@ CLIPPING = Choice(
     "clipping", ("channel", "pixel"), fit=_clipping_fit, errors=observation_errors,
     grid=lambda c: strided_capture(c, CLIPPING_PIXELS),
     hold=lambda grid, group: pixel_clipped(grid).subset(group),  # no channel clipped: valid under either reading
-    rule={"min_gain": CLIPPING_GAIN}, untested=_clipping_untested, min_shots=3)
+    rule={"min_gain": CLIPPING_GAIN}, untested=_clipping_untested, screen=_reference_screen(clipping_screen),
+    min_shots=3)
 
 
 # ----------------------------------------------------------------------------- normals
@@ -193,7 +191,7 @@ DEFAULT_FIT = {"lobe": "auto", "noise_weights": "auto"}  # the reference fit's o
 def choose(choice: Choice, capture: Capture, *, fit_kwargs: dict | None = None, chosen: dict | None = None) -> Decision:
     """``choice`` decided on ``capture`` alone (its own reference fit; ``chosen``: the choices it follows), as
     :func:`~torchmetal.pipeline.fit_material` decides it in turn."""
-    ctx, _ = reference_context(capture, {**DEFAULT_FIT, **(fit_kwargs or {})})
+    ctx = reference_context(capture, {**DEFAULT_FIT, **(fit_kwargs or {})})
     ctx.chosen.update(chosen or {})
     return decide(choice, capture, ctx)
 

@@ -45,19 +45,40 @@ class Screen:
     reading: dict = field(default_factory=dict)
 
 
-@dataclass(frozen=True)
+@dataclass
 class Context:
     """What every test is given.
 
     Attributes:
-        model: :func:`~torchmetal.fit.fit_phong` options of the model the final fit will use (lobe, specular
-            structure, cluster count, weights, tol, max_iters), chosen once by the reference fit
-            (:func:`torchmetal.select.choices.reference_model`).
+        reference: fits the reference model on first use and returns its :func:`~torchmetal.fit.fit_phong`
+            options (lobe, specular structure, cluster count, weights, tol, max_iters): the model the final fit
+            will use, chosen once (:func:`torchmetal.select.choices.reference_context`). A capture whose
+            choices all stay untested never pays for it.
         chosen: the choices made so far (name → chosen candidate), for the ones a choice follows.
+        seconds: what the reference fit cost, once made.
     """
 
-    model: dict
+    reference: Callable[[], dict]
     chosen: dict = field(default_factory=dict)
+    seconds: float = 0.0
+    _model: dict | None = None
+
+    @classmethod
+    def fixed(cls, model: dict) -> Context:
+        """A context whose model is given."""
+        return cls(reference=lambda: dict(model))
+
+    @property
+    def resolved(self) -> bool:
+        return self._model is not None
+
+    @property
+    def model(self) -> dict:
+        if self._model is None:
+            t0 = time.perf_counter()
+            self._model = self.reference()
+            self.seconds = time.perf_counter() - t0
+        return self._model
 
 
 @dataclass(frozen=True)

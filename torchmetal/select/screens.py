@@ -10,6 +10,10 @@ find a gain beyond noise either, and its candidate fits are not run.
   of a pixel's residual follows an F(2, m − 5) law, m its valid observations, so each pixel gets an exact
   p-value; the screen passes when more pixels than :data:`TILT_SHARE` reach p < :data:`TILT_P` (1 % by chance).
   An embossing, a bump or a lobe that misfits the surface shape lifts that share far above it.
+- :func:`clipping_screen`: the share of the reference fit's squared residual that sits on the unclipped
+  channels of partly clipped observations. Reading them per pixel drops exactly those; where they hold less
+  than the test's minimum gain (:data:`torchmetal.select.choices.CLIPPING_GAIN`) of the residual, they pull the
+  fit too little for dropping them to lower a left-out shot's error by that much.
 - :func:`light_screen` (the flash's move): the in-sample squared error the reference's material, held fixed,
   loses when every point light moves alike (:func:`~torchmetal.lightcal.positions.fit_offsets`, a few LM steps).
   The left-out test asks for :data:`torchmetal.select.choices.LIGHT_GAIN` of held-out error; a move that cannot
@@ -36,6 +40,7 @@ if TYPE_CHECKING:
 TILT_EPS = 1e-3  # the normals' tilt (radians) of the render's central differences
 TILT_P = 0.01  # a pixel's p-value below which its residual follows the tilt beyond noise
 TILT_SHARE = 0.03  # share of such pixels above which the normals' tests run (1 % by chance alone)
+CLIPPING_SHARE = 0.005  # the clipping test's minimum gain
 LIGHT_SHARE = 0.005  # in-sample error share the flash's move must gain for its test to run
 LIGHT_ITERS = 4  # LM steps of the screen's move (the test's estimate takes more)
 
@@ -86,6 +91,20 @@ def tilt_screen(fit: FitResult, capture: Capture) -> Screen:
         return Screen(True, f"{share:.1%} of pixels follow a tilt beyond noise (p < {TILT_P:g}; {TILT_P:.0%} by chance)", reading)
     return Screen(False, f"the reference fit's residual follows no tilt beyond noise: {share:.1%} of pixels at p < "
                          f"{TILT_P:g} ({TILT_P:.0%} by chance, {TILT_SHARE:.0%} needed)", reading)
+
+
+def clipping_screen(fit: FitResult, capture: Capture) -> Screen:
+    """The clipping's screen (module docstring) of ``fit``, the reference fitted to ``capture`` read per channel."""
+    v = valid_pixels(capture)
+    sq = (_render(fit, capture) - capture.images.double()).square()
+    partial = capture.saturated.any(1, keepdim=True) & v  # the unclipped channels of partly clipped observations
+    total = float(sq[v].sum())
+    share = float(sq[partial].sum()) / total if total > 0 else 0.0
+    reading = {"residual_share": share, "observations": int(partial.any(1).sum())}
+    if share >= CLIPPING_SHARE:
+        return Screen(True, f"the partly clipped observations' other channels hold {share:.2%} of the residual", reading)
+    return Screen(False, f"the partly clipped observations' other channels hold {share:.2%} of the residual only "
+                         f"(< {CLIPPING_SHARE:.1%}: dropping them cannot gain the test's minimum)", reading)
 
 
 def light_screen(fit: FitResult, capture: Capture) -> Screen:
