@@ -125,7 +125,7 @@ class FitConfig:
         """:func:`~torchmetal.fit.fit_phong` arguments every fit of the run shares (``robust`` and ``lobe`` aside)."""
         s, c = self.solver, self.choices
         return dict(scheme=s.scheme, specular=c.specular, tol=s.tol, max_iters=s.max_iters, progress=self.progress,
-                    noise_weights="auto" if c.weights == "auto" else c.weights == "noise")
+                    weights=c.weights)
 
 
 def _fields() -> list[tuple[str, dataclasses.Field]]:

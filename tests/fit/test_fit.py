@@ -364,16 +364,16 @@ def test_noise_weights_beat_plain_least_squares_under_shot_noise(tmp_path):
     fit_cap, held = dataclasses.replace(cap, images=noisy.clamp_min(0.0).float()).subset(list(range(10))), cap.subset(list(range(10, 14)))
     scores = {}
     for weights in (True, False):
-        fit = fit_phong(fit_cap, noise_weights=weights, specular="global")
+        fit = fit_phong(fit_cap, weights="noise" if weights else "uniform", specular="global")
         assert (fit.noise is not None) == weights
         with torch.no_grad():
             pred = fit.render(held.lights, held.intensities, held.cameras)
         scores[weights] = float(psnr(pred, held.images))
     assert scores[True] > scores[False] + 0.1, scores
-    auto = fit_phong(fit_cap, noise_weights="auto", specular="global")  # the held-out shot sees the gain
+    auto = fit_phong(fit_cap, weights="auto", specular="global")  # the held-out shot sees the gain
     (d,) = [d for d in auto.decisions if d["name"] == "weights"]
     assert d["chosen"] == "noise" and d["reference"] == "uniform" and auto.noise is not None
-    assert torch.equal(auto.texture, fit_phong(fit_cap, noise_weights=True, specular="global").texture)
+    assert torch.equal(auto.texture, fit_phong(fit_cap, weights="noise", specular="global").texture)
 
 
 def test_noise_weights_auto_keeps_least_squares_without_noise(tmp_path):
@@ -383,12 +383,12 @@ def test_noise_weights_auto_keeps_least_squares_without_noise(tmp_path):
     from torchmetal.synth.zoo import SCENES, make_case
 
     cap = load_capture(make_case(SCENES["float_clean"].with_(size=64), tmp_path / "c").capture_dir)
-    auto = fit_phong(cap, noise_weights="auto", specular="global")
+    auto = fit_phong(cap, weights="auto", specular="global")
     (d,) = [d for d in auto.decisions if d["name"] == "weights"]
     assert d["chosen"] == "uniform" and auto.noise is None
     assert torch.equal(auto.texture, fit_phong(cap, specular="global").texture)
-    with pytest.raises(InputError, match="noise_weights: expected True, False or 'auto'"):
-        fit_phong(cap, noise_weights="sometimes")
+    with pytest.raises(InputError, match="weights: expected one of"):
+        fit_phong(cap, weights="sometimes")
 
 
 def test_skips_key_each_skipped_sentence_by_its_stage():

@@ -27,13 +27,13 @@ def test_flake_holds_are_the_shots_with_most_associated_detections():
 
 def test_a_fit_plans_by_specular_energy_and_a_given_plan_decides_the_held_out_shot():
     cap = synth_capture(size=48, shots=6, seed=2, noise=0.003).capture
-    fit = fit_phong(cap, noise_weights="auto")
+    fit = fit_phong(cap, weights="auto")
     plan = fit.shot_plan
     assert sorted(plan.order) == list(range(6)) and fit.report()["shot_plan"]["order"] == list(plan.order)
     holds = {d["name"]: d["holds"] for d in fit.decisions}
     assert holds["weights"] == [plan.hold] and holds["specular evidence"] == [plan.hold]
     # another plan: every one-shot choice holds its first shot, and the refit reports it
     other = ShotPlan(tuple(reversed(plan.order)))
-    refit = fit_phong(cap, noise_weights="auto", plan=other)
+    refit = fit_phong(cap, weights="auto", plan=other)
     assert refit.shot_plan is other
     assert all(d["holds"] == [other.hold] for d in refit.decisions if d["name"] in ("weights", "specular evidence"))

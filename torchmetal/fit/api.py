@@ -29,6 +29,7 @@ from torchmetal.checks import check_finite
 from torchmetal.errors import FitError, InputError
 from torchmetal.fit.clusters import heldout_mse, relabel_pixels
 from torchmetal.fit.colour import fit_white
+from torchmetal.fit.decisions import subsample_decisions
 from torchmetal.fit.gloss import fit_gloss_maps
 from torchmetal.fit.lobe_choice import choose_lobe
 from torchmetal.fit.paper import paper_scheme
@@ -49,13 +50,12 @@ from torchmetal.fit.run import FitRun
 from torchmetal.geometry import is_flat
 from torchmetal.lobes import LOBES, check_lobe
 from torchmetal.memory import pixels_per_chunk, release_free_memory, streams_geometry
-from torchmetal.fit.decisions import subsample_decisions
 
 if TYPE_CHECKING:
+    from torchmetal.fit.decisions import SubsampleDecisions
     from torchmetal.fit.lobe_choice import LobeSelection
     from torchmetal.io.capture import Capture
     from torchmetal.select.plan import ShotPlan
-    from torchmetal.fit.decisions import SubsampleDecisions
 
 SCHEMES = ("paper", "refine")
 SPECULARS = ("auto", "global", "clustered", "maps", "none")
@@ -110,11 +110,14 @@ def _grid_maps(x: Tensor, h: int, w: int) -> Tensor:
     return x.reshape(*x.shape[:-1], h, w)
 
 
+WEIGHTS = ("uniform", "noise", "auto")  # fit_phong's weights (fit_material's option of that name)
+
+
 def fit_phong(
     capture: Capture, *, scheme: str = "refine", specular: str = "auto", tol: float = 1e-6, max_iters: int = 100,
     robust: str | None = None, progress: bool = False, outliers: float | None = None,
     clusters: tuple[int, ...] = (2, 3, 4), max_pixels_per_chunk: int | None = None, sub_pixels: int = 1 << 16,
-    select_pixels: int = 1 << 13, seed: int = 0, lobe: str = "phong", noise_weights: bool | str = False,
+    select_pixels: int = 1 << 13, seed: int = 0, lobe: str = "phong", weights: str = "uniform",
     relabel: bool = True, plan: ShotPlan | None = None,
 ) -> FitResult:
     """Fit the Phong model of docs/design.md §2.2 (texture d(p), s, α per channel) to a capture.
@@ -146,10 +149,11 @@ def fit_phong(
             "blinn", "ggx", or "auto" (the lowest error on held-out shots,
             :mod:`torchmetal.fit.lobe_choice`; phong unless another lobe wins beyond noise; phong with
             scheme="paper"). Other lobes than phong need scheme="refine".
-        noise_weights: weigh each observation by the inverse of its expected noise variance, a + b·ŷ per
-            channel fitted to the residuals (:func:`~torchmetal.fit.refine.noise_model`: read noise, shot
-            noise, the 8-bit sRGB step that grows with the value); False (the default here): every observation
-            alike; "auto": noise weights where the shot with the most specular energy, left out of both fits,
+        weights: the least-squares weights (the name and values of ``fit_material``'s option, :mod:`torchmetal.config`):
+            "uniform" (the default here: every observation alike), "noise" (each observation by the inverse of its
+            expected noise variance, a + b·ŷ per channel fitted to the residuals,
+            :func:`~torchmetal.fit.refine.noise_model`: read noise, shot noise, the 8-bit sRGB step that grows with
+            the value), or "auto": noise weights where the shot with the most specular energy, left out of both fits,
             is predicted better with them (the paired rule of :mod:`torchmetal.select.rule`; a "weights"
             decision; ``fit_material``'s default). Only with scheme="refine". The residuals also hold misfit
             (see :func:`~torchmetal.fit.refine.noise_model`): the held-out shot is what tells the two apart.
@@ -165,15 +169,15 @@ def fit_phong(
         InputError: bad arguments. FitError: non-finite input or a fit that went non-finite.
     """
     clusters = tuple(clusters)
-    if not (isinstance(noise_weights, bool) or noise_weights == "auto"):
-        raise InputError(f"noise_weights: expected True, False or 'auto', found {noise_weights!r}")
+    if weights not in WEIGHTS:
+        raise InputError(f"weights: expected one of {list(WEIGHTS)}, found {weights!r}")
     _check_args(capture, scheme, specular, tol, max_iters, robust, outliers, clusters)
     _check_lobe_arg(lobe, scheme)
     if max_pixels_per_chunk is None:
         max_pixels_per_chunk = pixels_per_chunk(capture)
     kw = dict(specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers, clusters=clusters,
               chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
-              noise=noise_weights, relabel=relabel, plan=plan)
+              noise="auto" if weights == "auto" else weights == "noise", relabel=relabel, plan=plan)
     run = FitRun(progress)
     try:
         res, lobe, lobe_sel = _fit_scheme(capture, run, scheme, lobe, kw)

@@ -366,7 +366,7 @@ def noise_model(obs: Observations, s: Tensor, alpha: Tensor, eb: Tensor, *, floo
     uniform weights) and :data:`~torchmetal.fit.problem.VARIANCE_W_MIN` of the brightest bin's variance.
 
     The residuals also hold the model's misfit, which can grow with the value; that is why the weights are
-    chosen on a held-out shot (``noise_weights="auto"``, the pipeline's default) and never forced: a noise-free
+    chosen on a held-out shot (``weights="auto"``, the pipeline's default) and never forced: a noise-free
     capture with a black patch weighted its highlights 500× down (s 17 % off; uniform 3.7 %), and capping the
     range at 10× (4.2 %) let two_materials' misfit choose other clusters and GGX (CI zoo 45.3 dB; uniform 54.5)."""
     d = texture_map(obs, s, eb)

@@ -175,7 +175,7 @@ def stage_flakes(capture: Capture, st):
         return capture, st
     t = time.perf_counter()
     # refits keep the lobe and the weights the first fit chose, and hold out the same shots
-    kw = {**o.fit_kwargs(), "lobe": st.first.lobe, "noise_weights": st.first.noise is not None,
+    kw = {**o.fit_kwargs(), "lobe": st.first.lobe, "weights": "noise" if st.first.noise is not None else "uniform",
           "plan": st.first.shot_plan}
     two_fits = o.solver.robust == "auto" and o.solver.scheme == "refine"
     # the statistics' Huber refit keeps the first fit's specular structure (the trials of clusters and gloss

@@ -51,7 +51,7 @@ LIGHT_GAIN = 0.02  # the flash's move: 2 % (docs/design.md §4)
 def model_of(fit) -> dict:
     """:func:`~torchmetal.fit.fit_phong` options that refit ``fit``'s model without choosing it again."""
     model = {"lobe": fit.lobe, "specular": fit.specular if fit.specular != "none" else "none",
-             "noise_weights": fit.noise is not None}
+             "weights": "noise" if fit.noise is not None else "uniform"}
     sel = fit.selection or {}
     if fit.specular == "clustered" and sel.get("k"):
         model |= {"clusters": (int(sel["k"]),), "relabel": bool(sel.get("relabel"))}
@@ -60,7 +60,7 @@ def model_of(fit) -> dict:
 
 def reference_context(capture: Capture, fit_kwargs: dict) -> Context:
     """The :class:`~torchmetal.select.harness.Context` whose model is the reference fit's on the capture's grid
-    (``fit_kwargs``: the fit's own options, ``lobe``/``noise_weights`` "auto" where the final fit chooses them),
+    (``fit_kwargs``: the fit's own options, ``lobe``/``weights`` "auto" where the final fit chooses them),
     made on first use."""
     keep = {k: fit_kwargs[k] for k in ("scheme", "tol", "max_iters") if k in fit_kwargs}
     return Context(reference=lambda: {**keep, **model_of(fit_phong(strided_capture(capture, REFERENCE_PIXELS), **fit_kwargs))})
@@ -185,7 +185,7 @@ LIGHT = Choice(
 
 #: the choices before the Phong fit, in the order they are made
 PREFIT = (CLIPPING, NORMALS, RELIEF, LIGHT)
-DEFAULT_FIT = {"lobe": "auto", "noise_weights": "auto"}  # the reference fit's options where a caller gives none
+DEFAULT_FIT = {"lobe": "auto", "weights": "auto"}  # the reference fit's options where a caller gives none
 
 
 def choose(choice: Choice, capture: Capture, *, fit_kwargs: dict | None = None, chosen: dict | None = None) -> Decision:
