@@ -25,12 +25,12 @@ of its N residual degrees of freedom on its texture, so plain r² would understa
 4 shots) and the intervals would not cover. Between bins v is interpolated linearly (clamped at the ends).
 The mean, not a median: a glint's residual is part of the error the texture really has there.
 
-**A pixel budget.** The pass runs on a strided grid of at most ``max_pixels`` (2^16) pixels; H and M are sums
+**A pixel budget.** The pass runs on a strided grid of at most ``max_pixels`` (2^15) pixels; H and M are sums
 over pixels, so the grid's are scaled by each element's full/grid pixel count (the sandwich covariance shrinks
 by that factor: the information of the whole capture). The texture's standard deviation is per pixel and
 does not depend on the stride; it is known on the grid (the report keeps its median and p90), and
-``texture_map=True`` runs the pass on every pixel for the exact map (on 1 MP × 7, 2026-12-06, load ~5 on 2
-cores: 0.2 s on the grid against 2.2 s for the fit; 5–6 s for every pixel).
+``texture_map=True`` runs the pass on every pixel for the exact map (on 1 MP × 7, 2026-12-06, load 7.3 on 2
+cores: 0.13–0.18 s on the grid against 1.5–1.7 s for the fit, 8.5–11 %; 3–6 s for every pixel).
 
 **Where curvature is not valid**, refits with shots left out (jackknife over shots): an element at a
 bound (α at 1 or 10⁴, s at 0) or with a singular H. Each refit is the variable-projection LM
@@ -82,14 +82,15 @@ class UncertaintyOptions:
     is not valid), "always", "off"; jackknife_pixels: pixel budget of each refit; samples: residuals kept
     per channel for the variance model.
 
-    Why 2^16 pixels: the pipeline runs this after every fit and issue 41 wants every extra stage cheap
+    Why 2^15 pixels: the pipeline runs this after every fit and issue 41 wants every extra stage cheap
     (≤ ~10 % of the fit). The curvature of s and α is a sum over the pixels the highlight crosses; a
-    uniform grid of 2^16 of them estimates it (scaled by full/grid pixels) to well under its own interval
-    (a 1 MP capture's highlight still spans thousands of grid pixels), and the texture's std is a smooth
-    function of the local shading and value, so its median and p90 from the grid are the image's."""
+    uniform grid of 2^15 of them estimates it (scaled by full/grid pixels) to well under its own interval
+    (1 MP × 7, 2026-12-06: s and log α std within 2 % of the every-pixel pass at 2^14–2^16; calibration
+    holds at 2^10, bench ``uncertainty``), and the texture's std is a smooth function of the local shading
+    and value, so its median and p90 from the grid are the image's."""
 
     level: float = 0.9
-    max_pixels: int = 1 << 16
+    max_pixels: int = 1 << 15
     texture_map: bool = False
     bins: int = 16
     jackknife: str = "bounds"
@@ -372,12 +373,12 @@ def noise_variance(noise: dict, pred: Tensor) -> Tensor:
     its end bins."""
     out = torch.empty_like(pred)
     for c in range(3):
-        x, v = noise["y"][c].to(pred), noise["var"][c].to(pred)
-        p = pred[:, c].clamp(float(x[0]), float(x[-1]))
-        i = torch.searchsorted(x.contiguous(), p.contiguous()).clamp(1, x.numel() - 1)
-        x0, x1, v0, v1 = x[i - 1], x[i], v[i - 1], v[i]
-        f = torch.where(x1 > x0, (p - x0) / (x1 - x0).clamp_min(1e-300), torch.zeros_like(p))
-        out[:, c] = v0 + f * (v1 - v0)
+        x, v = noise["y"][c].to(pred).contiguous(), noise["var"][c].to(pred)
+        dx = x[1:] - x[:-1]
+        slope = torch.where(dx > 0, (v[1:] - v[:-1]) / dx.clamp_min(1e-300), torch.zeros_like(dx))  # per segment
+        p = pred[:, c].clamp(float(x[0]), float(x[-1])).contiguous()
+        i = (torch.searchsorted(x, p) - 1).clamp(0, x.numel() - 2)  # the segment [x_i, x_i+1] holding p
+        out[:, c] = v[i] + slope[i] * (p - x[i])
     return out
 
 
