@@ -21,6 +21,8 @@ _FLAKES_B = {"density": 0.008, "area_median": 2.5, "area_log_std": 0.3, "aspect"
              "glint_sigma": 0.04, "color": (0.7, 0.75, 0.9)}
 
 _FLAKES_HALF = {**_FLAKES_A, "density": 0.008, "region": "left"}
+# bright grey flakes: their brightest glints clip (8-bit), the censoring the flake likelihood must model
+_FLAKES_BRIGHT = {**_FLAKES_A, "color": (0.8, 0.8, 0.8)}
 
 #: name → Scene at full (bench) size. The benchmark's original captures are the first five; then the rest of the space.
 SCENES: dict[str, Scene] = {s.name: s for s in [
@@ -59,9 +61,13 @@ SCENES: dict[str, Scene] = {s.name: s for s in [
           flakes=_FLAKES_A, s=0.4, alpha=60, seed=17),
     Scene("photo_bumpy_noise2", size=256, shots=12, texture="photo:chelsea", normals="bumpy", noise=0.02,
           layout="ring", s=0.5, alpha=100, seed=15),
+    # bright grey flakes (issue 41 item 7): hemisphere lights (far tilt tail) and a ring (every flake's mirror shot)
+    Scene("flakes_bright_hemi", size=512, shots=12, layout="hemisphere", flakes=_FLAKES_BRIGHT, s=0.4, alpha=60, seed=24),
+    Scene("flakes_bright_ring", size=512, shots=12, layout="ring", flakes=_FLAKES_BRIGHT, s=0.4, alpha=60, seed=25),
 ]}
 
-_CI_SIZE = {"dome72": 96, "few_highlight": 192, "photo_srgb8": 160, "bumpy_lin16": 160}
+_CI_SIZE = {"dome72": 96, "few_highlight": 192, "photo_srgb8": 160, "bumpy_lin16": 160,
+            "flakes_bright_hemi": 256, "flakes_bright_ring": 256}
 
 
 def full_scenes() -> list[Scene]:

@@ -86,6 +86,7 @@ class Detection:
     k_hi: float
     k_lo: float
     times: dict
+    headroom: Tensor | None = None  # (N, 1, H, W) the brightest measurable glint peak (:func:`glint_headroom`); None: nothing clipped
 
 
 def _check_inputs(photos: Tensor, phong: Tensor, irradiance: Tensor, valid: Tensor | None) -> None:
@@ -263,10 +264,66 @@ def detect_flakes(
             tables.append(tab)
             signals.append(sig)
             sigmas.append(sgm)
+    particles = Particles.cat(tables)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        headroom = glint_headroom(photos, phong, irradiance, valid, particles, chunk=chunk)
+    times["headroom"] = time.perf_counter() - t0
     return Detection(
-        particles=Particles.cat(tables), signal=torch.cat(signals), sigma=torch.cat(sigmas),
-        labels=torch.cat(label_maps), valid=valid, k_hi=float(k_hi), k_lo=float(k_lo), times=times,
+        particles=particles, signal=torch.cat(signals), sigma=torch.cat(sigmas),
+        labels=torch.cat(label_maps), valid=valid, k_hi=float(k_hi), k_lo=float(k_lo), times=times, headroom=headroom,
     )
+
+
+HEADROOM_RADIUS = 2  # px: association.CLIP_RADIUS, a glint is unmeasured when a pixel this close clips
+_MIN_HEADROOM = 1e-6
+
+
+def clip_level(photos: Tensor, valid: Tensor) -> float | None:
+    """The encoding's top (linear), when some invalid pixels sit at it: the brightest value of any channel at
+    an invalid pixel, if no valid pixel is brighter (saturated pixels are the capture's brightest); None when
+    nothing clipped (no invalid pixel, float files, or only a mask)."""
+    top = photos.amax(1, keepdim=True)  # (N, 1, H, W)
+    bad = ~valid.expand_as(top)
+    if not bool(bad.any()):
+        return None
+    clip = float(top[bad].max())
+    good = ~bad
+    if clip <= 0 or (bool(good.any()) and float(top[good].max()) > clip):
+        return None
+    return clip
+
+
+def glint_headroom(photos: Tensor, phong: Tensor, irradiance: Tensor, valid: Tensor, particles: Particles, *,
+                   chunk: int = 4, min_snr: float = 8.0) -> Tensor | None:
+    """(N, 1, H, W) the brightest glint peak (channel-mean reflectance, the particles' amplitude units) each pixel
+    can hold without a pixel within :data:`HEADROOM_RADIUS` clipping: min over channels of (clip − Phong)/(E·chroma),
+    the chroma the detections' median (a glint is brightest in its strongest channel); ≈ 0 where the coat clips
+    or the pixel is masked (nothing measurable). None when nothing in the capture clipped (:func:`clip_level`).
+
+    The likelihood needs it: a glint that clips is never measured (:func:`~torchmetal.flakes.estimate.association.measurable`),
+    so the brightest glints are missing from the data, and a model unaware of it puts the amplitude low."""
+    clip = clip_level(photos, valid)
+    if clip is None:
+        return None
+    sel = particles.snr >= min_snr
+    chroma = torch.ones(3, dtype=photos.dtype, device=photos.device)
+    if int(sel.sum()) >= 5:
+        rgb = particles.rgb[sel].to(photos.dtype)
+        ch = rgb / rgb.mean(1, keepdim=True).clamp_min(1e-12)
+        ok = ((ch >= 0) & (ch <= 3)).all(1)
+        if int(ok.sum()) >= 5:
+            chroma = ch[ok].median(0).values.clamp_min(0.05)
+    n = photos.shape[0]
+    out = []
+    for k0 in range(0, n, max(1, chunk)):
+        k1 = min(n, k0 + max(1, chunk))
+        v = valid[k0:k1] if valid.shape[0] == n else valid.expand(k1 - k0, -1, -1, -1)
+        u = ((clip - phong[k0:k1]) / (irradiance[k0:k1] * chroma.view(1, 3, 1, 1))).amin(1, keepdim=True)
+        masked = ~v & (photos[k0:k1].amax(1, keepdim=True) < clip)  # invalid but not at the top: masked out
+        u = torch.where(masked, torch.zeros_like(u), u).clamp_min(_MIN_HEADROOM)
+        out.append(-max_filter(-u, HEADROOM_RADIUS))
+    return torch.cat(out)
 
 
 def _check_options(*, k_hi: float, k_lo: float, close: int, open_: int, tile: int, background: int, min_area: int,

@@ -59,8 +59,12 @@ def log_slope_from(mn: Tensor, m1: Tensor, m2: Tensor, tau: Tensor) -> Tensor:
 PROBIT = 1.702  # logistic ≈ probit: |σ(1.702 z) − Φ(z)| < 0.01, and far cheaper than log_ndtr
 
 
-def log_detect(a_over_sigma: Tensor, k_hi: float, detected: Tensor, outlier: float = 0.0) -> Tensor:
+def log_detect(a_over_sigma: Tensor, k_hi: float, detected: Tensor, outlier: float = 0.0,
+               log_measurable: Tensor | None = None) -> Tensor:
     """log P(detected or not), P(detected) = Φ(A·g/σ − k_hi) in its logistic form.
+
+    ``log_measurable``: log of the probability that the glint does not clip (:func:`log_unclipped`); either
+    state of a measurable shot needs it (a clipped glint leaves the shot unmeasured, neither).
 
     With ``outlier`` = ε the probability is mixed with a coin flip, (1 − ε)·P + ε/2, so one
     mis-associated or merged detection costs at most log(2/ε) instead of dominating the fit.
@@ -71,10 +75,37 @@ def log_detect(a_over_sigma: Tensor, k_hi: float, detected: Tensor, outlier: flo
     """
     z = PROBIT * (a_over_sigma - k_hi)
     lp = F.logsigmoid(torch.where(detected, z, -z))
+    if log_measurable is not None:
+        lp = lp + log_measurable
     if outlier > 0:
         lp = torch.logaddexp(lp + math.log1p(-outlier), torch.full_like(lp, math.log(0.5 * outlier)))
         lp = torch.where(detected, lp, lp - math.log1p(-0.5 * outlier))
     return lp
+
+
+#: spread (log units) of a glint's clipping level about the headroom of :attr:`GlintData.headroom`: the flakes'
+#: own colour varies about the mean chroma the headroom is measured with (≈ 10 % per channel)
+HEADROOM_SPREAD = 0.1
+
+
+def log_unclipped(log_glint: Tensor, log_headroom: Tensor, spread: Tensor | float = HEADROOM_SPREAD) -> Tensor:
+    """log P(a glint of peak amplitude exp(``log_glint``) does not clip) = log Φ((log U − log A·g)/s), logistic form.
+
+    A glint whose brightest pixel clips (coat + E·A·g·chroma above the encoding's top) makes its neighbourhood
+    unmeasurable (:func:`~torchmetal.flakes.estimate.association.measurable`): the data never hold the brightest
+    glints, and a likelihood unaware of it puts the amplitude mean low (zoo flakes_a: colour ×0.78).
+    """
+    return F.logsigmoid(PROBIT * (log_headroom - log_glint) / spread)
+
+
+def log_unmeasured(log_glint: Tensor, log_headroom: Tensor, outlier: float) -> Tensor:
+    """log P(a shot is unmeasured at the flake) = log(ε + (1 − ε)·P(the glint clips)).
+
+    Where the coat itself clips next to the flake the headroom is ≈ 0 and this is ≈ 0 for any glint (the shot
+    says nothing, as before); elsewhere an unmeasured shot says the flake glinted brighter than its headroom
+    there. ε (the likelihood's outlier rate) covers the shots unmeasured for other reasons (a neighbour's glint)."""
+    clip = F.logsigmoid(PROBIT * (log_glint - log_headroom) / HEADROOM_SPREAD)
+    return torch.logaddexp(clip + math.log1p(-outlier), torch.full_like(clip, math.log(outlier)))
 
 
 @dataclass
@@ -96,6 +127,11 @@ class GlintData:
     log_floor: float | None = None  # log amplitude floor; None: FLOOR_LEVEL·min grid σ (:func:`log_amp_floor`)
     observed: Tensor | None = None  # (J, N) bool, shots measurable at the flake (None: all)
     grid_valid: Tensor | None = None  # (G, N) measurable fraction of each cell per shot (None: all)
+    # log of the brightest peak amplitude a glint can have without clipping (channel-mean reflectance units),
+    # per flake and shot (J, N), and its mean and spread over each cell's measurable pixels (G, N); None: no clipping
+    headroom: Tensor | None = None
+    grid_headroom: Tensor | None = None
+    grid_headroom_sd: Tensor | None = None
 
 
 def nearest_shots(half: Tensor, first: Tensor, k: int, prefer: Tensor | None = None) -> Tensor:

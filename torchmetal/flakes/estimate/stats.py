@@ -34,7 +34,7 @@ from torchmetal.flakes.estimate.glint_model import GlintData, GlintFit, log_amp_
 from torchmetal.flakes.estimate.likelihood import objective
 from torchmetal.flakes.estimate.shape_colour import fit_colour, fit_shapes
 from torchmetal.flakes.estimate.shot_geometry import Geometry
-from torchmetal.flakes.estimate.visibility import cell_grid
+from torchmetal.flakes.estimate.visibility import cell_grid, cell_headroom
 from torchmetal.flakes.model import MAX_DENSITY, MIN_CELL, FlakeModel
 from torchmetal.flakes.model.field import mean_peak_weight
 
@@ -51,7 +51,7 @@ class _Degenerate(Exception):
     """Raised inside the L-BFGS loop to stop a likelihood running off to a degenerate point."""
 
 
-_PER_FLAKE = ("half", "normal", "anchor", "amp", "detected", "sigma", "observed")
+_PER_FLAKE = ("half", "normal", "anchor", "amp", "detected", "sigma", "observed", "headroom")
 
 
 def _recast(d: GlintData, index: Tensor | None, dtype: torch.dtype, *, flakes: bool, grid: bool) -> GlintData:
@@ -370,11 +370,16 @@ def _glint_data(det: Detection, geometry: Geometry, obs: FlakeObservations, coun
                 ok: Tensor) -> GlintData:
     """The likelihood's data: the observed flakes (float64) and the shots' grid of cells."""
     g_half, g_normal, g_sigma, g_area, g_valid = cell_grid(det, geometry, max_cells, ok)
+    head = {}
+    cells = cell_headroom(det, max_cells, ok)
+    if cells is not None:  # clipped glints are never measured: the likelihood needs where they clip
+        head = {"headroom": torch.log(det.headroom[:, 0, obs.row, obs.col].t().double()),
+                "grid_headroom": cells[0], "grid_headroom_sd": cells[1]}
     return GlintData(
         half=obs.half.double(), normal=obs.normal.double(), anchor=obs.anchor, amp=obs.amp.double(),
         detected=obs.detected, sigma=obs.sigma.double(), grid_half=g_half, grid_normal=g_normal,
         grid_sigma=g_sigma, grid_area=g_area, k_hi=det.k_hi, count=count, observed=obs.observed,
-        grid_valid=g_valid,
+        grid_valid=g_valid, **head,
     )
 
 

@@ -22,12 +22,14 @@ from torch import Tensor
 
 from torchmetal.flakes.estimate.detect import Detection
 from torchmetal.flakes.estimate.glint_model import (
+    HEADROOM_SPREAD,
     LOG2PI,
     PROBIT,
     GlintData,
     cap_radius,
     log_amp_floor,
     log_slope_from,
+    log_unclipped,
     memo,
     nearest_shots,
     orthonormal_pair,
@@ -69,7 +71,7 @@ def log_p_any(
     fraction in shot k (``grid_valid``): no detection can come from a saturated region.
     """
     g, n = d.grid_sigma.shape
-    qa, phi, (x_in, w_in), (x_bd, w_bd), lsig, proj, to_near, s_near, v_near = memo(
+    qa, phi, (x_in, w_in), (x_bd, w_bd), lsig, proj, to_near, s_near, v_near, u_near = memo(
         d, ("p_any", n_a, n_in, n_band, n_phi), lambda: _p_any_constants(d, n_a, n_in, n_band, n_phi))
     level_lo = max(0.5, d.k_hi - margin)
     log_floor = log_amp_floor(d)
@@ -82,8 +84,14 @@ def log_p_any(
 
     u_lo = ucap(d.k_hi + margin)
     u_hi = ucap(level_lo)
-    uu = torch.cat([u_lo.unsqueeze(-1) * x_in, u_lo.unsqueeze(-1) + (u_hi - u_lo).unsqueeze(-1) * x_bd], -1)
-    wu = torch.cat([u_lo.unsqueeze(-1) * w_in, (u_hi - u_lo).unsqueeze(-1) * w_bd], -1)  # (G, nA, N, nR)
+    edge = [u_lo.unsqueeze(-1) + (u_hi - u_lo).unsqueeze(-1) * x_bd], [(u_hi - u_lo).unsqueeze(-1) * w_bd]
+    if u_near is None:
+        uu = torch.cat([u_lo.unsqueeze(-1) * x_in, *edge[0]], -1)
+        wu = torch.cat([u_lo.unsqueeze(-1) * w_in, *edge[1]], -1)  # (G, nA, N, nR)
+    else:  # the interior split where the glint stops clipping (A·g = the cell's headroom): a step the nodes must see
+        u_c = torch.minimum((sg * sg * (log_a.unsqueeze(-1) - d.grid_headroom.to(u_lo.dtype).view(g, 1, n))).clamp_min(0.0), u_lo)
+        uu = torch.cat([u_c.unsqueeze(-1) * x_in, u_c.unsqueeze(-1) + (u_lo - u_c).unsqueeze(-1) * x_in, *edge[0]], -1)
+        wu = torch.cat([u_c.unsqueeze(-1) * w_in, (u_lo - u_c).unsqueeze(-1) * w_in, *edge[1]], -1)
     uu = uu.clamp_min(1e-9)
     # nodes m = cos β·h_k + sin β·(cos φ e1_k + sin φ e2_k), (G, nA, N, nR, nφ), handled through
     # their projections m·v = cos β·(h_k·v) + sin β·(cos φ e1_k·v + sin φ e2_k·v)
@@ -96,7 +104,7 @@ def log_p_any(
         return cosb * proj[:, :, 0, b].view(g, 1, n, 1, 1) + sinb * rv.view(g, 1, n, 1, -1)
 
     logp = log_slope_from(dot_m(0), dot_m(1), dot_m(2), tau)
-    share = _union_share(d, sg, log_a, level_lo, cosb, sinb, cphi, sphi, to_near, s_near, v_near)
+    share = _union_share(d, sg, log_a, level_lo, cosb, sinb, cphi, sphi, to_near, s_near, v_near, u_near)
     wts = (wu * (2 * math.pi / n_phi)).unsqueeze(-1)
     val = (torch.exp(logp) * share * wts).sum((2, 3, 4))  # (G, nA)
     return torch.logsumexp(torch.log(val.double().clamp_min(1e-300)) + log_wa, 1)
@@ -118,8 +126,12 @@ def _p_any_constants(d: GlintData, n_a: int, n_in: int, n_band: int, n_phi: int)
     to_near = torch.einsum("gnac,gnkc->gnak", basis, h_near)  # (G, N, 3, N) onto the nearest shots' h
     s_near = d.grid_sigma.gather(1, order.flatten(1)).view(g, n, n)
     v_near = None if d.grid_valid is None else d.grid_valid.to(dt).gather(1, order.flatten(1)).view(g, n, n)
+    u_near = None  # the headroom's mean and spread (log) over the cell, of the nearest shots
+    if d.grid_headroom is not None:
+        spread = torch.sqrt(d.grid_headroom_sd.to(dt) ** 2 + HEADROOM_SPREAD**2)
+        u_near = (d.grid_headroom.to(dt).gather(1, order.flatten(1)).view(g, n, n), spread.gather(1, order.flatten(1)).view(g, n, n))
     return (qa, phi, _gauss_legendre(n_in, dt, dev), _gauss_legendre(n_band, dt, dev),
-            torch.log(d.grid_sigma).view(g, 1, n), proj, to_near, s_near, v_near)
+            torch.log(d.grid_sigma).view(g, 1, n), proj, to_near, s_near, v_near, u_near)
 
 
 def _amplitude_band(d: GlintData, lsig: Tensor, level_lo: float, log_floor: float, n_a_band: int,
@@ -144,9 +156,11 @@ def _amplitude_nodes(d: GlintData, la: Tensor, va: Tensor, lab: Tensor, log_widt
 
 
 def _union_share(d: GlintData, sg: Tensor, log_a: Tensor, level_lo: float, cosb: Tensor, sinb: Tensor, cphi: Tensor,
-                 sphi: Tensor, to_near: Tensor, s_near: Tensor, v_near: Tensor | None) -> Tensor:
+                 sphi: Tensor, to_near: Tensor, s_near: Tensor, v_near: Tensor | None,
+                 u_near: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """Cap k's share P_k · P_any / Σ_j P_j of the union at its nodes (G, nA, N, nR, nφ) (partition of unity
-    over the shots whose caps may overlap it)."""
+    over the shots whose caps may overlap it). With a headroom (``u_near``: its log mean and spread over the
+    cell), P_k holds only the glints that do not clip (a clipped one is never measured)."""
     g, n = d.grid_sigma.shape
     # shots whose caps may overlap cap k (own shot first): caps farther apart never meet
     beta = cap_radius(sg, float(log_a.max().detach()), float(d.grid_sigma.min()), level_lo)
@@ -155,9 +169,13 @@ def _union_share(d: GlintData, sg: Tensor, log_a: Tensor, level_lo: float, cosb:
     sn = s_near[..., :kk]  # (G, N, K)
     rh = cphi.view(-1, 1) * tn[:, :, 1].unsqueeze(2) + sphi.view(-1, 1) * tn[:, :, 2].unsqueeze(2)  # (G, N, nφ, K)
     mh = cosb.unsqueeze(-1) * tn[:, :, 0].view(g, 1, n, 1, 1, -1) + sinb.unsqueeze(-1) * rh.view(g, 1, n, 1, -1, kk)  # (G, nA, N, nR, nφ, K)
-    a_over_s = torch.exp(log_a.view(g, -1, 1, 1, 1, 1) - (1 - mh) / (sg * sg)) / sn.view(g, 1, n, 1, 1, -1)
+    log_glint = log_a.view(g, -1, 1, 1, 1, 1) - (1 - mh) / (sg * sg)
+    a_over_s = torch.exp(log_glint) / sn.view(g, 1, n, 1, 1, -1)
     zk = PROBIT * (a_over_s - d.k_hi)
     pk = torch.sigmoid(zk)
+    if u_near is not None:
+        um, us = (x[..., :kk].view(g, 1, n, 1, 1, kk) for x in u_near)
+        pk = pk * torch.exp(log_unclipped(log_glint, um, us))
     if v_near is not None:  # a flake can only be detected where its shot is measurable
         pk = pk * v_near[..., :kk].view(g, 1, n, 1, 1, kk)
     any_ = 1.0 - (1.0 - pk).prod(-1)
@@ -177,3 +195,19 @@ def cell_grid(det: Detection, geometry: Geometry, max_cells: int, ok: Tensor) ->
     area = torch.full((gh * gw,), h * w / (gh * gw), dtype=torch.float64, device=det.sigma.device)
     half, normal = geometry.on_grid(gh, gw)
     return half, normal, torch.exp(lsig).flatten(1).t(), area, valid.flatten(1).t()
+
+
+def cell_headroom(det: Detection, max_cells: int, ok: Tensor) -> tuple[Tensor, Tensor] | None:
+    """Mean and spread (G, N) of the log headroom (:attr:`Detection.headroom`) over each cell's measurable pixels
+    (``ok`` (N, H, W)), on :func:`cell_grid`'s cells; None without a headroom."""
+    if det.headroom is None:
+        return None
+    n, _, h, w = det.headroom.shape
+    side = max(1, int(math.sqrt(max_cells)))
+    gh, gw = min(side, h), min(side, w)
+    lu = torch.log(det.headroom.double())
+    wt = ok.unsqueeze(1).double()
+    cnt = F.adaptive_avg_pool2d(wt, (gh, gw)).clamp_min(1e-12)
+    mean = F.adaptive_avg_pool2d(lu * wt, (gh, gw)) / cnt
+    var = (F.adaptive_avg_pool2d(lu * lu * wt, (gh, gw)) / cnt - mean * mean).clamp_min(0.0)
+    return mean.flatten(1).t().contiguous(), torch.sqrt(var).flatten(1).t().contiguous()
