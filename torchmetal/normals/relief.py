@@ -18,7 +18,7 @@ sees and does not carry to others. The relief keeps what is the surface's:
 Measured on the shared embossed gold paper (yellow_box, three leave-one-out folds, flat vs relief in this
 model, full-resolution renders of the left-out shot): PSNR 17.54 → 17.95 dB, chroma-artifact share 15.0 →
 8.4 %; a free (not high-passed) 6 × 6 tilt field instead lost 3.2 dB; σ of 6 cells lost 0.9 dB against 1.5.
-Whether a capture takes it is decided on left-out shots (:func:`~torchmetal.normals.choice.choose_relief`).
+Whether a capture takes it is decided on left-out shots (:data:`torchmetal.select.choices.RELIEF`).
 """
 
 from __future__ import annotations
