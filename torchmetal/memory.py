@@ -4,7 +4,7 @@ glibc serves allocations below its (dynamic, up to 32 MiB) mmap threshold from t
 what is freed there for reuse: after a stage's temporaries are gone, the process still holds
 their pages, and the next stage's peak sits on top of them. ``malloc_trim(0)`` returns every free
 page; the pages the next stage allocates are then faulted in again, which on a small capture costs
-more than the memory is worth (docs/design.md §6). So it runs only for a large capture
+more than the memory is worth (docs/measurements.md). So it runs only for a large capture
 (:func:`is_large`), twice: after loading and after the full-resolution LM. Elsewhere (macOS,
 Windows, musl) this is a no-op.
 

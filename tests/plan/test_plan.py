@@ -1,4 +1,4 @@
-"""torchmetal plan: plan.json per shared DESIGN §2.5, K shots best first, the figure, one-line errors."""
+"""torchmetal plan: plan.json per docs/design.md §2.5, K shots best first, the figure, one-line errors."""
 
 from __future__ import annotations
 

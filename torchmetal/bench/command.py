@@ -237,7 +237,7 @@ def inproc_main(capture_dir: str, out_json: str) -> int:
     and their peak memory above the start.
 
     The warm-up fit pages in the code the fit runs: torch's kernels are file-backed pages of its
-    libraries, counted in the RSS the first time they run (docs/design.md §6) — code shared with
+    libraries, counted in the RSS the first time they run (docs/measurements.md) — code shared with
     every process, not the fit's data; a user fitting twice pays it once.
     """
     import gc

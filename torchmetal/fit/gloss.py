@@ -261,7 +261,7 @@ def choose_maps(
     terms, as in :func:`~torchmetal.fit.clusters.fit_clustered`).
 
     Decided early when the maps lose: after :data:`EARLY_ITERS` LM iterations, maps whose held-out
-    MSE is not below the base's are not kept and not fitted further (docs/design.md §6, gloss maps'
+    MSE is not below the base's are not kept and not fitted further (docs/measurements.md, gloss maps'
     early stop: a trial that loses there has stayed worse to convergence on every zoo scene)."""
     n = int(capture.images.shape[0])
     obs = build_observations(capture, stride=stride, shots=[i for i in range(n) if i != hold], dtype=dtype, chunk=chunk,

@@ -58,7 +58,7 @@ def render_shots(fit: FitResult, capture: Capture, *, chunk: int = 4) -> torch.T
 def without_glints(capture, labels: torch.Tensor):
     """The capture with every detected observation (a detection grown by 1 px, in the shot where it was
     detected) left out of the fit, as a saturated one is; the pixel's other shots still count (masking the
-    pixel in every shot takes a foil out of its own specular fit: docs/design.md §6)."""
+    pixel in every shot takes a foil out of its own specular fit: docs/measurements.md)."""
     hit = grown_detections(labels)
     sat = capture.saturated if capture.saturated is not None else torch.zeros_like(capture.images, dtype=torch.bool)
     return replace(capture, saturated=sat | hit)

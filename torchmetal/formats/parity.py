@@ -35,7 +35,7 @@ shader:
 What three.js does differently from the glTF BRDF as torchmetal evaluates it (measured by
 ``psnr_client``): its Schlick Fresnel is the spherical-Gaussian approximation
 2^((−5.55473·v·h − 6.98316)·v·h) of (1 − v·h)^5 (+9 % at v·h = 0.5; its effect on a grazing shot:
-docs/design.md §6); it adds multiple-scattering energy compensation (1 + F0·(1/E_ss − 1), small for
+docs/measurements.md); it adds multiple-scattering energy compensation (1 + F0·(1/E_ss − 1), small for
 dielectric F0); it mixes the diffuse with (1 − F) per channel (torchmetal: 1 − max_c F); its clear
 coat's Fresnel uses n·v, not v·h; roughness is clamped to ≥ 0.045; textures are 8-bit PNGs (sRGB
 base colour, linear roughness/normal/specular maps).

@@ -77,7 +77,7 @@ class Capture:
         color_space: encoding of the source files ("srgb" or "linear"); ``images`` are always
             linear.
         normals_given: True when the capture came with its own normal map (normals.npy, or ``normals``
-            passed in), flat or not: the fit keeps it (shared DESIGN 2.5); False for the default (0, 0, 1).
+            passed in), flat or not: the fit keeps it (docs/design.md §2.5); False for the default (0, 0, 1).
 
     Built in Python, the missing optional fields get their defaults and everything is checked
     (:meth:`validate`); a bad field raises :class:`CaptureError`.

@@ -3,7 +3,7 @@ every shot (the flash).
 
 A phone capture's light positions come from its marker board and a guess of where the flash sits beside
 the lens; on the shared gold paper they put the flash's mirror point 1.7–3.1 cm away from the photo's
-hotspot (docs/design.md §6), and a fit then explains the hotspot with a broad lobe that veils the whole
+hotspot (docs/measurements.md), and a fit then explains the hotspot with a broad lobe that veils the whole
 sample. Here each point light gets an offset (x, y, z) in the capture's units, fitted to the shot's photo
 with the material held fixed: a Levenberg–Marquardt step per shot on the squared error over its valid
 observations, the Jacobian by central differences (three numbers per shot, independent across shots).

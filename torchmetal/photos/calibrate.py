@@ -113,7 +113,7 @@ def calibrate(views: list[tuple[np.ndarray, np.ndarray]], image_size: tuple[int,
 
 def project(points: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, intr: Intrinsics) -> np.ndarray:
     """Board points (n, 3) mm → (n, 2) float64 pixels (with distortion): OpenCV's model
-    (``cv2.projectPoints``, slower on large grids: docs/design.md §6), written out column by column."""
+    (``cv2.projectPoints``, slower on large grids: docs/measurements.md), written out column by column."""
     r = _rotation(rvec)
     t = np.asarray(tvec, np.float64).ravel()
     p = np.asarray(points, np.float64).reshape(-1, 3)

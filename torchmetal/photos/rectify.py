@@ -115,7 +115,7 @@ def _ring_points(board: Board, step: float = 0.5) -> np.ndarray:
 
 def _block_mean(a: np.ndarray, ss: int) -> np.ndarray:
     """(h·ss, w·ss[, C]) float32 → (h, w[, C]): the mean of each ss × ss block (OpenCV's integer-factor
-    area reduction, faster than numpy's strided mean: docs/design.md §6; equal to it to float32 rounding)."""
+    area reduction, faster than numpy's strided mean: docs/measurements.md; equal to it to float32 rounding)."""
     import cv2
 
     if ss == 1:

@@ -1,4 +1,4 @@
-"""``torchmetal plan CAPTURE_OR_MATERIAL [-n K] -o DIR`` (shared DESIGN §2.5): the next K photos to take.
+"""``torchmetal plan CAPTURE_OR_MATERIAL [-n K] -o DIR`` (docs/design.md §2.5): the next K photos to take.
 
 Imports only argparse at the top (``--help`` stays instant); the verb's function does the heavy imports.
 """

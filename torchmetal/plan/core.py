@@ -131,7 +131,7 @@ class Plan:
     intensities: Tensor | None = None
 
     def to_json(self) -> dict:
-        """DIR/plan.json's content, exactly shared DESIGN §2.5's: {"shots": [{"light": [x, y, z, 1], "camera": […]}]}."""
+        """DIR/plan.json's content, exactly docs/design.md §2.5's: {"shots": [{"light": [x, y, z, 1], "camera": […]}]}."""
         return {"shots": [{"light": [round(float(v), 6) for v in lt[:3]] + [1.0],
                            "camera": [round(float(v), 6) for v in cm[:3]] + [1.0]}
                           for lt, cm in zip(self.lights.tolist(), self.cameras.tolist())]}

@@ -76,7 +76,7 @@ def full_scenes() -> list[Scene]:
 
 def ci_scenes(size: int = 128) -> list[Scene]:
     """The zoo at CI size: same scenes, smaller images — except the flake scenes, which keep their full
-    256² (smaller, too few flakes glint to estimate their density: docs/design.md §6)."""
+    256² (smaller, too few flakes glint to estimate their density: docs/measurements.md)."""
     out = []
     for sc in SCENES.values():
         n = _CI_SIZE.get(sc.name, sc.size if sc.flakes is not None else size)
