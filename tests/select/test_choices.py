@@ -65,6 +65,22 @@ def test_given_normals_and_too_few_shots_are_not_tested(bumpy):
     assert d.chosen == "flat" and not d.holds and not d.mse and not d.pixels and "needs >= 4 shots" in d.reason
 
 
+def test_a_flat_normal_map_is_kept_by_auto(flat, tmp_path):
+    """A capture's own normals.npy is kept, flat or not (docs/design.md §2.5): it is not tested against a relief."""
+    from torchmetal.io.capture import load_capture
+    from torchmetal.io.capture_save import save_capture
+    from torchmetal.pipeline import fit_material
+
+    given = replace(flat, normals=flat.normals.clone(), normals_given=True)  # replace() keeps the flag unless told
+    assert given.normals_given and not flat.normals_given and given.flat
+    save_capture(given, tmp_path / "cap")
+    assert (tmp_path / "cap" / "normals.npy").is_file()
+    loaded = load_capture(tmp_path / "cap")
+    assert loaded.normals_given and loaded.subset([0, 1]).normals_given and loaded.downsampled(2).normals_given
+    rep = fit_material(loaded.subset(list(range(5))), flakes="off", light="off", clipping="channel").report
+    assert rep["normals"]["chosen"] == "given" and [d["name"] for d in rep["decisions"]].count("relief") == 0
+
+
 @pytest.mark.parametrize("n", [4, 5])
 def test_every_fold_leaves_three_shots(bumpy, n):
     d = choose(NORMALS, replace(bumpy, normals=None).subset(list(range(n))))

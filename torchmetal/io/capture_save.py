@@ -74,7 +74,7 @@ def write_capture_files(
         "color_space": cs,
         "surface": {"width": float(capture.size[0]), "height": float(capture.size[1])},
     }
-    if not capture.flat:
+    if capture.normals_given or not capture.flat:  # a given map is kept, flat or not
         np.save(root / "normals.npy", _hwc(capture.normals.float()), allow_pickle=False)
         meta["normals"] = "normals.npy"
     if not bool(capture.mask.all()):
@@ -135,7 +135,7 @@ def save_capture(
             it was loaded with reproduces its values exactly).
 
     Writes capture.json, images/<stem>.png|.npy (source stems kept when safe and unique, else
-    NNN), normals.npy when not flat, mask.png when not all True, saturated.npy when the
+    NNN), normals.npy when given or not flat, mask.png when not all True, saturated.npy when the
     clipping flags can't be recovered from the image values. An existing capture at ``path`` is
     replaced in one rename; a directory holding anything else is refused.
     """

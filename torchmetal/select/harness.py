@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Callable
 import torch
 from torch import Tensor
 
+from torchmetal.fit.holdout import valid_mean_square, valid_pixels
 from torchmetal.select.plan import shot_groups
 from torchmetal.select.rule import MIN_GAIN_ABS, Z_MIN, Decision, paired_choice
 
@@ -180,28 +181,21 @@ def _paired(choice: Choice, errors: dict[str, list[Tensor]], rule: dict, grid: C
     """The paired rule on the groups' errors so far, over the observations every candidate saw."""
     cat = {c: torch.cat(e) for c, e in errors.items()}
     seen = ~torch.isnan(torch.stack(list(cat.values()))).any(0)
-    floor = choice.floor * _mean_square(grid) if choice.floor else 0.0
+    floor = choice.floor * valid_mean_square(grid) if choice.floor else 0.0
     return paired_choice(choice.name, {c: e[seen] for c, e in cat.items()}, choice.reference,
                          **{"floor": floor, **rule})
 
 
-def _mean_square(capture: Capture) -> float:
-    """Mean square of the capture's valid observations (the held-out signal's scale)."""
-    v = capture.mask.bool().unsqueeze(0).expand_as(capture.images) & ~capture.saturated
-    return float(capture.images.double()[v].square().mean()) if bool(v.any()) else 0.0
-
-
 def observation_errors(pred: Tensor, hold: Capture) -> Tensor:
     """(M,) float64 squared errors on ``hold``'s valid observations (shot-major): per-observation pairing."""
-    v = hold.mask.bool().unsqueeze(0).expand_as(hold.images) & ~hold.saturated
-    return (pred - hold.images).double().square()[v]
+    return (pred - hold.images).double().square()[valid_pixels(hold)]
 
 
 def pixel_errors(pred: Tensor, hold: Capture) -> Tensor:
     """(P,) float64: per mask pixel, the median over ``hold``'s valid observations (shots × channels) of the
     squared error; NaN where the pixel has none. The median, not the mean: a surface's shape or a light's
     place shows in every shot of a pixel, a glint in one (docs/design.md §4)."""
-    v = hold.mask.bool().unsqueeze(0).expand_as(hold.images) & ~hold.saturated
+    v = valid_pixels(hold)
     sq = torch.where(v, (pred - hold.images).double() ** 2, torch.full_like(pred, math.nan, dtype=torch.float64))
     inside = hold.mask.reshape(-1).bool()
     return sq.permute(1, 0, 2, 3).reshape(-1, sq.shape[-2] * sq.shape[-1])[:, inside].nanmedian(0).values
