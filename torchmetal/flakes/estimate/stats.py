@@ -47,6 +47,12 @@ DEGENERATE_DENSITY = 1.0  # flakes per pixel: a best point that needs more is de
 DEGENERATE_AFTER = 6  # … once this many evaluations have run (the start may be far off)
 
 
+#: model clipped glints in the likelihood (Detection.headroom). Off: it fixes the colour of bright flakes (zoo area-4
+#: scenes ×0.75-0.84 → 0.89-1.10) but doubles the density on flakes_orange (0.83 → 1.61) and on the real cards_blue
+#: (0.0104 → 0.025/px, glint σ unidentified): docs/measurements.md, issue 41 item 7
+MODEL_CLIPS = False
+
+
 class _Degenerate(Exception):
     """Raised inside the L-BFGS loop to stop a likelihood running off to a degenerate point."""
 
@@ -371,7 +377,7 @@ def _glint_data(det: Detection, geometry: Geometry, obs: FlakeObservations, coun
     """The likelihood's data: the observed flakes (float64) and the shots' grid of cells."""
     g_half, g_normal, g_sigma, g_area, g_valid = cell_grid(det, geometry, max_cells, ok)
     head = {}
-    cells = cell_headroom(det, max_cells, ok)
+    cells = cell_headroom(det, max_cells, ok) if MODEL_CLIPS else None
     if cells is not None:  # clipped glints are never measured: the likelihood needs where they clip
         head = {"headroom": torch.log(det.headroom[:, 0, obs.row, obs.col].t().double()),
                 "grid_headroom": cells[0], "grid_headroom_sd": cells[1]}
