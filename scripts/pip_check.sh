@@ -76,6 +76,7 @@ step "torchmetal --help"        "$V/bin/torchmetal" --help
 step "no scipy installed"       no_scipy
 step "synth"                    "$V/bin/torchmetal" synth -o cap --flakes --size 96 --shots 8
 step "fit"                      "$V/bin/torchmetal" fit cap -o mat -q
+step "plan"                     "$V/bin/torchmetal" plan cap -n 2 -o plan
 step "export onnx"              "$V/bin/torchmetal" export mat -o renderer.onnx
 step "export gltf"              "$V/bin/torchmetal" export mat --format gltf -o gltf/material.gltf
 step "export glb"               "$V/bin/torchmetal" export mat --format glb -o material.glb
