@@ -32,7 +32,7 @@ from torchmetal.io.grid import strided_capture
 from torchmetal.lightcal.estimate import calibrate_positions
 from torchmetal.normals.estimate import estimate_normals
 from torchmetal.normals.relief import RES, factor_for, fit_normals, fit_relief
-from torchmetal.select.harness import Choice, Context, Screen, decide, kept, observation_errors, pixel_errors
+from torchmetal.select.harness import Choice, Context, decide, observation_errors, pixel_errors
 from torchmetal.select.rule import Decision
 from torchmetal.select.screens import clipping_screen, light_screen, tilt_screen
 
@@ -195,5 +195,5 @@ def choose(choice: Choice, capture: Capture, *, fit_kwargs: dict | None = None, 
     ctx.chosen.update(chosen or {})
     return decide(choice, capture, ctx)
 
-__all__ = ["CLIPPING", "LIGHT", "NORMALS", "PREFIT", "RELIEF", "Context", "Screen", "choose", "kept", "model_of",
+__all__ = ["CLIPPING", "DEFAULT_FIT", "LIGHT", "NORMALS", "PREFIT", "RELIEF", "Context", "choose", "model_of",
            "reference_context"]
