@@ -24,7 +24,7 @@ from torchmetal.lightcal import LightCalibration, with_light
 from torchmetal.material import Material
 from torchmetal.normals import with_normals
 from torchmetal.select.choices import CLIPPING, LIGHT, NORMALS, RELIEF, reference_context
-from torchmetal.select.harness import decide
+from torchmetal.select.harness import Context, decide
 from torchmetal.select.plan import ShotPlan
 from torchmetal.select.rule import Decision
 
@@ -106,6 +106,7 @@ class State:
     """What the stages have made so far."""
 
     opts: FitConfig
+    ctx: Context | None = None  # the selection's context (its reference fit and the model's fits)
     clipping_report: dict | None = None
     normals_report: dict | None = None
     light: LightCalibration = field(default_factory=LightCalibration)
@@ -133,7 +134,9 @@ def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
     light, each as its option says or, "auto", decided on left-out shots with the model a reference fit chose."""
     o = st.opts
     t = time.perf_counter()
-    ctx = reference_context(capture, {**o.fit_kwargs(), "lobe": o.choices.lobe, "progress": False})  # fitted on first use
+    # the reference fit, made on first use, has the first Phong fit's options: on a capture small enough to be its
+    # own grid, and left unchanged by the choices, it is the first Phong fit (stage_phong)
+    st.ctx = ctx = reference_context(capture, {**o.fit_kwargs(), "lobe": o.choices.lobe, "robust": None})
 
     def auto(choice, cap):
         was = ctx.resolved
@@ -179,12 +182,17 @@ def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
 
 
 def stage_phong(capture: Capture, st: State) -> tuple[Capture, State]:
-    """The first Phong fit (lobe, specular structure: chosen on left-out shots)."""
+    """The first Phong fit (lobe, specular structure: chosen on left-out shots); the reference fit where that was
+    this very capture with the same options."""
     o = st.opts
-    st.first = st.fit = fit_phong(capture, robust=None if o.solver.robust in ("auto", "none") else o.solver.robust,
-                                  lobe=o.choices.lobe, **o.fit_kwargs())
+    robust = None if o.solver.robust in ("auto", "none") else o.solver.robust
+    same = st.ctx.reference_fit(capture) if st.ctx is not None and robust is None else None
+    st.first = st.fit = same if same is not None else fit_phong(capture, robust=robust, lobe=o.choices.lobe, **o.fit_kwargs())
     st.stage_times.update({f"phong.{k}": v for k, v in st.first.stage_times.items()})
     st.skipped = list(st.first.skipped)
+    if same is not None:  # its time is the Phong fit's, not the choices'
+        st.stage_times["choices"] -= st.stage_times.pop("choices.reference", 0.0)
+        st.skipped.append("phong: not fitted again: the selection's reference fit was this capture with these options")
     return capture, st
 
 

@@ -9,13 +9,15 @@ two-material sample misfits, and estimated normals, a relief or a moved light th
 ============ ============================= ================ ============================================
 choice       candidates (reference first)  error (paired)   screen (skips the test)
 ============ ============================= ================ ============================================
-clipping     channel, pixel                per observation  their other channels hold < 0.5 % of the residual
-normals      flat, estimate                per-pixel median the residual follows no tilt (tilt_screen)
-relief       flat, relief                  per-pixel median as normals, on its downsampled grid
-light        off, flash                    per-pixel median moving every light gains < 0.5 % in-sample
+clipping     channel, pixel                block mean       their other channels hold < 0.5 % of the residual
+normals      flat, estimate                pixel median     the residual follows no tilt (tilt_screen)
+relief       flat, relief                  pixel median     as normals, on its downsampled grid
+light        off, flash                    pixel median     moving every light gains < 0.5 % in-sample
 ============ ============================= ================ ============================================
 
-A capture's own normal map is kept untested, flat or not. Adding a choice: declare a :class:`Choice` here
+Errors pair up per block of pixels (:func:`~torchmetal.select.harness.block_means`: the mean over a block's
+observations, or over its pixels' medians): a misfit is spatially correlated, and per observation the rule's z
+overstated it. A capture's own normal map is kept untested, flat or not. Adding a choice: declare a :class:`Choice` here
 and add it to :data:`PREFIT`.
 """
 
@@ -63,7 +65,14 @@ def reference_context(capture: Capture, fit_kwargs: dict) -> Context:
     (``fit_kwargs``: the fit's own options, ``lobe``/``weights`` "auto" where the final fit chooses them),
     made on first use."""
     keep = {k: fit_kwargs[k] for k in ("scheme", "tol", "max_iters") if k in fit_kwargs}
-    return Context(reference=lambda: {**keep, **model_of(fit_phong(strided_capture(capture, REFERENCE_PIXELS), **fit_kwargs))})
+
+    def reference(ctx: Context) -> dict:
+        grid = strided_capture(capture, REFERENCE_PIXELS)
+        fit = fit_phong(grid, **fit_kwargs)
+        ctx.keep(grid, fit, reference=True)
+        return {**keep, **model_of(fit)}
+
+    return Context(reference=reference)
 
 
 def _fit(train: Capture, ctx: Context):
@@ -75,8 +84,8 @@ def _render(fit):
 
 
 def _reference_screen(screen):
-    """A screen of the reference model fitted on the whole grid."""
-    return lambda grid, ctx: screen(_fit(grid, ctx), grid)
+    """A screen of the reference model fitted on the whole grid (the reference fit itself where the grid is its)."""
+    return lambda grid, ctx: screen(ctx.fit(grid, fit_phong), grid)
 
 
 # ----------------------------------------------------------------------------- clipping
@@ -135,8 +144,8 @@ def _relief_fit(train: Capture, candidate: str, ctx: Context):
 
 
 def _typical(d: Decision, errors: dict) -> None:
-    """A relief that wins must also lower the typical pixel's error (the median of the per-pixel relative
-    changes): an embossing shows in every pixel of it, a flake's glint in a few (docs/design.md §4)."""
+    """A relief that wins must also lower the typical block's error (the median of the per-block relative
+    changes): an embossing shows everywhere, a flake's glint in a few places (docs/design.md §4)."""
     if d.chosen != "relief":
         return
     flat, alt = torch.cat(errors["flat"]), torch.cat(errors["relief"])
@@ -145,10 +154,10 @@ def _typical(d: Decision, errors: dict) -> None:
     better = float((alt[seen] < flat[seen]).double().mean()) if bool(seen.any()) else 0.0
     if change >= 0.0:
         d.chosen = "flat"
-        d.reason += (f"; but the typical pixel's error does not fall (median change {100 * change:+.1f} %, better on "
-                     f"{100 * better:.0f} % of pixels: a few pixels' gain, glints, not a relief): flat kept")
+        d.reason += (f"; but the typical block's error does not fall (median change {100 * change:+.1f} %, better on "
+                     f"{100 * better:.0f} % of blocks: a few places' gain, glints, not a relief): flat kept")
     else:
-        d.reason += f"; the typical pixel's error falls too (median change {100 * change:+.1f} %, better on {100 * better:.0f} % of pixels)"
+        d.reason += f"; the typical block's error falls too (median change {100 * change:+.1f} %, better on {100 * better:.0f} % of blocks)"
 
 
 RELIEF = Choice(
