@@ -105,7 +105,7 @@ def test_the_test_stops_once_every_extension_is_worse_beyond_noise(flat, monkeyp
 def test_relief_of_an_embossed_sample_and_not_of_a_flat_one(flat):
     cap, _ = _embossed(5)
     d = choose(RELIEF, cap)
-    assert d.chosen == "relief" and d.z["relief"] > 4 and "typical block" in d.reason, d.reason
+    assert d.chosen == "relief" and d.z["relief"] > 4 and "typical pixel" in d.reason, d.reason
     d = choose(RELIEF, flat)
     assert d.chosen == "flat", d.reason
     out, rep = with_normals(cap, "relief")

@@ -72,8 +72,9 @@ def test_error_measures():
     big = synth_capture(size=64, shots=2, seed=0, noise=0.0).capture
     e = observation_errors(big.images + 0.1, big)
     assert e.shape == (16 * 16,) and torch.allclose(e, torch.full_like(e, 0.01))  # 4 × 4 pixel blocks
-    p = pixel_errors(pred, hold)
+    p = pixel_errors(pred, hold)  # per mask pixel
     assert p.shape == (256,) and torch.allclose(p, torch.full_like(p, 0.01))
+    assert pixel_errors(big.images + 0.1, big).shape == (64 * 64,)
     sat = hold.saturated.clone()
     sat[:, :, 0, 0] = True
     from dataclasses import replace
