@@ -181,8 +181,8 @@ def test_nothing_partly_clipped_is_not_tested():
 
 def test_the_shared_card_tests_its_clipping():
     """cards_blue (phone photos, 1 % of observations partly clipped): their other channels hold enough of the
-    residual for the test to run; paired per block its per-pixel reading's 1 % lower held-out error is not beyond
-    noise (z ~2; per observation it had been z ~10, and pixel was taken: docs/measurements.md)."""
+    residual for the test to run, and it is recorded with both candidates' held-out errors (docs/measurements.md
+    has its outcome under each pairing)."""
     from torchmetal.io.capture import load_capture
     from torchmetal.io.shared_data import shared_capture, shared_data_dir
 
@@ -191,7 +191,7 @@ def test_the_shared_card_tests_its_clipping():
         pytest.skip(f"shared real capture cards_blue not found under {shared_data_dir()} (set TORCHMETAL_SHARED_DATA)")
     d = choose(CLIPPING, load_capture(path))
     assert d.scores["screen"]["run"] and set(d.mse) == {"channel", "pixel"}, d.reason
-    assert d.chosen == "channel" and d.z["pixel"] < 4, d.reason
+    assert d.chosen in ("channel", "pixel") and (d.chosen == "pixel") == (d.z["pixel"] > 4), d.reason
 
 
 # ----------------------------------------------------------------------------- light

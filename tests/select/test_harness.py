@@ -67,14 +67,14 @@ def test_the_prefit_choices_are_declared_in_order():
 def test_error_measures():
     hold = CAP.subset([0, 1])
     pred = hold.images + 0.1
-    e = observation_errors(pred, hold)  # 16² pixels: blocks of one pixel (a side of 1/16 of the grid)
+    e = observation_errors(pred, hold)  # 16² pixels: blocks of one pixel (a side of 1/64 of the grid, at least 1)
     assert e.shape == (16 * 16,) and torch.allclose(e, torch.full_like(e, 0.01))
-    big = synth_capture(size=64, shots=2, seed=0, noise=0.0).capture
+    big = synth_capture(size=128, shots=2, seed=0, noise=0.0).capture
     e = observation_errors(big.images + 0.1, big)
-    assert e.shape == (16 * 16,) and torch.allclose(e, torch.full_like(e, 0.01))  # 4 × 4 pixel blocks
+    assert e.shape == (64 * 64,) and torch.allclose(e, torch.full_like(e, 0.01))  # 2 × 2 pixel blocks
     p = pixel_errors(pred, hold)  # per mask pixel
     assert p.shape == (256,) and torch.allclose(p, torch.full_like(p, 0.01))
-    assert pixel_errors(big.images + 0.1, big).shape == (64 * 64,)
+    assert pixel_errors(big.images + 0.1, big).shape == (128 * 128,)
     sat = hold.saturated.clone()
     sat[:, :, 0, 0] = True
     from dataclasses import replace

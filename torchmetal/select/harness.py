@@ -223,7 +223,7 @@ def _paired(choice: Choice, errors: dict[str, list[Tensor]], rule: dict, grid: C
                          **{"floor": floor, **rule})
 
 
-BLOCKS = 16  # blocks a side of the pairing (at most): the paired errors are block means (module docstring)
+BLOCKS = 64  # blocks a side of the pairing (at most): the paired errors are block means (block_means)
 MAX_BLOCK = 8  # pixels a side of a block, at most
 
 
