@@ -37,7 +37,6 @@ from torchmetal.flakes.estimate.glint_model import (
 )
 from torchmetal.flakes.estimate.visibility import log_p_any
 
-
 #: the rate of shots unmeasured at a flake for a reason other than a clip (a neighbour's clipped glint): an
 #: unmeasured shot costs at most log(1/ε) (simulated flakes_a geometry: ε = 0.02 left E[A] ×0.92, 1e-4 ×0.96)
 UNMEASURED_OUTLIER = 1e-3
