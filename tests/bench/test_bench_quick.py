@@ -283,7 +283,7 @@ def test_quick_run_writes_every_output(quick_run):
     md = (out / "results.md").read_text()
     titles = ("Sweep", "Capture load", "Phong fit", "Skip evidence", "Flake detection", "ONNX renderer",
               "Real captures: leave-one-out", "Real captures: flake statistics", "Scene zoo", "Whole command",
-              "ONNX renderer per material kind", "GPU", "Robustness")
+              "ONNX renderer per material kind", "GPU", "Robustness", "Uncertainty", "Selection", "Capture plan")
     for title in titles:
         assert f"## {title}" in md
     assert len(SECTIONS) == len(titles)
