@@ -44,6 +44,7 @@ from torchmetal.synth.zoo_render import (
     make_truth,
     render_clean,
     srgb_encode,
+    write_shot_image,
 )
 from torchmetal.synth.zoo_shading import WIDTH, unit
 
@@ -279,7 +280,6 @@ def _encode(img: np.ndarray, rs: RandomScene, rng: np.random.Generator) -> np.nd
 def make_random_case(rs: RandomScene, out_dir: str | os.PathLike) -> ZooCase:
     """Render ``rs`` and write its capture directory under ``out_dir`` (created): fit shots with capture.json's
     (possibly wrong) lights; the held-out shots' clean renders use the true lights."""
-    import cv2
 
     sc = rs.scene
     out = Path(out_dir)
@@ -296,13 +296,8 @@ def make_random_case(rs: RandomScene, out_dir: str | os.PathLike) -> ZooCase:
     noise_rng = _rng(sc.seed, 4)
     shots = []
     for i in range(sc.shots):
-        stored = _encode(render_clean(truth, lights[i], ints[i], cams[i]), rs, noise_rng)
-        if sc.encoding == "float":
-            name = f"images/{i:03d}.npy"
-            np.save(out / name, stored)
-        else:
-            name = f"images/{i:03d}.png"
-            cv2.imwrite(str(out / name), np.ascontiguousarray(stored[..., ::-1]))
+        name = write_shot_image(out, i, _encode(render_clean(truth, lights[i], ints[i], cams[i]), rs, noise_rng),
+                                sc.encoding)
         shots.append({"image": name, "light": told[i].tolist(), "light_intensity": ints[i].tolist(),
                       "camera": cams[i].tolist()})
     meta = {"format": "torchmetal-capture", "version": 1, "color_space": "srgb" if sc.encoding == "srgb8" else "linear",

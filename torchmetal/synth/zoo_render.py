@@ -335,9 +335,21 @@ def make_truth(scene: Scene) -> Truth:
     return truth
 
 
+def write_shot_image(out: Path, i: int, stored: np.ndarray, encoding: str) -> str:
+    """Write shot ``i``'s encoded image (H, W, 3) under ``out/images``; returns its name as capture.json has it."""
+    import cv2  # on use: OpenCV only where a capture is written
+
+    if encoding == "float":
+        name = f"images/{i:03d}.npy"
+        np.save(out / name, stored)
+    else:
+        name = f"images/{i:03d}.png"
+        cv2.imwrite(str(out / name), np.ascontiguousarray(stored[..., ::-1]))
+    return name
+
+
 def make_case(scene: Scene, out_dir: str | os.PathLike) -> ZooCase:
     """Render ``scene`` and write its capture directory under ``out_dir`` (created)."""
-    import cv2
 
     out = Path(out_dir)
     (out / "images").mkdir(parents=True, exist_ok=True)
@@ -348,13 +360,8 @@ def make_case(scene: Scene, out_dir: str | os.PathLike) -> ZooCase:
     noise_rng = _rng(scene.seed, 4)
     shots = []
     for i in range(scene.shots):
-        stored = _encode(render_clean(truth, lights[i], ints[i], cams[i]), scene, noise_rng)
-        if scene.encoding == "float":
-            name = f"images/{i:03d}.npy"
-            np.save(out / name, stored)
-        else:
-            name = f"images/{i:03d}.png"
-            cv2.imwrite(str(out / name), np.ascontiguousarray(stored[..., ::-1]))
+        name = write_shot_image(out, i, _encode(render_clean(truth, lights[i], ints[i], cams[i]), scene, noise_rng),
+                                scene.encoding)
         shots.append({"image": name, "light": lights[i].tolist(), "light_intensity": ints[i].tolist(),
                       "camera": cams[i].tolist()})
     meta = {"format": "torchmetal-capture", "version": 1,
