@@ -51,7 +51,7 @@ class Decision:
         return {"name": self.name, "candidates": list(self.candidates), "chosen": self.chosen,
                 "reference": self.reference, "mse": dict(self.mse), "psnr_heldout": psnr, "z": dict(self.z),
                 "holds": list(self.holds), "pixels": self.pixels, "reason": self.reason, "scores": dict(self.scores),
-                "seconds": self.seconds}
+                "time": self.seconds}
 
 
 def heldout_psnr(mse: dict) -> dict:
