@@ -86,7 +86,7 @@ def _render(fit):
 
 def _reference_screen(screen):
     """A screen of the reference model fitted on the whole grid (the reference fit itself where the grid is its)."""
-    return lambda grid, ctx: screen(ctx.fit(grid, fit_phong), grid)
+    return lambda grid, ctx: screen(ctx.fit(grid), grid)
 
 
 # ----------------------------------------------------------------------------- clipping

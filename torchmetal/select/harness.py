@@ -28,11 +28,13 @@ from typing import TYPE_CHECKING, Callable
 import torch
 from torch import Tensor
 
+from torchmetal.fit.api import fit_phong
 from torchmetal.fit.holdout import valid_mean_square, valid_pixels
 from torchmetal.select.plan import shot_groups
 from torchmetal.select.rule import MIN_GAIN_ABS, Z_MIN, Decision, paired_choice
 
 if TYPE_CHECKING:
+    from torchmetal.fit.result import FitResult
     from torchmetal.io.capture import Capture
 
 Predict = Callable[["Capture"], Tensor]  # a fitted candidate: held-out shots (M shots) → its render (M, 3, H, W)
@@ -94,7 +96,7 @@ class Context:
         if reference:
             self.reference_key = key
 
-    def fit(self, capture: Capture, fit_phong: Callable) -> object:
+    def fit(self, capture: Capture) -> FitResult:
         """The model fitted to ``capture`` (``fit_phong(capture, **model)``), once per capture."""
         key = capture_key(capture)
         if key not in self.fits:

@@ -22,7 +22,6 @@ a 56² × 7 scene's 14 s fit (2026-12-06, one thread), 6 s at 32².
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, replace
@@ -44,9 +43,9 @@ from torchmetal.synth.zoo_render import (
     make_truth,
     render_clean,
     srgb_encode,
-    write_shot_image,
+    write_capture_dir,
 )
-from torchmetal.synth.zoo_shading import WIDTH, unit
+from torchmetal.synth.zoo_shading import unit
 
 __all__ = ["RandomScene", "random_scene", "make_random_case", "scene_truth", "SEED_BASE", "VARIATIONS"]
 
@@ -294,18 +293,8 @@ def make_random_case(rs: RandomScene, out_dir: str | os.PathLike) -> ZooCase:
     tex_mean = float(truth.texture.mean())
     ints = np.stack([_intensity(lights[i], tex_mean, sc.exposure, factor[i]) for i in range(len(lights))])
     noise_rng = _rng(sc.seed, 4)
-    shots = []
-    for i in range(sc.shots):
-        name = write_shot_image(out, i, _encode(render_clean(truth, lights[i], ints[i], cams[i]), rs, noise_rng),
-                                sc.encoding)
-        shots.append({"image": name, "light": told[i].tolist(), "light_intensity": ints[i].tolist(),
-                      "camera": cams[i].tolist()})
-    meta = {"format": "torchmetal-capture", "version": 1, "color_space": "srgb" if sc.encoding == "srgb8" else "linear",
-            "surface": {"width": WIDTH, "height": WIDTH}, "shots": shots}
-    if rs.given_normals:
-        np.save(out / "normals.npy", truth.normals.transpose(1, 2, 0).astype(np.float32))
-        meta["normals"] = "normals.npy"
-    (out / "capture.json").write_text(json.dumps(meta, indent=1))
+    write_capture_dir(out, truth, sc.shots, lights, ints, cams, encoding=sc.encoding,
+                      encode=lambda img: _encode(img, rs, noise_rng), normals=rs.given_normals, capture_lights=told)
     held = slice(sc.shots, sc.shots + sc.held)
     clean = np.stack([render_clean(truth, lights[i], ints[i], cams[i]) for i in range(sc.shots, len(lights))])
     stats = {"s": float(np.mean(truth.s)), "alpha": float(np.exp(np.mean(np.log(truth.alpha))))}

@@ -335,22 +335,36 @@ def make_truth(scene: Scene) -> Truth:
     return truth
 
 
-def write_shot_image(out: Path, i: int, stored: np.ndarray, encoding: str) -> str:
-    """Write shot ``i``'s encoded image (H, W, 3) under ``out/images``; returns its name as capture.json has it."""
+def write_capture_dir(out: Path, truth: Truth, shots: int, lights: np.ndarray, ints: np.ndarray, cams: np.ndarray, *,
+                      encoding: str, encode, normals: bool, capture_lights: np.ndarray | None = None) -> None:
+    """Write the first ``shots`` shots of a rendered scene as a capture directory under ``out``: each clean render
+    of ``truth`` passed through ``encode`` ((3, n, n) linear → stored (n, n, 3), in shot order: it may draw noise)
+    and written as ``encoding`` says, capture.json with ``capture_lights`` (default ``lights``: a capture's lights
+    may differ from the ones that rendered it), and the true normals.npy where ``normals``."""
     import cv2  # on use: OpenCV only where a capture is written
 
-    if encoding == "float":
-        name = f"images/{i:03d}.npy"
-        np.save(out / name, stored)
-    else:
-        name = f"images/{i:03d}.png"
-        cv2.imwrite(str(out / name), np.ascontiguousarray(stored[..., ::-1]))
-    return name
+    told = lights if capture_lights is None else capture_lights
+    records = []
+    for i in range(shots):
+        stored = encode(render_clean(truth, lights[i], ints[i], cams[i]))
+        if encoding == "float":
+            name = f"images/{i:03d}.npy"
+            np.save(out / name, stored)
+        else:
+            name = f"images/{i:03d}.png"
+            cv2.imwrite(str(out / name), np.ascontiguousarray(stored[..., ::-1]))
+        records.append({"image": name, "light": told[i].tolist(), "light_intensity": ints[i].tolist(),
+                        "camera": cams[i].tolist()})
+    meta = {"format": "torchmetal-capture", "version": 1, "color_space": "srgb" if encoding == "srgb8" else "linear",
+            "surface": {"width": WIDTH, "height": WIDTH}, "shots": records}
+    if normals:
+        np.save(out / "normals.npy", truth.normals.transpose(1, 2, 0).astype(np.float32))
+        meta["normals"] = "normals.npy"
+    (out / "capture.json").write_text(json.dumps(meta, indent=1))
 
 
 def make_case(scene: Scene, out_dir: str | os.PathLike) -> ZooCase:
     """Render ``scene`` and write its capture directory under ``out_dir`` (created)."""
-
     out = Path(out_dir)
     (out / "images").mkdir(parents=True, exist_ok=True)
     truth = make_truth(scene)
@@ -358,19 +372,8 @@ def make_case(scene: Scene, out_dir: str | os.PathLike) -> ZooCase:
     tex_mean = float(truth.texture.mean())
     ints = np.stack([_intensity(lights[i], tex_mean, scene.exposure, factor[i]) for i in range(len(lights))])
     noise_rng = _rng(scene.seed, 4)
-    shots = []
-    for i in range(scene.shots):
-        name = write_shot_image(out, i, _encode(render_clean(truth, lights[i], ints[i], cams[i]), scene, noise_rng),
-                                scene.encoding)
-        shots.append({"image": name, "light": lights[i].tolist(), "light_intensity": ints[i].tolist(),
-                      "camera": cams[i].tolist()})
-    meta = {"format": "torchmetal-capture", "version": 1,
-            "color_space": "srgb" if scene.encoding == "srgb8" else "linear",
-            "surface": {"width": WIDTH, "height": WIDTH}, "shots": shots}
-    if scene.normals != "flat":
-        np.save(out / "normals.npy", truth.normals.transpose(1, 2, 0).astype(np.float32))
-        meta["normals"] = "normals.npy"
-    (out / "capture.json").write_text(json.dumps(meta, indent=1))
+    write_capture_dir(out, truth, scene.shots, lights, ints, cams, encoding=scene.encoding,
+                      encode=lambda img: _encode(img, scene, noise_rng), normals=scene.normals != "flat")
     held = slice(scene.shots, scene.shots + scene.held)
     clean = np.stack([render_clean(truth, lights[i], ints[i], cams[i]) for i in range(scene.shots, len(lights))])
     stats = {"s": float(scene.s), "alpha": float(scene.alpha)}
