@@ -115,3 +115,19 @@ def test_no_highlight_seen_plans_for_coverage():
     plan = plan_shots(sc, PlanOptions(shots=1, azimuths=8))
     assert float(plan.coverage.double().mean()) < 0.5
     assert float(plan.cover_gain[0]) > 0
+
+
+def test_score_shots_is_the_plans_own_first_score():
+    """Scoring given positions uses the plan's criterion: the planned first shot gets the plan's score, and no
+    reachable position scores above it."""
+    from torchmetal.plan.core import reachable, score_shots
+
+    sc = _scene(torch.tensor([[0.02, 0.0, 0.5, 1.0], [-0.01, 0.02, 0.4, 1.0]], dtype=torch.float64))
+    o = PlanOptions(shots=2, azimuths=8)
+    plan = plan_shots(sc, o)
+    got = score_shots(sc, plan.lights, plan.cameras, plan.intensities, o)
+    assert float(got["score"][0]) == pytest.approx(float(plan.scores[0]), rel=1e-6)
+    lights, cams, inten, _ = reachable(sc, o)
+    every = score_shots(sc, lights, cams, inten, o)["score"]
+    assert float(every.max()) == pytest.approx(float(plan.scores[0]), rel=1e-6)
+    assert float(got["score"][1]) <= float(plan.scores[0]) + 1e-12

@@ -276,32 +276,59 @@ def expected_error(S: Tensor, G: Tensor, labels: Tensor | None, k: int) -> Tenso
     return (gaa / saa).flatten(batch).sum(-1) + glob.flatten(batch).sum(-1)
 
 
-def plan_shots(scene: Scene, options: PlanOptions | None = None) -> Plan:
-    """The next ``options.shots`` positions (module docstring), best first."""
-    o = (options or PlanOptions()).checked()
+def _context(scene: Scene, o: PlanOptions) -> dict:
+    """What every score needs: the (probed, when no highlight was seen) scene, the reachable candidates and their
+    terms, the reference views' sums G, the past shots' Fisher sums S and hotspot coverage."""
     unseen = not bool((scene.s > 0).any())
     if unseen:  # no highlight seen (s = 0, α at its floor): hotspots where a highlight of a typical gloss would be
         scene = replace(scene, alpha=torch.full_like(scene.alpha, PROBE_ALPHA))
     lights, cams, inten, notes = reachable(scene, o)
     stride, rows, cols = _grid(scene, o.max_pixels)
-    k = int(scene.s.shape[0])
     cand = shot_terms(scene, rows, cols, lights, cams, inten)
-    lab = cand["labels"]
     pick = torch.linspace(0, lights.shape[0] - 1, min(o.views, lights.shape[0])).round().long()
     G = view_sums({key: (v[pick] if key not in ("labels",) else v) for key, v in cand.items()})
     p = int(cand["a"].shape[-1])
-    hr, wr = len(range(*rows.indices(scene.texture.shape[-2]))), len(range(*cols.indices(scene.texture.shape[-1])))
     if scene.lights.shape[0]:
         past = shot_terms(scene, rows, cols, scene.lights, scene.cameras, scene.intensities)
-        S = fisher_sums(past)
-        covered = past["hot"].any(0)
+        S, covered = fisher_sums(past), past["hot"].any(0)
     else:
-        S = torch.zeros(6, 3, p, dtype=torch.float64)
-        covered = torch.zeros(p, dtype=torch.bool)
-    per = torch.stack([cand["w"] * cand["a"] * cand["a"], cand["w"] * cand["a"] * cand["b"], cand["w"] * cand["a"] * cand["c"],
-                       cand["w"] * cand["b"] * cand["b"], cand["w"] * cand["b"] * cand["c"], cand["w"] * cand["c"] * cand["c"]], 1)
+        S, covered = torch.zeros(6, 3, p, dtype=torch.float64), torch.zeros(p, dtype=torch.bool)
     # no highlight seen: E knows no specular to pin down (s = 0), and finding the highlight comes first
-    cover_weight = o.unseen_cover_weight if unseen else o.cover_weight
+    return {"scene": scene, "lights": lights, "cams": cams, "inten": inten, "notes": notes, "rows": rows, "cols": cols,
+            "cand": cand, "G": G, "S": S, "covered": covered, "k": int(scene.s.shape[0]),
+            "cover_weight": o.unseen_cover_weight if unseen else o.cover_weight}
+
+
+def _per_shot(t: dict) -> Tensor:
+    """(n, 6, 3, P) each shot's own Fisher terms (:func:`fisher_sums` before the sum over shots)."""
+    a, b, c, w = t["a"], t["b"], t["c"], t["w"]
+    return torch.stack([w * a * a, w * a * b, w * a * c, w * b * b, w * b * c, w * c * c], 1)
+
+
+def score_shots(scene: Scene, lights: Tensor, cameras: Tensor, intensities: Tensor,
+                options: PlanOptions | None = None) -> dict:
+    """The plan's score of given shots (n, 4), (n, 4), (n, 3) — e.g. a capture's own, held back — each as the
+    one next shot after the scene's past ones: {"score", "error_drop", "cover_gain"} (n,) float64. The same
+    criterion as :func:`plan_shots`' first pick (reference views: the reachable set)."""
+    o = (options or PlanOptions()).checked()
+    ctx = _context(scene, o)
+    t = shot_terms(ctx["scene"], ctx["rows"], ctx["cols"], lights, cameras, intensities)
+    e0 = expected_error(ctx["S"], ctx["G"], t["labels"], ctx["k"])
+    e1 = expected_error(ctx["S"].unsqueeze(0) + _per_shot(t), ctx["G"], t["labels"], ctx["k"])
+    drop = (e0 - e1) / e0.clamp_min(1e-300)
+    gain = (t["hot"] & ~ctx["covered"]).double().mean(-1)
+    return {"score": drop + ctx["cover_weight"] * gain, "error_drop": drop, "cover_gain": gain}
+
+
+def plan_shots(scene: Scene, options: PlanOptions | None = None) -> Plan:
+    """The next ``options.shots`` positions (module docstring), best first."""
+    o = (options or PlanOptions()).checked()
+    ctx = _context(scene, o)
+    lights, cams, inten, cand, lab, k = ctx["lights"], ctx["cams"], ctx["inten"], ctx["cand"], ctx["cand"]["labels"], ctx["k"]
+    G, S, covered, cover_weight = ctx["G"], ctx["S"], ctx["covered"], ctx["cover_weight"]
+    h, w = scene.texture.shape[-2:]
+    hr, wr = len(range(*ctx["rows"].indices(h))), len(range(*ctx["cols"].indices(w)))
+    per = _per_shot(cand)
     free = torch.ones(lights.shape[0], dtype=torch.bool)
     chosen, scores, drops, gains, planned = [], [], [], [], []
     past_cover = covered.clone()
@@ -323,5 +350,5 @@ def plan_shots(scene: Scene, options: PlanOptions | None = None) -> Plan:
     idx = torch.tensor(chosen, dtype=torch.long)
     return Plan(lights=lights[idx], cameras=cams[idx], scores=torch.tensor(scores), error_drop=torch.tensor(drops),
                 cover_gain=torch.tensor(gains), coverage=past_cover.view(hr, wr), planned_cover=torch.stack(planned),
-                offset=flash_offset(scene.lights, scene.cameras)[0], candidates=int(lights.shape[0]), notes=notes,
+                offset=flash_offset(scene.lights, scene.cameras)[0], candidates=int(lights.shape[0]), notes=ctx["notes"],
                 intensities=inten[idx])
