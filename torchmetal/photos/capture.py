@@ -422,8 +422,9 @@ def capture_from_photos(
     return PhotoCapture(capture, board, report, intr, obs, {i: rect[i] for i in used}, found_poses, whites)
 
 
-def save_photo_capture(result: PhotoCapture, out: str | os.PathLike, *, contact_sheet: bool = True) -> Path:
-    """Write the capture directory plus ``report.json``, ``intrinsics.json`` and ``contact.png``, atomically."""
+def save_photo_capture(result: PhotoCapture, out: str | os.PathLike, *, contact_sheet: bool = True, plan=None) -> Path:
+    """Write the capture directory plus ``report.json``, ``intrinsics.json`` and ``contact.png``, atomically; with a
+    ``plan`` (:func:`torchmetal.plan.run.plan_capture` of ``result.capture``) the contact sheet shows it."""
     import json
     import shutil
 
@@ -435,7 +436,7 @@ def save_photo_capture(result: PhotoCapture, out: str | os.PathLike, *, contact_
         write_capture_files(result.capture, tmp, bits="npy")
         result.intrinsics.save(tmp / "intrinsics.json")
         if contact_sheet:
-            sheet(result, tmp / "contact.png")
+            sheet(result, tmp / "contact.png", plan=plan)
         (tmp / "report.json").write_text(json.dumps(result.report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         replace_dir(tmp, path)
     except BaseException:

@@ -47,7 +47,12 @@ def cmd_capture(args: argparse.Namespace) -> int:
     intr = Intrinsics.load(args.intrinsics) if args.intrinsics else None
     result = capture_from_photos(args.photos, board, flash_offset_mm=args.flash_offset, intrinsics=intr,
                                  resolution=args.resolution, workers=args.workers, progress=not args.quiet)
-    out = save_photo_capture(result, args.output)
+    plan = None
+    if args.plan > 0:  # the next photos to take, on the contact sheet and printed (torchmetal.plan)
+        from torchmetal.plan.run import plan_capture
+
+        plan = plan_capture(result.capture, args.plan)
+    out = save_photo_capture(result, args.output, plan=plan)
     rep = result.report
     for row in rep["photos"]:
         if not row["used"]:
@@ -62,6 +67,16 @@ def cmd_capture(args: argparse.Namespace) -> int:
     print(f"capture: {rep['used']} of {len(rep['photos'])} photos, {cap.height}x{cap.width} px over "
           f"{cap.size[0] * 1000:g} x {cap.size[1] * 1000:g} mm, f = {k['fx']:.1f} px ({k['source']}), "
           f"in {rep['seconds']:.1f} s -> {out} (check {out}/contact.png)")
+    if plan is not None:
+        import numpy as np
+
+        from torchmetal.plan.run import hand_held
+
+        board = result.board
+        for k, cam in enumerate(plan.cameras.tolist()):
+            b = board.capture_to_board(np.array(cam[:3]))
+            print(f"  next photo {k + 1}: phone {hand_held(cam)} (camera at board ({b[0]:.0f}, {b[1]:.0f}, {b[2]:.0f}) mm, "
+                  f"aimed at the window's centre)")
     return 0
 
 
@@ -88,5 +103,7 @@ def register(sub) -> None:
     c.add_argument("--intrinsics", help="intrinsics.json of an earlier capture (skip the calibration)")
     c.add_argument("--resolution", type=int, default=512, help="pixels along the window's longer side (default: %(default)s)")
     c.add_argument("--workers", type=int, default=None, help="threads for decoding and detection (default: up to 4)")
+    c.add_argument("--plan", type=int, default=2, metavar="K",
+                   help="suggest the next K photos (contact sheet and printout; 0: none; default: %(default)s)")
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     c.set_defaults(func=cmd_capture)

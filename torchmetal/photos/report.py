@@ -5,8 +5,9 @@ pose projects it (green: used, red: rejected), the flash's mirror point (yellow 
 rectified window in the corner, and below it the file name, used / rejected with the reason,
 reprojection error, corners, saturation, elevation, and which reference set the exposure (EXIF or
 the white band) and the white balance (the band, or the set's median gains), with the share of the
-band that was unclipped. One PNG, the check to look at after a
-capture (docs/capture.md).
+band that was unclipped. With the capture plan's suggestion (``torchmetal capture`` makes one), a last tile:
+where the highlight has not been seen and where to hold the phone next (:func:`plan_tile`). One PNG, the
+check to look at after a capture (docs/capture.md).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 
 from torchmetal.photos.calibrate import project
 
-__all__ = ["contact_sheet", "contact_image"]
+__all__ = ["contact_sheet", "contact_image", "plan_tile"]
 
 COLUMNS = 4
 TEXT_ROWS = 4
@@ -103,9 +104,75 @@ def _tile(result, i: int, width: int) -> np.ndarray:
     return canvas
 
 
-def contact_image(result, width: int = 360) -> np.ndarray:
-    """(H, W, 3) uint8 BGR: the tiles of every photo, COLUMNS per row."""
+def _plan_lines(plan) -> list[str]:
+    from torchmetal.plan.run import hand_held
+
+    lines = [f"NEXT PHOTO (plan): highlight seen on {float(plan.coverage.double().mean()):.0%} so far"]
+    for k, cam in enumerate(plan.cameras.tolist()[: TEXT_ROWS - 2]):
+        lines.append(f"{k + 1}: {hand_held(cam)}")
+    lines.append("red: never lit; o past cameras; top view")
+    return lines
+
+
+def plan_tile(result, plan, width: int) -> np.ndarray:
+    """The plan's suggestion as one more tile: left, the sample (the photos' mean) with red where no photo put the
+    highlight and the planned shots' hotspots numbered; right, a top view of the past cameras (grey) and the
+    planned ones (numbered, best first) around the window; below, where to hold the phone."""
+    import cv2
+
+    from torchmetal.io.images import linear_to_srgb
+
+    thumb_h = round(width * 3 / 4)
+    canvas = np.full((thumb_h + TEXT_ROWS * ROW_PX + 6, width, 3), 255, np.uint8)
+    cap = result.capture
+    side = min(width // 2 - 8, thumb_h - 8)
+    img = cap.images.mean(0).clamp_min(0)
+    img = (linear_to_srgb((img / max(float(img.quantile(0.995)), 1e-6)).clamp(0, 1)).permute(1, 2, 0).numpy() * 255)
+    h, w = img.shape[:2]
+    f = side / max(h, w)
+    ph, pw = max(1, round(h * f)), max(1, round(w * f))
+    panel = cv2.resize(np.ascontiguousarray(img.astype(np.uint8)[:, :, ::-1]), (pw, ph), interpolation=cv2.INTER_AREA)
+    unseen = cv2.resize((~plan.coverage).numpy().astype(np.uint8), (pw, ph), interpolation=cv2.INTER_NEAREST) > 0
+    panel[unseen] = (0.55 * panel[unseen] + 0.45 * np.array([40, 40, 230])).astype(np.uint8)
+    colours = [(200, 120, 0), (0, 140, 255), (60, 170, 60), (180, 60, 180)]
+    for k, m in enumerate(plan.planned_cover.numpy()):
+        if not m.any():
+            continue
+        mk = cv2.resize(m.astype(np.uint8), (pw, ph), interpolation=cv2.INTER_NEAREST)
+        cs, _ = cv2.findContours(mk, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(panel, cs, -1, colours[k % len(colours)], 2)
+        yy, xx = np.nonzero(mk)
+        cv2.putText(panel, str(k + 1), (int(xx.mean()) - 4, int(yy.mean()) + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    (255, 255, 255), 2, cv2.LINE_AA)
+    y0 = (thumb_h - ph) // 2
+    canvas[y0: y0 + ph, 4: 4 + pw] = panel
+    # top view: capture frame x right, y to the sheet's top (up in the tile)
+    cams = [c for c in cap.cameras.tolist() if c[3] == 1]
+    pts = np.array([c[:2] for c in cams] + [c[:2] for c in plan.cameras.tolist()] + [[cap.size[0] / 2, cap.size[1] / 2]])
+    reach = float(np.abs(pts).max()) * 1.15
+    x0, tw = width // 2 + 4, width // 2 - 8
+    scale = min(tw, thumb_h - 8) / (2 * reach)
+    cx, cy = x0 + tw // 2, thumb_h // 2
+    to_px = lambda p: (int(round(cx + p[0] * scale)), int(round(cy - p[1] * scale)))  # noqa: E731
+    ww, wh = cap.size
+    cv2.rectangle(canvas, to_px((-ww / 2, wh / 2)), to_px((ww / 2, -wh / 2)), (0, 0, 0), 1)
+    for c in cams:
+        cv2.circle(canvas, to_px(c), 3, (150, 150, 150), -1, cv2.LINE_AA)
+    for k, c in enumerate(plan.cameras.tolist()):
+        q = to_px(c)
+        cv2.circle(canvas, q, 6, colours[k % len(colours)], -1, cv2.LINE_AA)
+        cv2.putText(canvas, str(k + 1), (q[0] + 7, q[1] - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    for k, line in enumerate(_plan_lines(plan)):
+        cv2.putText(canvas, line, (4, thumb_h + (k + 1) * ROW_PX), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    return canvas
+
+
+def contact_image(result, width: int = 360, plan=None) -> np.ndarray:
+    """(H, W, 3) uint8 BGR: the tiles of every photo, COLUMNS per row; with a ``plan``
+    (:class:`torchmetal.plan.core.Plan` of ``result.capture``) its suggestion as the last tile."""
     tiles = [_tile(result, i, width) for i in range(len(result.observations))]
+    if plan is not None:
+        tiles.append(plan_tile(result, plan, width))
     th, tw = tiles[0].shape[:2]
     rows = -(-len(tiles) // COLUMNS)
     cols = min(COLUMNS, len(tiles))
@@ -116,14 +183,14 @@ def contact_image(result, width: int = 360) -> np.ndarray:
     return sheet
 
 
-def contact_sheet(result, path: str | os.PathLike) -> Path:
-    """Write the contact sheet PNG (atomically)."""
+def contact_sheet(result, path: str | os.PathLike, plan=None) -> Path:
+    """Write the contact sheet PNG (atomically); with a ``plan``, its suggestion as the last tile."""
     import cv2
 
     # on use: loads torch (this module imports numpy only)
     from torchmetal.io.images import atomic_write_bytes
 
-    ok, buf = cv2.imencode(".png", contact_image(result))
+    ok, buf = cv2.imencode(".png", contact_image(result, plan=plan))
     if not ok:
         raise ValueError("contact sheet: PNG encoding failed")
     atomic_write_bytes(path, buf.tobytes())

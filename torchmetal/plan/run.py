@@ -33,15 +33,38 @@ def scene_from_fit(fit, capture, noise: dict | None) -> Scene:
 
 def scene_from_capture(path: Path) -> Scene:
     """Fit the capture at ``path`` (downsampled, global specular) and make its :class:`Scene`."""
-    from torchmetal.fit import fit_phong
-    from torchmetal.fit.uncertainty import UncertaintyOptions, estimate_uncertainty
     from torchmetal.io.capture import load_capture
 
-    cap = load_capture(path)
+    return scene_of_capture(load_capture(path))
+
+
+def scene_of_capture(cap) -> Scene:
+    """Fit a loaded :class:`~torchmetal.io.capture.Capture` (downsampled, global specular): its :class:`Scene`."""
+    from torchmetal.fit import fit_phong
+    from torchmetal.fit.uncertainty import UncertaintyOptions, estimate_uncertainty
+
     cap = cap.downsampled(max(1, math.ceil(max(cap.height, cap.width) / FIT_SIDE)))
     fit = fit_phong(cap, specular="global", lobe="phong")
     noise = estimate_uncertainty(fit, cap, UncertaintyOptions(jackknife="off")).noise
     return scene_from_fit(fit, cap, noise)
+
+
+def plan_capture(cap, shots: int = 2) -> Plan:
+    """The next ``shots`` positions for a loaded capture (``torchmetal capture``'s contact sheet)."""
+    return plan_shots(scene_of_capture(cap), PlanOptions(shots=shots))
+
+
+def hand_held(camera, light=None) -> str:
+    """Where to hold the phone for a planned camera position (capture frame, metres), in words: its height above the
+    sample, its offset from the window's centre along the sheet (right/left, towards the top/bottom), its tilt."""
+    x, y, z = (float(v) for v in list(camera)[:3])
+    tilt = math.degrees(math.atan2(math.hypot(x, y), z))
+    parts = [f"{100 * z:.0f} cm up"]
+    if abs(x) >= 0.005:
+        parts.append(f"{100 * abs(x):.0f} cm {'right' if x > 0 else 'left'}")
+    if abs(y) >= 0.005:
+        parts.append(f"{100 * abs(y):.0f} cm to the {'top' if y > 0 else 'bottom'}")
+    return ", ".join(parts) + f", tilt {tilt:.0f} deg"
 
 
 def past_shots(capture_dir: Path) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
