@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -55,7 +56,9 @@ def test_a_seen_highlight_is_not_asked_for_again():
     """Past shots straight above the sample cover its centre: with coverage weighed (0.5; the default 0.05 only breaks
     near-ties of E, which here prefers the overhead view's diffuse light) the first planned shot looks elsewhere."""
     above = torch.tensor([[0.0, 0.0, 0.5, 1.0], [0.0, 0.0, 0.35, 1.0], [0.0, 0.0, 0.7, 1.0]], dtype=torch.float64)
-    plan = plan_shots(_scene(above), PlanOptions(shots=1, distance=(1.0,), azimuths=8, cover_weight=0.5))
+    # tilts of a few degrees: the hotspot (mirror direction within 6.7°) of a steeper shot misses the 0.1 sample
+    plan = plan_shots(_scene(above), PlanOptions(shots=1, distance=(1.0,), tilts=(0.0, 2.0, 4.0, 6.0, 10.0), azimuths=8,
+                                                 cover_weight=0.5))
     cam = plan.cameras[0, :3]
     assert float(cam[:2].norm()) > 1e-6  # not straight above again
     assert float(plan.cover_gain[0]) > 0
@@ -131,3 +134,30 @@ def test_score_shots_is_the_plans_own_first_score():
     every = score_shots(sc, lights, cams, inten, o)["score"]
     assert float(every.max()) == pytest.approx(float(plan.scores[0]), rel=1e-6)
     assert float(got["score"][1]) <= float(plan.scores[0]) + 1e-12
+
+
+def test_coverage_of_a_broad_lobe_is_where_the_mirror_passed():
+    """A broad fitted lobe (α 7) reaches half its peak over the whole sample from one overhead flash; the coverage
+    map counts only where the mirror direction passed (a lobe at least α 100): a disc under the flash, not all."""
+    from torchmetal.plan.core import HOT_ALPHA
+
+    above = torch.tensor([[0.0, 0.0, 0.3, 1.0]], dtype=torch.float64)
+    broad = replace(_scene(above), alpha=torch.full((1, 3), 7.0, dtype=torch.float64))
+    cover = plan_shots(broad, PlanOptions(shots=1, azimuths=4)).coverage
+    assert 0.05 < float(cover.double().mean()) < 0.5
+    assert bool(cover[12, 12]) and not bool(cover[0, 0])  # the centre under the flash, not the corner
+    # a sharper fitted lobe than HOT_ALPHA keeps its own, smaller, hotspot
+    sharp = replace(_scene(above), alpha=torch.full((1, 3), 4 * HOT_ALPHA, dtype=torch.float64))
+    assert float(plan_shots(sharp, PlanOptions(shots=1, azimuths=4)).coverage.double().mean()) < float(cover.double().mean())
+
+
+def test_figure_labels_do_not_overlap():
+    from torchmetal.plan.run import _free_offsets
+
+    placed: list = []
+    offs = _free_offsets([(100.0, 100.0), (101.0, 100.0), (100.0, 101.0)], placed)
+    assert len(set(offs)) == 3
+    for i in range(3):
+        for j in range(i):
+            a, b = placed[i], placed[j]
+            assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3])

@@ -19,7 +19,11 @@ they remove, which is the issue's target. (A-optimality, tr H⁻¹, would depend
 
 **Coverage.** E assumes the fitted structure (one s, α per cluster). A pixel where no photo ever put a
 hotspot has only the structure's word for its specular — a second material there would go unseen. Each
-pixel counts as seen where some shot's lobe reached half its peak there; the score adds
+pixel counts as seen where some shot's lobe reached half its peak there, the lobe taken at least as sharp as
+:data:`HOT_ALPHA` (Phong α 100: the mirror direction within 6.7° of the view; a fitted lobe's own half-peak
+region where it is sharper). A broad fitted lobe (α ≈ 7 on yellow_box) reaches half its peak over the whole
+sample from any flash shot, so the map said every pixel's highlight was seen after one photo — true of that
+lobe, and no word on where a sharper second material would show. The score adds
 :data:`COVER_WEIGHT` × the fraction of the sample a candidate newly puts a hotspot on. Score =
 (E − E')/E + COVER_WEIGHT·Δcover; weight 0.05: newly covering the whole sample is worth 5 % of E (a
 typical shot newly covers 10–25 %: 0.5–1 % of E), so coverage breaks near-ties of E and does not override it.
@@ -51,13 +55,14 @@ from torch import Tensor
 
 from torchmetal.errors import InputError
 from torchmetal.fit.grid_terms import block_terms
-from torchmetal.fit.lobes import lobe_terms
+from torchmetal.fit.lobes import lobe_factor, lobe_terms
 from torchmetal.geometry import pixel_axes
 
 COVER_WEIGHT = 0.05
 UNSEEN_COVER_WEIGHT = 1.0
 PROBE_ALPHA = 100.0  # the gloss whose hotspots the coverage maps when the fit saw no highlight
 HOT = 0.5  # a pixel is "in the highlight" of a shot where its lobe reaches this fraction of the lobe's peak
+HOT_ALPHA = 100.0  # ... the lobe taken at least this sharp (module docstring: Coverage)
 PRIOR = (1.0, 0.25, 1.0)  # prior precision of s, β and each texel (std 1, 2, 1): only matters with no past shots
 
 
@@ -238,7 +243,8 @@ def shot_terms(scene: Scene, rows: slice, cols: slice, lights: Tensor, cams: Ten
     pred = a * tex + s_pix * b
     v = (noise_variance(scene.noise, pred) if scene.noise is not None else 1e-4 * (pred.clamp_min(0) + 0.01)).clamp_min(1e-12)
     peak = (u * inten.double().view(n, 3, 1)).amax(-1, keepdim=True).clamp_min(1e-300)
-    hot = ((b / peak).amax(1) >= HOT) & (g[:, 0] > 0)
+    sharp = (inten.double().view(n, 3, 1) * u) * lobe_factor(L, a_pix.clamp_min(HOT_ALPHA), geo, scene.lobe)
+    hot = ((sharp / peak).amax(1) >= HOT) & (g[:, 0] > 0)
     return {"a": a, "b": b, "c": s_pix * t * b, "w": 1.0 / v, "hot": hot, "labels": lab}
 
 

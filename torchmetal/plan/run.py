@@ -123,50 +123,91 @@ def plan_directory(source: str | Path, out_dir: str | Path, *, options: PlanOpti
     return plan, dt
 
 
+def _free_offsets(points, placed: list, size=(16.0, 12.0)) -> list:
+    """Label offsets in display points for ``points`` (n, 2) display coordinates: the first of a ring of offsets whose
+    label box (``size``) overlaps no box in ``placed`` (display boxes, appended to) — labels of nearby markers
+    do not overlap."""
+    rings = [(6, 6), (6, -16), (-20, 6), (-20, -16), (6, 22), (-20, 22), (6, -30), (-20, -30), (22, -5), (-36, -5)]
+    out = []
+    for x, y in points:
+        for dx, dy in rings:
+            box = (x + dx, y + dy, x + dx + size[0], y + dy + size[1])
+            if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in placed):
+                break
+        placed.append(box)
+        out.append((dx, dy))
+    return out
+
+
 def draw_plan(scene: Scene, plan: Plan, path: Path) -> None:
     """plan.png: the sample with where the highlight has been seen (and where each planned shot puts it), and a top
-    view of the past and planned positions in the capture's frame."""
+    view of the past and planned positions in the capture's frame, each planned shot's height, tilt and coverage
+    in the legend below it."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from torchmetal.plan.core import HOT, HOT_ALPHA
+
     tex = scene.texture.clamp(0, 1).permute(1, 2, 0).numpy()
     img = np.where(tex <= 0.0031308, 12.92 * tex, 1.055 * np.power(tex, 1 / 2.4) - 0.055)
     w, h = scene.size
     ext = (-w / 2, w / 2, -h / 2, h / 2)
-    fig, ax = plt.subplots(1, 2, figsize=(11, 5.2))
+    fig, ax = plt.subplots(1, 2, figsize=(12, 6.2), gridspec_kw={"width_ratios": [1, 1.15]})
     ax[0].imshow(img, extent=ext)
     seen = plan.coverage.numpy().astype(float)
     ax[0].imshow(np.ma.masked_where(seen > 0, np.ones_like(seen)), extent=ext, cmap="Reds", alpha=0.45, vmin=0, vmax=1.5)
+    half = math.degrees(math.acos(HOT ** (1 / HOT_ALPHA)))
+    placed: list = []
     for i, m in enumerate(plan.planned_cover.numpy()):
         if m.any():
             yy, xx = np.nonzero(m)
             cx = ext[0] + (xx.mean() + 0.5) / m.shape[1] * w
             cy = ext[3] - (yy.mean() + 0.5) / m.shape[0] * h
             ax[0].contour(np.linspace(ext[0], ext[1], m.shape[1]), np.linspace(ext[3], ext[2], m.shape[0]), m.astype(float),
-                          levels=[0.5], colors=[f"C{i % 10}"])
-            ax[0].text(cx, cy, str(i + 1), color="white", ha="center", va="center", fontsize=13, weight="bold")
-    ax[0].set_title(f"red: highlight never seen ({1 - seen.mean():.0%})\n1..{len(plan.scores)}: planned shots' hotspots", fontsize=10)
+                          levels=[0.5], colors=[f"C{i % 10}"], linewidths=2)
+            (dx, dy), = _free_offsets(ax[0].transData.transform([(cx, cy)]) * 72 / fig.dpi, placed)
+            ax[0].annotate(str(i + 1), (cx, cy), textcoords="offset points", xytext=(dx, dy), color="white", fontsize=12,
+                           weight="bold", bbox={"boxstyle": "round,pad=0.15", "fc": f"C{i % 10}", "ec": "none"})
+    ax[0].set_title(f"red: no photo put the highlight there ({1 - seen.mean():.0%} of the sample)\n"
+                    f"highlight: mirror direction within {half:.1f}° (a lobe ≥ α {HOT_ALPHA:g} at half peak)\n"
+                    "outlined, numbered: where each planned shot puts it", fontsize=9)
     ax[0].set_xlabel("x")
     ax[0].set_ylabel("y")
     a = ax[1]
     a.add_patch(plt.Rectangle((-w / 2, -h / 2), w, h, fill=False, color="k"))
+    xs, ys = [-w / 2, w / 2], [-h / 2, h / 2]
     if scene.cameras.shape[0]:
         pc = scene.cameras[scene.cameras[:, 3] == 1]
         pl = scene.lights[scene.lights[:, 3] == 1]
-        a.scatter(pc[:, 0], pc[:, 1], c="0.5", marker="o", label="past cameras")
-        a.scatter(pl[:, 0], pl[:, 1], c="0.5", marker="x", label="past lights")
-        a.legend(loc="lower right", fontsize=8)
-    for i, (cam, lt) in enumerate(zip(plan.cameras.tolist(), plan.lights.tolist())):
-        a.scatter([cam[0]], [cam[1]], c=f"C{i % 10}", marker="o", s=80)
-        a.annotate(f"{i + 1}: z {cam[2]:.2f}", (cam[0], cam[1]), textcoords="offset points", xytext=(6, 6))
-        a.scatter([lt[0]], [lt[1]], c=f"C{i % 10}", marker="*", s=60)
+        a.scatter(pc[:, 0], pc[:, 1], c="0.55", marker="o", s=30, label="past cameras")
+        a.scatter(pl[:, 0], pl[:, 1], c="0.3", marker="x", s=30, label="past flashes")
+        xs += pc[:, 0].tolist() + pl[:, 0].tolist()
+        ys += pc[:, 1].tolist() + pl[:, 1].tolist()
+    cams, lts = plan.cameras.tolist(), plan.lights.tolist()
+    xs += [c[0] for c in cams] + [lt[0] for lt in lts]
+    ys += [c[1] for c in cams] + [lt[1] for lt in lts]
+    pad = 0.12 * max(max(xs) - min(xs), max(ys) - min(ys))
+    a.set_xlim(min(xs) - pad, max(xs) + pad)
+    a.set_ylim(min(ys) - pad, max(ys) + pad)
     a.set_aspect("equal")
-    a.set_title("top view, capture frame: o camera, * flash\nplanned shots numbered, best first", fontsize=10)
+    for i, (cam, lt, gain) in enumerate(zip(cams, lts, plan.cover_gain.tolist())):
+        tilt = math.degrees(math.atan2(math.hypot(cam[0], cam[1]), cam[2]))
+        a.scatter([cam[0]], [cam[1]], c=f"C{i % 10}", marker="o", s=80, zorder=3,
+                  label=f"{i + 1}: camera height {cam[2]:.3g}, tilt {tilt:.0f}°, highlight +{gain:.0%}")
+        a.scatter([lt[0]], [lt[1]], c=f"C{i % 10}", marker="*", s=60, zorder=3)
+    fig.canvas.draw()
+    pts = a.transData.transform([(c[0], c[1]) for c in cams]) * 72 / fig.dpi if cams else []
+    placed = []
+    for i, (dx, dy) in enumerate(_free_offsets(pts, placed)):
+        a.annotate(str(i + 1), (cams[i][0], cams[i][1]), textcoords="offset points", xytext=(dx, dy), fontsize=11,
+                   weight="bold", color=f"C{i % 10}")
+    a.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), fontsize=8, ncol=2, frameon=False)
+    a.set_title("top view, capture frame: o camera, * flash (x past)\nplanned shots numbered, best first", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=90, bbox_inches="tight")  # the legend below the top view included
     plt.close(fig)
 
 
