@@ -121,6 +121,7 @@ def plan_tile(result, plan, width: int) -> np.ndarray:
     import cv2
 
     from torchmetal.io.images import linear_to_srgb
+    from torchmetal.plan.run import _free_offsets
 
     thumb_h = round(width * 3 / 4)
     canvas = np.full((thumb_h + TEXT_ROWS * ROW_PX + 6, width, 3), 255, np.uint8)
@@ -158,10 +159,13 @@ def plan_tile(result, plan, width: int) -> np.ndarray:
     cv2.rectangle(canvas, to_px((-ww / 2, wh / 2)), to_px((ww / 2, -wh / 2)), (0, 0, 0), 1)
     for c in cams:
         cv2.circle(canvas, to_px(c), 3, (150, 150, 150), -1, cv2.LINE_AA)
-    for k, c in enumerate(plan.cameras.tolist()):
-        q = to_px(c)
+    qs = [to_px(c) for c in plan.cameras.tolist()]
+    for k, q in enumerate(qs):
         cv2.circle(canvas, q, 6, colours[k % len(colours)], -1, cv2.LINE_AA)
-        cv2.putText(canvas, str(k + 1), (q[0] + 7, q[1] - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    placed = [(q[0] - 6, q[1] - 6, q[0] + 6, q[1] + 6) for q in qs]  # labels clear of every marker and each other
+    for k, (dx, dy) in enumerate(_free_offsets([(q[0], q[1]) for q in qs], placed, size=(10.0, 12.0))):
+        cv2.putText(canvas, str(k + 1), (qs[k][0] + dx, qs[k][1] + dy + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                    colours[k % len(colours)], 1, cv2.LINE_AA)
     for k, line in enumerate(_plan_lines(plan)):
         cv2.putText(canvas, line, (4, thumb_h + (k + 1) * ROW_PX), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     return canvas
