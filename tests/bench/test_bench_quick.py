@@ -6,6 +6,7 @@ import csv
 import importlib.util
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -184,9 +185,18 @@ def test_real_task_scores_paper_and_default_leave_one_out(tmp_path):
     from torchmetal.synth.zoo import SCENES, make_case
 
     case = make_case(SCENES["three_shots"].with_(size=32, shots=4), tmp_path / "cap")
-    r = run_task("real", {"dir": str(case.capture_dir), "speculars": ["global", "paper", "default"]})
+    r = run_task("real", {"dir": str(case.capture_dir), "speculars": ["global", "paper", "default"],
+                          "gallery": str(tmp_path / "gallery"), "gallery_shots": 1})
     assert "error" not in r, r
     assert r["shots"] == 4 and r["size"] == [32, 32]
+    # the three score kinds side by side at three scales (sRGB), own shots first; own-shot gallery beside the left out
+    sc = r["default"]["scores"]
+    assert set(sc) == {"in_sample", "light_fitted", "left_out"} and set(r["global"]["scores"]) == {"in_sample", "left_out"}
+    assert sc["in_sample"]["extrapolation"] is None and 0.0 <= sc["left_out"]["extrapolation"] <= 1.0
+    assert all(25 < sc[k]["psnr"][f] < 120 for k in sc for f in ("1", "4", "16")), sc
+    assert sc["in_sample"]["psnr"]["1"] > sc["left_out"]["psnr"]["1"]
+    assert [Path(g).name for g in r["default"]["gallery_own"]] == ["cap_own_shot0.png"]
+    assert Path(r["default"]["gallery_own"][0]).read_bytes()[:4] == b"\x89PNG"
     for v in ("global", "paper", "default"):
         assert len(r[v]["psnr"]) == 4 and all(30 < x < 100 for x in r[v]["psnr"]), (v, r[v])
         assert r[v]["mean"] == pytest.approx(sum(r[v]["psnr"]) / 4)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from torchmetal.bench.available import need
-from torchmetal.bench.scoring import psnr_or_nan, valid_mask
+from torchmetal.bench.scoring import SCALES, extrapolation_share, psnr_or_nan, psnr_scales, valid_mask
 from torchmetal.bench.zoo import METHODS
 
 
@@ -34,7 +34,14 @@ def task_real(cfg: dict) -> dict:
     left-out shots are written there as ``{capture}_shot{k}.png``: photo | render | error (|Δ| of the
     sRGB values ×4), sRGB, each panel box-downsampled to ≤ 512 px wide; likewise
     ``{capture}_light_fitted_shot{k}.png`` under the light fitted to the photo, and for every variant of
-    ``cfg["gallery_specs"]`` (default: only "default") with ``_{variant}`` after the capture's name."""
+    ``cfg["gallery_specs"]`` (default: only "default") with ``_{variant}`` after the capture's name, and
+    ``{capture}_own_shot{k}.png``: the fit on every shot rendering its own shot k.
+
+    ``scores`` (per variant): the three kinds side by side — ``in_sample`` (own shots), ``left_out`` (as
+    captured) and, for a pipeline variant, ``light_fitted`` — each the sRGB PSNR at full size, ¼ and 1/16 (both
+    images box-averaged alike, :func:`~torchmetal.bench.scoring.psnr_scales`), its chroma share and the
+    extrapolation share (:func:`~torchmetal.bench.scoring.extrapolation_share`; ``extrapolation`` at the top level
+    lists it per shot)."""
     load_capture = need("torchmetal.io.capture", "load_capture")
     leave_one_out_with = need("torchmetal.fit.holdout", "leave_one_out_with")
     cap = load_capture(cfg["dir"])
@@ -45,6 +52,8 @@ def task_real(cfg: dict) -> dict:
     name = Path(cfg["dir"]).name
     out = {"name": name, "shots": int(cap.images.shape[0]), "size": list(cap.images.shape[-2:])}
     gallery = Path(cfg["gallery"]) if cfg.get("gallery") else None
+    extrapolation = _extrapolation(cap)
+    out["extrapolation"] = extrapolation
     for spec in cfg.get("speculars", ["global", "clustered"]):
         t0 = time.perf_counter()
         coats: list = []  # a pipeline variant's renders without sparkles, one per call
@@ -62,7 +71,8 @@ def task_real(cfg: dict) -> dict:
         coat = [psnr_or_nan(c, cap.images[k : k + 1], valid_mask(cap.subset([k]))) for k, c in enumerate(coats)]
         chroma = [_chroma(pred[0], cap.subset([k])) for k, pred in enumerate(renders)]
         pred = fr(cap, cap)  # in sample: every shot fitted and rendered
-        in_sample = psnr_or_nan(pred.detach().float().cpu(), cap.images, valid_mask(cap))
+        own = pred.detach().float().cpu()
+        in_sample = psnr_or_nan(own, cap.images, valid_mask(cap))
         out[spec] = {"psnr": vals, "mean": float(np.mean(vals)), "seconds": seconds, "chroma": chroma,
                      "chroma_mean": float(np.nanmean(chroma)) if any(c == c for c in chroma) else float("nan"),
                      "in_sample": in_sample}
@@ -75,9 +85,15 @@ def task_real(cfg: dict) -> dict:
             out[spec].update(light_fitted=cal, light_fitted_mean=float(np.mean(cal)), light_fitted_chroma=cal_chroma,
                              light_fitted_chroma_mean=float(np.nanmean(cal_chroma)) if any(c == c for c in cal_chroma)
                              else float("nan"))
+        out[spec]["scores"] = {"in_sample": _kind_scores(cap, [own[k : k + 1] for k in range(len(own))], None),
+                               "left_out": _kind_scores(cap, renders, extrapolation)}
+        if calibrated:
+            out[spec]["scores"]["light_fitted"] = _kind_scores(cap, calibrated, extrapolation)
         if gallery is not None and spec in cfg.get("gallery_specs", ("default",)):
             tag = "" if spec == "default" else f"_{spec}"
             shots = range(min(len(renders), int(cfg.get("gallery_shots", 3))))
+            out[spec]["gallery_own"] = [str(_gallery_png(gallery / f"{name}{tag}_own_shot{k}.png", cap.images[k], own[k]))
+                                        for k in shots]
             out[spec]["gallery"] = [str(_gallery_png(gallery / f"{name}{tag}_shot{k}.png", cap.images[k], renders[k][0]))
                                     for k in shots]
             if calibrated:
@@ -85,6 +101,35 @@ def task_real(cfg: dict) -> dict:
                     str(_gallery_png(gallery / f"{name}{tag}_light_fitted_shot{k}.png", cap.images[k], calibrated[k][0]))
                     for k in shots]
     return out
+
+
+def _extrapolation(cap) -> list[float]:
+    """Per shot k, :func:`~torchmetal.bench.scoring.extrapolation_share` of photo k against the other shots'
+    photos (the ones fitted when k is left out)."""
+    n = int(cap.images.shape[0])
+    mask = cap.mask[0] if getattr(cap, "mask", None) is not None else None
+    return [extrapolation_share(cap.images[k], cap.images[[i for i in range(n) if i != k]], mask) for k in range(n)]
+
+
+def _kind_scores(cap, renders: list, extrapolation: list | None) -> dict:
+    """One score kind of the real section (own shots, left out as captured, left out light fitted): for
+    ``renders[k]`` (1, 3, H, W) of shot k, the mean over the shots of the sRGB PSNR at each scale of
+    :data:`~torchmetal.bench.scoring.SCALES` (``psnr``: {"1": dB, "4": dB, "16": dB}; ``per_shot``: the
+    per-shot dicts), the chroma-artifact share (mean) and, for left-out shots, the extrapolation share
+    (mean; None for own shots: a fitted photo is never brighter than itself)."""
+    per_shot, chroma = [], []
+    for k, r in enumerate(renders):
+        one = cap.subset([k])
+        per_shot.append(psnr_scales(r[0].float(), one.images[0].float(), valid_mask(one)[0]))
+        chroma.append(_chroma(r[0], one))
+    psnr = {str(f): _nanmean([d[str(f)] for d in per_shot]) for f in SCALES}
+    return {"psnr": psnr, "per_shot": per_shot, "chroma": _nanmean(chroma),
+            "extrapolation": None if extrapolation is None else _nanmean(extrapolation[: len(renders)])}
+
+
+def _nanmean(xs) -> float:
+    xs = [float(x) for x in xs if x == x]
+    return float(np.mean(xs)) if xs else float("nan")
 
 
 def _chroma(pred, one) -> float:

@@ -73,6 +73,30 @@ def _light_fitted(v: dict) -> str:
     return f"{fmt(v['light_fitted_mean'], '.2f')}, {fmt(v.get('light_fitted_chroma_mean'), '.1%')}"
 
 
+#: the real section's score kinds, in table order: (key in a variant's "scores", row label)
+SCORE_KINDS = (("in_sample", "own shots"), ("light_fitted", "left out, light refined"),
+               ("left_out", "left out, as captured"))
+
+
+def real_scales_table(r: dict, specs) -> str:
+    """One capture's scores side by side (a ``real`` task result): rows = variant × score kind (own shots, left out
+    with the light refined to the photo, left out as captured), columns = sRGB PSNR at full size, ¼ and 1/16 (box
+    averages), the chroma-artifact share and the extrapolation share (left-out blocks brighter than every fitted
+    photo)."""
+    rows = []
+    for spec in specs:
+        scores = (r.get(spec) or {}).get("scores") or {}
+        for key, label in SCORE_KINDS:
+            v = scores.get(key)
+            if v is None:
+                continue
+            rows.append([spec, label, *(fmt(v["psnr"].get(str(f)), ".2f") for f in (1, 4, 16)),
+                         fmt(v.get("chroma"), ".1%"), fmt(v.get("extrapolation"), ".1%")])
+    size = r.get("size", ["?", "?"])
+    return (f"**{r.get('name', '?')}** ({size[0]}×{size[1]}, {r.get('shots', '?')} shots), sRGB PSNR dB:\n\n"
+            + md_table(["fit", "score", "full", "1/4", "1/16", "chroma", "extrapolation"], rows))
+
+
 # ----------------------------------------------------------------------------- sections
 
 
@@ -289,7 +313,7 @@ class Bench(SweepSection):
                              " ".join(fmt(x, ".2f") for x in v["psnr"]), fmt(v.get("coat_mean"), ".2f"),
                              fmt(v.get("chroma_mean"), ".1%"), _light_fitted(v), fmt(v.get("in_sample"), ".2f"),
                              fmt(v["seconds"], ".1f")])
-                galleries += [Path(g).name for g in v.get("gallery", [])]
+                galleries += [Path(g).name for g in v.get("gallery", []) + v.get("gallery_own", [])]
             if r.get("default") and r.get("paper"):
                 d, q = r["default"]["mean"], r["paper"]["mean"]
                 worse = sum(a < b for a, b in zip(r["default"]["psnr"], r["paper"]["psnr"]))
@@ -314,8 +338,16 @@ class Bench(SweepSection):
                  "capture's light positions are off by centimetres; this compares the materials, not them). "
                  "light_off: the default with the capture's lights as given (`--light off`). "
                  "*seconds*: the leave-one-out fits.")
+        for r in res:
+            if not problem(r):
+                self.add("\n" + real_scales_table(r, p.real_speculars))
+        self.add("\n*full, 1/4, 1/16*: sRGB PSNR (peak 1, mask pixels not saturated) of photo and render box-averaged "
+                 "alike to that fraction of each side (linear averages of the valid pixels, then encoded), mean over the "
+                 "shots; *own shots*: the fit on every shot rendering those shots; *chroma*: the chroma-artifact share "
+                 "at full size; *extrapolation*: share of 32×32-px blocks where the left-out photo's mean luminance "
+                 "exceeds every fitted photo's (a highlight no fitted shot showed), mean over the left-out shots.")
         if galleries:
-            self.add(f"\nGallery (default pipeline; photo | render | error ×4, sRGB): `real_gallery/` — "
+            self.add(f"\nGallery (default pipeline; photo | render | error ×4, sRGB; `_own_` the fit's own shots): `real_gallery/` — "
                      f"{', '.join(galleries)}")
         for line in verdicts:
             self.add(f"\n{line}")

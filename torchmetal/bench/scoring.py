@@ -107,3 +107,85 @@ def render_params(texture, s, alpha, capture: Capture):
     with torch.no_grad():
         return phong_render(t, s_, a_, _normals(capture), capture.lights.float(), capture.intensities.float(),
                             capture.cameras.float(), tuple(float(v) for v in capture.size))
+
+
+#: the real section's scales: full size, ¼ and 1/16 of each side (box averages)
+SCALES = (1, 4, 16)
+
+
+def box_average(x, valid=None, factor: int = 1):
+    """``x`` (…, H, W) box-averaged over ``factor``×``factor`` blocks, over its ``valid`` pixels only.
+
+    Returns ``(mean, keep)``: the mean of each block's valid values and a bool of the blocks where at least
+    half the pixels are valid (a block of saturated pixels says nothing). The right and bottom edges that do not
+    fill a whole block are left out. ``factor`` 1 returns ``x`` and ``valid`` (all True when None)."""
+    import torch
+    import torch.nn.functional as F
+
+    x = x.detach().double()
+    v = torch.ones_like(x, dtype=torch.bool) if valid is None else torch.broadcast_to(valid.bool(), x.shape)
+    if factor <= 1:
+        return x, v
+    h, w = (x.shape[-2] // factor) * factor, (x.shape[-1] // factor) * factor
+    if h == 0 or w == 0:
+        raise InputError(f"box_average: expected an image of at least {factor}×{factor} pixels, found {tuple(x.shape[-2:])}")
+    lead = x.shape[:-2]
+    xx = x[..., :h, :w].reshape(-1, 1, h, w)
+    vv = v[..., :h, :w].reshape(-1, 1, h, w).double()
+    xx = torch.where(vv > 0, xx, torch.zeros((), dtype=xx.dtype))  # NaN or saturated values out of the sums
+    wsum = F.avg_pool2d(vv, factor)
+    mean = F.avg_pool2d(xx, factor) / wsum.clamp_min(1e-12)
+    shape = (*lead, h // factor, w // factor)
+    return mean.reshape(shape), (wsum >= 0.5).reshape(shape)
+
+
+def psnr_scales(pred, ref, valid=None, scales=SCALES, space: str = "srgb") -> dict[str, float]:
+    """PSNR of ``pred`` against ``ref`` (linear, …×H×W) at each box-average factor of ``scales``: both images
+    averaged alike over their valid pixels (:func:`box_average`, in linear values: what a coarser camera would
+    record), then clipped to [0, 1] and compared in ``space`` ("srgb": the encoded values a viewer sees, peak 1).
+    Keys are the factors as strings ("1", "4", "16"); NaN where no block is valid or a value is not finite."""
+    out = {}
+    for f in scales:
+        try:
+            p, keep = box_average(pred, valid, f)
+            r, _ = box_average(ref, valid, f)
+        except InputError:
+            out[str(f)] = float("nan")
+            continue
+        out[str(f)] = psnr_or_nan_space(p, r, keep, space)
+    return out
+
+
+def psnr_or_nan_space(pred, ref, valid, space: str) -> float:
+    """:func:`psnr_or_nan` in ``space`` ("linear" or "srgb")."""
+    from torchmetal.metrics import psnr as _psnr  # torch: imported when a task needs it
+
+    try:
+        return _psnr(pred, ref, mask=valid, space=space)
+    except InputError:
+        return float("nan")
+
+
+#: Rec. 709 luminance weights of linear RGB
+_LUMA = (0.2126, 0.7152, 0.0722)
+
+
+def extrapolation_share(photo, fitted, mask=None, block: int = 32) -> float:
+    """Share of ``block``×``block`` blocks where the left-out ``photo`` (3, H, W, linear) is brighter (mean
+    Rec. 709 luminance) than every one of the ``fitted`` photos (M, 3, H, W): where a left-out shot asks the
+    material for more than any fitted shot showed it (a highlight no fitted shot saw), the render extrapolates.
+    ``mask`` (H, W) bool: a block counts where at least half of it is inside. NaN when no block counts."""
+    import torch
+
+    photo, fitted = photo.detach().double(), fitted.detach().double()
+    if fitted.dim() != 4 or fitted.shape[0] == 0 or fitted.shape[1:] != photo.shape:
+        raise InputError(f"extrapolation_share: expected fitted photos (M, {', '.join(map(str, photo.shape))}), "
+                         f"found {tuple(fitted.shape)}")
+    w = torch.tensor(_LUMA, dtype=torch.float64).reshape(3, 1, 1)
+    m = None if mask is None else mask.bool().reshape(photo.shape[-2:])
+    y, keep = box_average((photo * w).sum(0), m, block)
+    y_fit, _ = box_average((fitted * w).sum(1), m, block)
+    n = int(keep.sum())
+    if n == 0:
+        return float("nan")
+    return float(((y > y_fit.amax(0)) & keep).sum()) / n
