@@ -38,6 +38,12 @@ def test_synth_fit_render_export(tmp_path):
     meta = json.loads((mat / "material.json").read_text())
     assert meta["format"] == "torchmetal-material" and "stage_times" in meta["fit"]
     assert all(np.isfinite(meta["phong"]["alpha"]))
+    # the report's registration and disagreement map (a synthetic capture: registered, the model its truth)
+    reg, dis = meta["fit"]["registration"], meta["fit"]["disagreement"]
+    assert len(reg["shifts"]) == 6 and reg["max"] < 1.0, reg  # 48² px with highlights: within a pixel
+    assert dis["file"] == "disagreement.png" and 0.0 <= dis["share"] < 0.02, dis
+    assert (mat / "disagreement.png").read_bytes()[:4] == b"\x89PNG"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "mat"]  # no temporary file left beside it
     assert main(["render", str(mat), "--light", "0 0.05 0.3 1", "--camera", "0 0 0.3 1", "-o", str(tmp_path / "r.npy")]) == 0
     img = np.load(tmp_path / "r.npy")
     assert img.shape == (48, 48, 3) and np.isfinite(img).all() and img.max() > 0

@@ -52,6 +52,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
             result, capture = _fit_tiled(args, scratch)
         else:
             result, capture = _fit_whole(args)
+        if args.tile is None:  # the report's registration and disagreement map (a tiled fit holds no whole capture)
+            # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
+            from torchmetal.report.fit_maps import DISAGREEMENT_PNG, add_fit_maps
+
+            png = Path(args.output).with_name(Path(args.output).name + ".disagreement.tmp.png")
+            extra[DISAGREEMENT_PNG] = add_fit_maps(result, capture, png)
         if args.export:
             # on use: loads torch; parsing and --help load nothing heavy (tests/test_startup.py)
             from torchmetal.onnx_export import export_onnx

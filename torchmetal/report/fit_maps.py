@@ -1,0 +1,71 @@
+"""The fit report's measurements of the capture against the fitted material: each shot's registration
+(:mod:`torchmetal.report.registration`) and the map of the pixels whose shots disagree with the model beyond the
+noise (:mod:`torchmetal.report.disagreement`), written beside the material as ``disagreement.png``.
+
+They read the result, they never change it: ``torchmetal fit`` calls :func:`add_fit_maps` after the fit and before
+saving (the report layer sits above the pipeline, docs/design.md §4 keeps the fit's choices its own).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from torchmetal.io.capture import Capture
+from torchmetal.renderer import MaterialRenderer
+from torchmetal.report.disagreement import disagreement_map, disagreement_png
+from torchmetal.report.registration import shot_shifts
+
+__all__ = ["add_fit_maps", "fit_maps", "DISAGREEMENT_PNG"]
+
+DISAGREEMENT_PNG = "disagreement.png"  # its name in the material directory
+
+
+def _valid(capture: Capture) -> torch.Tensor:
+    """(N, 3, H, W) bool: on the sample's mask, not saturated, finite."""
+    v = torch.isfinite(capture.images) & capture.mask.bool().reshape(1, 1, *capture.images.shape[-2:])
+    if capture.saturated is not None:
+        v = v & ~capture.saturated.bool()
+    return v
+
+
+def fit_renders(capture: Capture, result) -> torch.Tensor:
+    """(N, 3, H, W) the fitted material's render of each shot as the fit saw it: the light calibration's
+    lights and factor (``result.light``), sparkles included."""
+    light = getattr(result, "light", None)
+    lights = capture.lights if light is None else light.lights(capture)
+    renderer = MaterialRenderer(result.material)
+    with torch.no_grad():
+        pred = renderer(lights.float(), capture.intensities.float(), capture.cameras.float())
+        if light is not None:
+            pred = pred * light.factor(capture)
+    return pred.detach().float().cpu()
+
+
+def fit_maps(capture: Capture, result) -> tuple[dict, torch.Tensor, torch.Tensor]:
+    """The report entries ``registration`` and ``disagreement`` (``render`` in the latter: {"time": the seconds of
+    the renders the map needs}), the (H', W') disagreement map and the first photo at the map's size."""
+    valid = _valid(capture)
+    registration = shot_shifts(capture.images, valid)
+    t0 = time.perf_counter()
+    renders = fit_renders(capture, result)
+    render_time = time.perf_counter() - t0
+    marked, summary = disagreement_map(capture.images, renders, valid)
+    f = summary["factor"]
+    photo = capture.images[0].float().cpu()
+    if f > 1:
+        photo = F.avg_pool2d(photo[None, :, : marked.shape[0] * f, : marked.shape[1] * f], f)[0]
+    summary["render"] = {"time": render_time}
+    return {"registration": registration, "disagreement": summary}, marked, photo
+
+
+def add_fit_maps(result, capture: Capture, png: str | Path) -> Path:
+    """Add ``registration`` and ``disagreement`` to ``result.material.report`` and write the map to ``png``
+    (to be copied into the material directory as :data:`DISAGREEMENT_PNG`); returns ``png``."""
+    entries, marked, photo = fit_maps(capture, result)
+    entries["disagreement"]["file"] = DISAGREEMENT_PNG
+    result.material.report.update(entries)
+    return disagreement_png(png, marked, photo)
