@@ -11,7 +11,9 @@ inside the mask, unsaturated) — the error on shots the refit did not see, each
 error on it, so candidates are compared on the same footing. Spearman ρ between the plan's score and −gain,
 per base set (every base set for ≤ :data:`MAX_SPLITS` of them, else a seeded draw), then summarised per
 capture: mean and median ρ, how often the plan's first is the actual best (against chance 1/candidates), and
-the actual gain of the plan's pick against the mean candidate's and the best's.
+the actual gain of the plan's pick against the mean candidate's and the best's. A diagnostic column: ρ of
+the same criterion integrated over the held-back shots' own views (the set the actual gain averages over)
+instead of the reachable set's.
 
 Captures: :data:`CAPTURES` under the shared-data directory; a capture that is absent is reported as skipped.
 Nothing is copied from the shared data. ``python -m torchmetal.bench.plan_real [SPLITS]`` runs it alone.
@@ -78,8 +80,11 @@ def score_split(cap, base: tuple[int, ...], options=None) -> dict:
     noise = estimate_uncertainty(fit, sub, UncertaintyOptions(jackknife="off")).noise
     scene = scene_from_fit(fit, sub, noise)
     idx = torch.tensor(cand)
-    sc = score_shots(scene, cap.lights[idx].double(), cap.cameras[idx].double(), cap.intensities[idx].double(),
-                     options or PlanOptions())
+    shots = (cap.lights[idx].double(), cap.cameras[idx].double(), cap.intensities[idx].double())
+    sc = score_shots(scene, *shots, options or PlanOptions())
+    # a diagnostic: the criterion integrated over the capture's own held-back views (the set the truth averages
+    # over) instead of the reachable set's
+    own = score_shots(scene, *shots, options or PlanOptions(), reference=shots)["score"].tolist()
     base_err = {k: shot_mse(fit, cap, k) for k in cand}
     gain = []
     for c in cand:
@@ -88,7 +93,8 @@ def score_split(cap, base: tuple[int, ...], options=None) -> dict:
                                    for k in cand if k != c])))
     score = sc["score"].tolist()
     return {"base": list(base), "candidates": cand, "score": score, "gain": gain,
-            "rho": spearman(score, [-g for g in gain]), "specular": fit.specular,
+            "rho": spearman(score, [-g for g in gain]), "rho_own_views": spearman(own, [-g for g in gain]),
+            "specular": fit.specular,
             "top_is_best": int(np.argmax(score)) == int(np.argmin(gain)),
             "pick_gain": gain[int(np.argmax(score))], "best_gain": min(gain), "mean_gain": float(np.mean(gain))}
 
@@ -100,10 +106,12 @@ def run_capture(path: Path, max_splits: int = MAX_SPLITS, options=None) -> dict:
     cap = cap.downsampled(max(1, math.ceil(max(cap.height, cap.width) / SIDE)))
     rows = [score_split(cap, b, options) for b in splits(cap.num_shots, BASE, max_splits, SEED)]
     rho = [r["rho"] for r in rows if not math.isnan(r["rho"])]
+    own = [r["rho_own_views"] for r in rows if not math.isnan(r["rho_own_views"])]
     return {"capture": path.name, "shots": cap.num_shots, "side": max(cap.height, cap.width), "splits": len(rows),
             "candidates": cap.num_shots - BASE, "rho_mean": float(np.mean(rho)) if rho else math.nan,
             "rho_median": float(np.median(rho)) if rho else math.nan,
             "rho_positive": float(np.mean([v > 0 for v in rho])) if rho else math.nan,
+            "rho_own_views_mean": float(np.mean(own)) if own else math.nan,
             "top_is_best": float(np.mean([r["top_is_best"] for r in rows])),
             "pick_gain": float(np.mean([r["pick_gain"] for r in rows])),
             "mean_gain": float(np.mean([r["mean_gain"] for r in rows])),
@@ -138,15 +146,16 @@ def markdown(res: dict) -> str:
              f"{BASE} shots, the plan's score of each other shot against its actual gain (mean log MSE ratio on the other "
              "candidates' photos after the refit; negative = better). Spearman ρ per base set.", "",
              "| capture | shots | base sets | candidates | mean ρ | median ρ | ρ > 0 | plan's first is best (chance) | "
-             "gain: plan's pick / mean / best | base fits without specular |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+             "gain: plan's pick / mean / best | base fits without specular | mean ρ, own views as reference |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|"]
     for name, r in res.items():
         if "rho_mean" not in r:
-            lines.append(f"| {name} | {r.get('skipped') or r.get('error')} | | | | | | | | |")
+            lines.append(f"| {name} | {r.get('skipped') or r.get('error')} | | | | | | | | | |")
             continue
         lines.append(f"| {name} | {r['shots']} | {r['splits']} | {r['candidates']} | {r['rho_mean']:+.2f} | "
                      f"{r['rho_median']:+.2f} | {r['rho_positive']:.0%} | {r['top_is_best']:.0%} ({1 / r['candidates']:.0%}) | "
-                     f"{r['pick_gain']:+.3f} / {r['mean_gain']:+.3f} / {r['best_gain']:+.3f} | {r['no_specular']}/{r['splits']} |")
+                     f"{r['pick_gain']:+.3f} / {r['mean_gain']:+.3f} / {r['best_gain']:+.3f} | {r['no_specular']}/{r['splits']} | "
+                     f"{r['rho_own_views_mean']:+.2f} |")
     return "\n".join(lines)
 
 

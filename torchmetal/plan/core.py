@@ -282,17 +282,21 @@ def expected_error(S: Tensor, G: Tensor, labels: Tensor | None, k: int) -> Tenso
     return (gaa / saa).flatten(batch).sum(-1) + glob.flatten(batch).sum(-1)
 
 
-def _context(scene: Scene, o: PlanOptions) -> dict:
+def _context(scene: Scene, o: PlanOptions, reference: tuple | None = None) -> dict:
     """What every score needs: the (probed, when no highlight was seen) scene, the reachable candidates and their
-    terms, the reference views' sums G, the past shots' Fisher sums S and hotspot coverage."""
+    terms, the reference views' sums G (of ``reference`` = (lights, cameras, intensities) when given, else of
+    ``o.views`` reachable ones), the past shots' Fisher sums S and hotspot coverage."""
     unseen = not bool((scene.s > 0).any())
     if unseen:  # no highlight seen (s = 0, α at its floor): hotspots where a highlight of a typical gloss would be
         scene = replace(scene, alpha=torch.full_like(scene.alpha, PROBE_ALPHA))
     lights, cams, inten, notes = reachable(scene, o)
     stride, rows, cols = _grid(scene, o.max_pixels)
     cand = shot_terms(scene, rows, cols, lights, cams, inten)
-    pick = torch.linspace(0, lights.shape[0] - 1, min(o.views, lights.shape[0])).round().long()
-    G = view_sums({key: (v[pick] if key not in ("labels",) else v) for key, v in cand.items()})
+    if reference is None:
+        pick = torch.linspace(0, lights.shape[0] - 1, min(o.views, lights.shape[0])).round().long()
+        G = view_sums({key: (v[pick] if key not in ("labels",) else v) for key, v in cand.items()})
+    else:
+        G = view_sums(shot_terms(scene, rows, cols, *(t.double() for t in reference)))
     p = int(cand["a"].shape[-1])
     if scene.lights.shape[0]:
         past = shot_terms(scene, rows, cols, scene.lights, scene.cameras, scene.intensities)
@@ -312,12 +316,13 @@ def _per_shot(t: dict) -> Tensor:
 
 
 def score_shots(scene: Scene, lights: Tensor, cameras: Tensor, intensities: Tensor,
-                options: PlanOptions | None = None) -> dict:
+                options: PlanOptions | None = None, reference: tuple | None = None) -> dict:
     """The plan's score of given shots (n, 4), (n, 4), (n, 3) — e.g. a capture's own, held back — each as the
     one next shot after the scene's past ones: {"score", "error_drop", "cover_gain"} (n,) float64. The same
-    criterion as :func:`plan_shots`' first pick (reference views: the reachable set)."""
+    criterion as :func:`plan_shots`' first pick; reference views: the reachable set's, or ``reference`` =
+    (lights, cameras, intensities) when given."""
     o = (options or PlanOptions()).checked()
-    ctx = _context(scene, o)
+    ctx = _context(scene, o, reference)
     t = shot_terms(ctx["scene"], ctx["rows"], ctx["cols"], lights, cameras, intensities)
     e0 = expected_error(ctx["S"], ctx["G"], t["labels"], ctx["k"])
     e1 = expected_error(ctx["S"].unsqueeze(0) + _per_shot(t), ctx["G"], t["labels"], ctx["k"])
