@@ -85,3 +85,13 @@ def test_leave_shot_in_on_a_synthetic_capture(tmp_path):
     assert all(math.isfinite(g) for g in row["gain"]) and all(math.isfinite(v) for v in row["score"])
     assert -1.0 <= row["rho"] <= 1.0 or math.isnan(row["rho"])
     assert row["best_gain"] <= row["pick_gain"]
+
+
+def test_leave_out_normals_scene_and_table():
+    from torchmetal.bench import leave_out
+
+    row = leave_out.normals_scene(0, size=12, shots=5)
+    assert 0.0 <= row["coverage"] <= 1.0 and row["median_radius_deg"] >= 0 and row["p90_error_deg"] >= row["median_error_deg"]
+    md = leave_out.markdown([row], {"failed_refits": 0, "stats": {"density": {"value": 0.005, "low": 0.004, "high": 0.006,
+                                                                              "scale": "log", "truth": 0.004, "inside": True}}})
+    assert "| median |" in md and "| density (log) | 0.005 | [0.004, 0.006] | 0.004 | yes |" in md
