@@ -9,6 +9,7 @@ saving (the report layer sits above the pipeline, docs/design.md §4 keeps the f
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -34,10 +35,11 @@ def _valid(capture: Capture) -> torch.Tensor:
 
 def fit_renders(capture: Capture, result) -> torch.Tensor:
     """(N, 3, H, W) the fitted material's render of each shot as the fit saw it: the light calibration's
-    lights and factor (``result.light``), sparkles included."""
+    lights and factor (``result.light``), without the sparkles: their random positions match no photo's glints
+    (the map's median over the shots leaves a glint out either way), and they cost 4× the coat's render."""
     light = getattr(result, "light", None)
     lights = capture.lights if light is None else light.lights(capture)
-    renderer = MaterialRenderer(result.material)
+    renderer = MaterialRenderer(replace(result.material, flakes=None, observed_flakes=None))
     with torch.no_grad():
         pred = renderer(lights.float(), capture.intensities.float(), capture.cameras.float())
         if light is not None:
