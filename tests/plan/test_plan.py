@@ -161,3 +161,19 @@ def test_figure_labels_do_not_overlap():
         for j in range(i):
             a, b = placed[i], placed[j]
             assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3])
+
+
+def test_only_the_sample_counts():
+    """Pixels off the mask carry no information and no highlight: the coverage, its gain and E ignore them."""
+    above = torch.tensor([[0.0, 0.0, 0.3, 1.0]], dtype=torch.float64)
+    mask = torch.zeros(24, 24, dtype=torch.bool)
+    mask[:, :12] = True
+    sc = replace(_scene(above), mask=mask)
+    plan = plan_shots(sc, PlanOptions(shots=2, azimuths=4))
+    assert plan.inside is not None and not bool((plan.coverage & ~plan.inside).any())
+    assert not bool((plan.planned_cover & ~plan.inside).any())
+    assert plan.seen() == pytest.approx(float(plan.coverage[plan.inside].double().mean()))
+    # what lies off the sample changes nothing
+    other = replace(sc, texture=torch.where(mask, sc.texture, torch.full_like(sc.texture, 0.9)))
+    again = plan_shots(other, PlanOptions(shots=2, azimuths=4))
+    assert torch.equal(again.cameras, plan.cameras) and torch.allclose(again.scores, plan.scores)

@@ -107,7 +107,7 @@ def _tile(result, i: int, width: int) -> np.ndarray:
 def _plan_lines(plan) -> list[str]:
     from torchmetal.plan.run import hand_held
 
-    lines = [f"NEXT PHOTO (plan): highlight seen on {float(plan.coverage.double().mean()):.0%} so far"]
+    lines = [f"NEXT PHOTO (plan): highlight seen on {plan.seen():.0%} so far"]
     for k, cam in enumerate(plan.cameras.tolist()[: TEXT_ROWS - 2]):
         lines.append(f"{k + 1}: {hand_held(cam)}")
     lines.append("red: never lit; o past cameras; top view")
@@ -133,7 +133,8 @@ def plan_tile(result, plan, width: int) -> np.ndarray:
     f = side / max(h, w)
     ph, pw = max(1, round(h * f)), max(1, round(w * f))
     panel = cv2.resize(np.ascontiguousarray(img.astype(np.uint8)[:, :, ::-1]), (pw, ph), interpolation=cv2.INTER_AREA)
-    unseen = cv2.resize((~plan.coverage).numpy().astype(np.uint8), (pw, ph), interpolation=cv2.INTER_NEAREST) > 0
+    never = ~plan.coverage if plan.inside is None else ~plan.coverage & plan.inside
+    unseen = cv2.resize(never.numpy().astype(np.uint8), (pw, ph), interpolation=cv2.INTER_NEAREST) > 0
     panel[unseen] = (0.55 * panel[unseen] + 0.45 * np.array([40, 40, 230])).astype(np.uint8)
     colours = [(200, 120, 0), (0, 140, 255), (60, 170, 60), (180, 60, 180)]
     for k, m in enumerate(plan.planned_cover.numpy()):

@@ -99,7 +99,8 @@ class Scene:
 
     texture (3, H, W); s, alpha (K, 3); labels (H, W) int64 or None; normals (3, H, W) or None (flat);
     size (width, height); lobe; lights, cameras (N, 4) and intensities (N, 3) of the past shots (N may be 0);
-    noise: {"y": (3, B), "var": (3, B)} (:func:`torchmetal.fit.uncertainty.noise_variance`) or None.
+    noise: {"y": (3, B), "var": (3, B)} (:func:`torchmetal.fit.uncertainty.noise_variance`) or None;
+    mask: (H, W) bool, the sample's pixels (None: all): only they count in E and in the coverage.
     """
 
     texture: Tensor
@@ -113,6 +114,7 @@ class Scene:
     cameras: Tensor
     intensities: Tensor
     noise: dict | None = None
+    mask: Tensor | None = None
 
 
 @dataclass
@@ -121,7 +123,8 @@ class Plan:
     relative drop of E; cover_gain (K,); coverage (H', W') bool where a past shot put a hotspot (planning grid);
     planned_cover (K, H', W') bool where each planned shot does; flash offset (3,) in the camera frame;
     candidates: how many were scored; notes: what was assumed; intensities (K, 3): the exposure each planned
-    shot was scored at (the past shots' level per squared light distance; not in plan.json)."""
+    shot was scored at (the past shots' level per squared light distance; not in plan.json); inside (H', W') bool:
+    the sample's pixels on the planning grid (None: all)."""
 
     lights: Tensor
     cameras: Tensor
@@ -134,6 +137,12 @@ class Plan:
     candidates: int
     notes: list
     intensities: Tensor | None = None
+    inside: Tensor | None = None
+
+    def seen(self) -> float:
+        """The share of the sample's pixels where a past shot put the highlight."""
+        cov = self.coverage if self.inside is None else self.coverage[self.inside]
+        return float(cov.double().mean()) if cov.numel() else 0.0
 
     def to_json(self) -> dict:
         """DIR/plan.json's content, exactly docs/design.md §2.5's: {"shots": [{"light": [x, y, z, 1], "camera": […]}]}."""
@@ -239,12 +248,18 @@ def shot_terms(scene: Scene, rows: slice, cols: slice, lights: Tensor, cams: Ten
     s_pix = scene.s[0].double().view(1, 3, 1) if lab is None else scene.s.double()[lab].T.unsqueeze(0)
     a_pix = scene.alpha[0].double().view(1, 3, 1) if lab is None else scene.alpha.double()[lab].T.unsqueeze(0)
     a, b, t = lobe_terms(g, u, L, inten.double().view(n, 3, 1), a_pix, geo, scene.lobe)
+    inside = None if scene.mask is None else scene.mask[rows, cols].reshape(1, 1, p).to(torch.bool)
+    if inside is not None:  # off the sample: no information, no render to predict, no highlight to see
+        a, b = a * inside, b * inside
     tex = scene.texture[:, rows, cols].reshape(1, 3, p).double()
     pred = a * tex + s_pix * b
     v = (noise_variance(scene.noise, pred) if scene.noise is not None else 1e-4 * (pred.clamp_min(0) + 0.01)).clamp_min(1e-12)
-    peak = (u * inten.double().view(n, 3, 1)).amax(-1, keepdim=True).clamp_min(1e-300)
-    sharp = (inten.double().view(n, 3, 1) * u) * lobe_factor(L, a_pix.clamp_min(HOT_ALPHA), geo, scene.lobe)
+    lit = u * inten.double().view(n, 3, 1)
+    peak = (lit if inside is None else lit * inside).amax(-1, keepdim=True).clamp_min(1e-300)
+    sharp = lit * lobe_factor(L, a_pix.clamp_min(HOT_ALPHA), geo, scene.lobe)
     hot = ((sharp / peak).amax(1) >= HOT) & (g[:, 0] > 0)
+    if inside is not None:
+        hot = hot & inside[:, 0]
     return {"a": a, "b": b, "c": s_pix * t * b, "w": 1.0 / v, "hot": hot, "labels": lab}
 
 
@@ -306,7 +321,8 @@ def _context(scene: Scene, o: PlanOptions, reference: tuple | None = None) -> di
     # no highlight seen: E knows no specular to pin down (s = 0), and finding the highlight comes first
     return {"scene": scene, "lights": lights, "cams": cams, "inten": inten, "notes": notes, "rows": rows, "cols": cols,
             "cand": cand, "G": G, "S": S, "covered": covered, "k": int(scene.s.shape[0]),
-            "cover_weight": o.unseen_cover_weight if unseen else o.cover_weight}
+            "cover_weight": o.unseen_cover_weight if unseen else o.cover_weight,
+            "inside": torch.ones(p, dtype=torch.bool) if scene.mask is None else scene.mask[rows, cols].reshape(-1).bool()}
 
 
 def _per_shot(t: dict) -> Tensor:
@@ -327,7 +343,7 @@ def score_shots(scene: Scene, lights: Tensor, cameras: Tensor, intensities: Tens
     e0 = expected_error(ctx["S"], ctx["G"], t["labels"], ctx["k"])
     e1 = expected_error(ctx["S"].unsqueeze(0) + _per_shot(t), ctx["G"], t["labels"], ctx["k"])
     drop = (e0 - e1) / e0.clamp_min(1e-300)
-    gain = (t["hot"] & ~ctx["covered"]).double().mean(-1)
+    gain = (t["hot"] & ~ctx["covered"]).double().sum(-1) / max(int(ctx["inside"].sum()), 1)
     return {"score": drop + ctx["cover_weight"] * gain, "error_drop": drop, "cover_gain": gain}
 
 
@@ -340,6 +356,7 @@ def plan_shots(scene: Scene, options: PlanOptions | None = None) -> Plan:
     h, w = scene.texture.shape[-2:]
     hr, wr = len(range(*ctx["rows"].indices(h))), len(range(*ctx["cols"].indices(w)))
     per = _per_shot(cand)
+    n_inside = max(int(ctx["inside"].sum()), 1)
     free = torch.ones(lights.shape[0], dtype=torch.bool)
     chosen, scores, drops, gains, planned = [], [], [], [], []
     past_cover = covered.clone()
@@ -347,7 +364,7 @@ def plan_shots(scene: Scene, options: PlanOptions | None = None) -> Plan:
         e0 = expected_error(S, G, lab, k)
         e1 = expected_error(S.unsqueeze(0) + per, G, lab, k)
         drop = (e0 - e1) / e0.clamp_min(1e-300)
-        gain = (cand["hot"] & ~covered).double().mean(-1)
+        gain = (cand["hot"] & ~covered).double().sum(-1) / n_inside
         score = torch.where(free, drop + cover_weight * gain, torch.full_like(drop, -math.inf))
         j = int(score.argmax())
         chosen.append(j)
@@ -362,4 +379,4 @@ def plan_shots(scene: Scene, options: PlanOptions | None = None) -> Plan:
     return Plan(lights=lights[idx], cameras=cams[idx], scores=torch.tensor(scores), error_drop=torch.tensor(drops),
                 cover_gain=torch.tensor(gains), coverage=past_cover.view(hr, wr), planned_cover=torch.stack(planned),
                 offset=flash_offset(scene.lights, scene.cameras)[0], candidates=int(lights.shape[0]), notes=ctx["notes"],
-                intensities=inten[idx])
+                intensities=inten[idx], inside=None if scene.mask is None else ctx["inside"].view(hr, wr))

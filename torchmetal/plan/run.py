@@ -25,10 +25,11 @@ def scene_from_fit(fit, capture, noise: dict | None) -> Scene:
     """A :class:`Scene` from a FitResult and the capture it was fitted to."""
     labels = fit.spec_labels
     s, a = (fit.cluster_s, fit.cluster_alpha) if labels is not None else (fit.s.view(1, 3), fit.alpha.view(1, 3))
+    mask = capture.mask.reshape(capture.height, capture.width).bool()
     return Scene(texture=fit.texture.detach().double(), s=s.detach().double(), alpha=a.detach().double(), labels=labels,
                  normals=None if capture.flat else capture.normals.double(), size=capture.size, lobe=fit.lobe,
                  lights=capture.lights.double(), cameras=capture.cameras.double(),
-                 intensities=capture.intensities.double(), noise=noise)
+                 intensities=capture.intensities.double(), noise=noise, mask=None if bool(mask.all()) else mask)
 
 
 def scene_from_capture(path: Path) -> Scene:
@@ -158,6 +159,8 @@ def draw_plan(scene: Scene, plan: Plan, path: Path) -> None:
     fig, ax = plt.subplots(1, 2, figsize=(12, 6.2), gridspec_kw={"width_ratios": [1, 1.15]})
     ax[0].imshow(img, extent=ext)
     seen = plan.coverage.numpy().astype(float)
+    if plan.inside is not None:  # off the sample: nothing to see, not red
+        seen = np.where(plan.inside.numpy(), seen, 1.0)
     ax[0].imshow(np.ma.masked_where(seen > 0, np.ones_like(seen)), extent=ext, cmap="Reds", alpha=0.45, vmin=0, vmax=1.5)
     half = math.degrees(math.acos(HOT ** (1 / HOT_ALPHA)))
     placed: list = []
@@ -171,7 +174,7 @@ def draw_plan(scene: Scene, plan: Plan, path: Path) -> None:
             (dx, dy), = _free_offsets(ax[0].transData.transform([(cx, cy)]) * 72 / fig.dpi, placed)
             ax[0].annotate(str(i + 1), (cx, cy), textcoords="offset points", xytext=(dx, dy), color="white", fontsize=12,
                            weight="bold", bbox={"boxstyle": "round,pad=0.15", "fc": f"C{i % 10}", "ec": "none"})
-    ax[0].set_title(f"red: no photo put the highlight there ({1 - seen.mean():.0%} of the sample)\n"
+    ax[0].set_title(f"red: no photo put the highlight there ({1 - plan.seen():.0%} of the sample)\n"
                     f"highlight: mirror direction within {half:.1f}° (a lobe ≥ α {HOT_ALPHA:g} at half peak)\n"
                     "outlined, numbered: where each planned shot puts it", fontsize=9)
     ax[0].set_xlabel("x")
@@ -214,7 +217,7 @@ def draw_plan(scene: Scene, plan: Plan, path: Path) -> None:
 def describe(plan: Plan, seconds: float) -> str:
     """The verb's printout: one line per planned shot (capture frame), best first."""
     lines = [f"planned {len(plan.scores)} shots from {plan.candidates} reachable positions in {seconds:.2f} s "
-             f"(highlight seen on {float(plan.coverage.double().mean()):.0%} of the sample so far)"]
+             f"(highlight seen on {plan.seen():.0%} of the sample so far)"]
     for i, (lt, cm, de, cg) in enumerate(zip(plan.lights.tolist(), plan.cameras.tolist(), plan.error_drop.tolist(),
                                              plan.cover_gain.tolist())):
         lines.append(f"  {i + 1}: camera ({cm[0]:.3f}, {cm[1]:.3f}, {cm[2]:.3f}), flash ({lt[0]:.3f}, {lt[1]:.3f}, {lt[2]:.3f}): "
