@@ -115,8 +115,9 @@ def _kind_scores(cap, renders: list, extrapolation: list | None) -> dict:
     """One score kind of the real section (own shots, left out as captured, left out light fitted): for
     ``renders[k]`` (1, 3, H, W) of shot k, the mean over the shots of the sRGB PSNR at each scale of
     :data:`~torchmetal.bench.scoring.SCALES` (``psnr``: {"1": dB, "4": dB, "16": dB}; ``per_shot``: the
-    per-shot dicts), the chroma-artifact share (mean) and, for left-out shots, the extrapolation share
-    (mean; None for own shots: a fitted photo is never brighter than itself)."""
+    per-shot dicts), the chroma-artifact share (mean) and, for left-out shots, the extrapolation share of the
+    worst left-out shot (the max; None for own shots: a fitted photo is never brighter than itself). Not the mean:
+    over a whole leave-one-out each block's brightest shot is the one counted, so the mean is 1/N by construction."""
     per_shot, chroma = [], []
     for k, r in enumerate(renders):
         one = cap.subset([k])
@@ -124,7 +125,7 @@ def _kind_scores(cap, renders: list, extrapolation: list | None) -> dict:
         chroma.append(_chroma(r[0], one))
     psnr = {str(f): _nanmean([d[str(f)] for d in per_shot]) for f in SCALES}
     return {"psnr": psnr, "per_shot": per_shot, "chroma": _nanmean(chroma),
-            "extrapolation": None if extrapolation is None else _nanmean(extrapolation[: len(renders)])}
+            "extrapolation": None if extrapolation is None else max(extrapolation[: len(renders)], default=float("nan"))}
 
 
 def _nanmean(xs) -> float:

@@ -94,7 +94,7 @@ def real_scales_table(r: dict, specs) -> str:
                          fmt(v.get("chroma"), ".1%"), fmt(v.get("extrapolation"), ".1%")])
     size = r.get("size", ["?", "?"])
     return (f"**{r.get('name', '?')}** ({size[0]}×{size[1]}, {r.get('shots', '?')} shots), sRGB PSNR dB:\n\n"
-            + md_table(["fit", "score", "full", "1/4", "1/16", "chroma", "extrapolation"], rows))
+            + md_table(["fit", "score", "full", "1/4", "1/16", "chroma", "extrapolation (worst shot)"], rows))
 
 
 # ----------------------------------------------------------------------------- sections
@@ -345,7 +345,8 @@ class Bench(SweepSection):
                  "alike to that fraction of each side (linear averages of the valid pixels, then encoded), mean over the "
                  "shots; *own shots*: the fit on every shot rendering those shots; *chroma*: the chroma-artifact share "
                  "at full size; *extrapolation*: share of 32×32-px blocks where the left-out photo's mean luminance "
-                 "exceeds every fitted photo's (a highlight no fitted shot showed), mean over the left-out shots.")
+                 "exceeds every fitted photo's (a highlight no fitted shot showed), the worst left-out shot's (their mean "
+                 "over a whole leave-one-out is 1/N by construction).")
         if galleries:
             self.add(f"\nGallery (default pipeline; photo | render | error ×4, sRGB; `_own_` the fit's own shots): `real_gallery/` — "
                      f"{', '.join(galleries)}")
