@@ -28,7 +28,7 @@ from torchmetal.fit.refine import SpecFit, fit_specular, grid_beta, texture_map
 from torchmetal.fit.shot_plan import shot_plan
 from torchmetal.lobes import LOBES
 from torchmetal.select.plan import ShotPlan
-from torchmetal.select.rule import MIN_GAIN, Z_MIN, heldout_psnr, paired_choice
+from torchmetal.select.rule import MIN_GAIN, heldout_psnr, paired_choice
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -67,7 +67,7 @@ def fit_lobe(obs: Observations, *, tol: float, max_iters: int, grid: tuple[float
 def choose_lobe(
     capture: Capture, *, stride: int, tol: float, max_iters: int, dtype: torch.dtype, chunk: int,
     candidates: tuple[str, ...] = LOBES, holds: int = HOLDS, folds: int = FOLDS, min_gain: float = MIN_GAIN,
-    z_min: float = Z_MIN, labeler: Callable[[Tensor, Tensor], Tensor] | None = None, plan: ShotPlan | None = None,
+    z_min: float | None = None, labeler: Callable[[Tensor, Tensor], Tensor] | None = None, plan: ShotPlan | None = None,
 ) -> LobeSelection:
     """Fit each candidate lobe on all shots but a group (in turn, ``holds`` shots in ``folds`` groups) on a
     pixel grid of ``stride``; keep the lowest held-out MSE, Phong unless beaten beyond noise (module docstring).

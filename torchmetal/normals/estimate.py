@@ -24,8 +24,8 @@ l, v, E come from :mod:`torchmetal.geometry` (point and directional lights, any 
    normals under them, then tries the 4 neighbours' normals (local minima near highlights).
 4. **Joint refinement** of the normals with the global s, α
    (:func:`~torchmetal.normals.joint.joint_refine`): the alternation alone has a biased fixed
-   point (normal errors broaden the lobe the Phong fit sees). When the Phong fits saw no highlight
-   (s = 0), a weak, broad lobe is still tried from a small start
+   point (normal errors broaden the lobe the Phong fit sees). When the Phong fits saw no highlight in
+   some channel (s = 0), a weak, broad lobe is still tried from a small start
    (:func:`~torchmetal.normals.joint.try_weak_lobe`): Lambertian normals tilted towards the half
    vectors absorb such a lobe, and then no residual shows it; kept when it explains the shots better.
 5. **Second chances** (:mod:`~torchmetal.normals.restart`): pixels whose robust cost stands out
@@ -203,16 +203,18 @@ def _phong_round(capture: Capture, normals: Tensor, solvable: Tensor, iters: int
 
 def _joint_stages(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor, fit: FitResult, solvable: Tensor,
                   iters: int, weak_lobe: bool, history: list) -> tuple[Tensor, Tensor, Tensor]:
-    """The weak-lobe try (with ``weak_lobe``, when the rounds saw no highlight: s = 0), then, with a
+    """The weak-lobe try (with ``weak_lobe``, when the rounds saw no highlight in some channel: s = 0), then, with a
     lobe, the joint refinement of the normals and s, α and one more refinement under its terms.
     Appends the stages' report entries to ``history``; returns normals, s, α."""
-    if not bool((s > 0).any()) and weak_lobe:  # no highlight seen: a weak, broad lobe may hide
+    if not bool((s > 0).all()) and weak_lobe:  # a channel without highlight: a weak, broad lobe may hide
         t1 = time.perf_counter()
         inside = capture.mask[0]
         zero = torch.zeros(3, dtype=normals.dtype, device=normals.device)
         tex = fit.texture.to(normals.dtype)[:, inside].mean(1) if bool(inside.any()) else torch.zeros_like(zero)
-        normals, s, alpha, rep = try_weak_lobe(capture, normals, tex, iters=iters, active=solvable)
-        history.append({"round": "weak_lobe", **rep, "time": time.perf_counter() - t1})
+        tried = try_weak_lobe(capture, normals, tex, iters=iters, active=solvable)
+        if tried[3]["kept"] or not bool((s > 0).any()):  # not kept: the rounds' own (partial) lobe stays
+            normals, s, alpha = tried[:3]
+        history.append({"round": "weak_lobe", **tried[3], "time": time.perf_counter() - t1})
     if bool((s > 0).any()):
         t1 = time.perf_counter()
         normals, s, alpha, rep = joint_refine(capture, normals, s, alpha, active=solvable)

@@ -31,7 +31,7 @@ from torch import Tensor
 from torchmetal.fit.api import fit_phong
 from torchmetal.fit.holdout import valid_mean_square, valid_pixels
 from torchmetal.select.plan import shot_groups
-from torchmetal.select.rule import MIN_GAIN_ABS, Z_MIN, Decision, paired_choice
+from torchmetal.select.rule import MIN_GAIN_ABS, Decision, paired_choice, z_min_for
 
 if TYPE_CHECKING:
     from torchmetal.fit.result import FitResult
@@ -190,7 +190,7 @@ def _decide(choice: Choice, capture: Capture, ctx: Context) -> Decision:
     groups = shot_groups(n, choice.folds)
     errors: dict[str, list[Tensor]] = {c: [] for c in choice.candidates}
     rule = dict(choice.rule)
-    z_min = rule.get("z_min", Z_MIN)
+    z_min = rule.get("z_min", z_min_for(choice.name))
     d = None
     for i, group in enumerate(groups):
         train = grid.subset([k for k in range(n) if k not in group])

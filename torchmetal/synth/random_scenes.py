@@ -319,7 +319,7 @@ def scene_truth(rs: RandomScene) -> dict[str, str]:
       (no candidate models it); directional lights → reference.
     - weights: noise-free → reference; else n/a (both estimate the same model).
     - lobe: Phong → reference; Blinn or GGX → extension.
-    - specular evidence: extension (every scene has a specular lobe).
+    - specular evidence: reference ("specular": every scene has a specular lobe; the extension drops it).
     - specular clusters: 2–3 materials → extension; one without gloss maps → reference; else n/a.
     - gloss maps: gloss maps → extension; one material without → reference; else n/a.
     - specular colour: a metal's colour → reference ("free"); white → extension ("white").
@@ -347,7 +347,7 @@ def scene_truth(rs: RandomScene) -> dict[str, str]:
         "light": light,
         "weights": REFERENCE if rs.shot_noise == 0 and rs.read_noise == 0 else NA,
         "lobe": REFERENCE if sc.lobe == "phong" else EXTENSION,
-        "specular evidence": EXTENSION,
+        "specular evidence": REFERENCE,
         "specular clusters": EXTENSION if n_mat > 1 else (REFERENCE if not rs.gloss else NA),
         "gloss maps": EXTENSION if rs.gloss else (REFERENCE if n_mat == 1 else NA),
         "specular colour": REFERENCE if len(set(rs.spec_colour)) > 1 else EXTENSION,
