@@ -44,3 +44,17 @@ def test_stops_at_once_on_a_flat_start():
     x0 = torch.ones(4, dtype=torch.float64)
     x, n = minimize(_value_grad, x0)
     assert n == 0 and torch.equal(x, x0)
+
+
+def test_a_step_into_non_finite_values_keeps_the_last_finite_iterate():
+    """f is finite for x < 2 only (an exponent overflowing far from the data); its minimum lies beyond: the
+    iteration stops at a finite x instead of returning NaN (the relief's fit on a random scene did, 2026-12-06)."""
+
+    def value_grad(x):
+        x = x.detach().requires_grad_(True)
+        f = torch.where(x < 2.0, -x * 10.0, torch.full_like(x, float("nan"))).sum()
+        (g,) = torch.autograd.grad(f, x)
+        return float(f), g
+
+    x, _ = minimize(value_grad, torch.zeros(1, dtype=torch.float64), max_iter=20)
+    assert bool(torch.isfinite(x).all()) and float(x[0]) < 2.0

@@ -10,6 +10,7 @@ same iterates, tested against ``torch.optim.LBFGS``.
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import torch
@@ -24,7 +25,8 @@ def minimize(value_grad: Callable[[Tensor], tuple[float, Tensor]], x0: Tensor, *
 
     Stops as ``torch.optim.LBFGS.step`` does: after ``max_iter`` iterations or ``max_eval``
     evaluations (default 1.25·max_iter), when max|∇f| ≤ ``tolerance_grad``, or when the step or the
-    change of f falls below ``tolerance_change``.
+    change of f falls below ``tolerance_change``. A step to a non-finite f or ∇f (an exponent overflowing far
+    from the data) ends the iteration at the last finite iterate.
     """
     max_eval = max_iter * 5 // 4 if max_eval is None else max_eval
     x = x0.detach().clone()
@@ -68,8 +70,15 @@ def minimize(value_grad: Callable[[Tensor], tuple[float, Tensor]], x0: Tensor, *
         gtd = grad.dot(d)
         if gtd > -tolerance_change:
             break
-        loss, grad, t, ls_evals = _strong_wolfe(lambda xx, tt, dd: value_grad(xx + tt * dd), x, t, d, loss, grad,
-                                                gtd, max_ls=max_eval - evals)
+        try:
+            found = _strong_wolfe(lambda xx, tt, dd: value_grad(xx + tt * dd), x, t, d, loss, grad, gtd,
+                                  max_ls=max_eval - evals)
+        except IndexError:  # torch's line search on NaN values finds no bracket (its list runs empty)
+            break
+        if not (math.isfinite(float(found[0])) and bool(torch.isfinite(found[1]).all())
+                and bool(torch.isfinite(found[2] * d).all())):
+            break  # the line search left the finite region: keep x
+        loss, grad, t, ls_evals = found
         x = x + t * d
         evals += ls_evals
         if n_iter == max_iter or evals >= max_eval or float(grad.abs().max()) <= tolerance_grad:

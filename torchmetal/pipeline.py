@@ -44,18 +44,20 @@ class PipelineResult:
 
 
 FLAKE_CHOICES = ("observed_choice", "flakes_choice", "density_map_choice")  # flake report entries holding a decision
-FIRST_FIT_CHOICES = ("lobe", "weights")  # made by the first fit alone: the flake stage's refits keep them
+FIRST_FIT_CHOICES = ("lobe", "weights")  # made once (the lobe by the reference fit where it stands): later fits keep them
 
 
 def decision_records(first: FitResult, fit: FitResult, normals_report: dict | None, flake_result: FlakeStageResult | None,
-                     light_report: dict | None = None, clipping_report: dict | None = None) -> list[dict]:
+                     light_report: dict | None = None, clipping_report: dict | None = None,
+                     lobe: FitResult | None = None) -> list[dict]:
     """Every choice made on left-out shots, in the order made, as :class:`~torchmetal.select.rule.Decision`
     dicts: the clipping, normals, the light calibration, the lobe and the weights (``first``, the first fit, chose
-    them), the final fit's specular choices (evidence, clusters, relabelling, gloss maps), then the flake choices."""
+    them; ``lobe``: the fit that chose the lobe where not the first, the selection's reference fit), the final fit's specular choices (evidence, clusters, relabelling, gloss maps), then the flake choices."""
     stages = ((clipping_report, "decision"), (normals_report, "decision"), (normals_report, "relief_decision"),
               (light_report, "decision"))
     out = [report[k] for report, k in stages if (report or {}).get(k)]
-    out += [d for d in first.decisions if d["name"] in FIRST_FIT_CHOICES]  # the refits keep these
+    chooser = {"lobe": lobe or first, "weights": first}
+    out += [d for name in FIRST_FIT_CHOICES for d in chooser[name].decisions if d["name"] == name]  # the refits keep these
     out += [d for d in fit.decisions if d["name"] not in FIRST_FIT_CHOICES]
     flakes = {} if flake_result is None else flake_result.report
     out += [flakes[k]["decision"] for k in FLAKE_CHOICES if (flakes.get(k) or {}).get("decision")]
@@ -95,7 +97,7 @@ def fit_material(capture: Capture, config: FitConfig | None = None, **options: A
     material.report["uncertainty"] = fit_uncertainty(state.fit, capture)  # the intervals of s, α and the texture
     state.stage_times["uncertainty"] = time.perf_counter() - t1
     material.report["decisions"] = decision_records(state.first, state.fit, state.normals_report, state.flake_result,
-                                                    state.light_report, state.clipping_report)
+                                                    state.light_report, state.clipping_report, lobe=state.lobe_chooser)
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
     return PipelineResult(material=material, fit=state.fit, flakes=state.flake_result, report=material.report,
                           light=state.light)
@@ -112,6 +114,8 @@ class State:
     light: LightCalibration = field(default_factory=LightCalibration)
     light_report: dict | None = None
     first: FitResult | None = None  # the first Phong fit: the flake-free material's
+    chooser: FitResult | None = None  # the fit that chose the lobe where not the first (the reference fit)
+    source: Capture | None = None  # the capture as the choices before the fit found it
     fit: FitResult | None = None  # the fit the material is made from
     flake_result: FlakeStageResult | None = None
     material: Material | None = None
@@ -126,7 +130,13 @@ class State:
         return {"stage_times": self.stage_times, "skipped": skipped, "status": fit.status,
                 "iterations": fit.iterations, "rmse": fit.rmse, "normals": self.normals_report,
                 "flakes": None if self.flake_result is None else self.flake_result.report, "lobe": fit.lobe,
-                "lobe_selection": self.first.lobe_selection, "shot_plan": None if plan is None else plan.to_dict()}
+                "lobe_selection": self.lobe_chooser.lobe_selection,
+                "shot_plan": None if plan is None else plan.to_dict()}
+
+    @property
+    def lobe_chooser(self) -> FitResult:
+        """The fit whose records hold the lobe choice."""
+        return self.chooser if self.chooser is not None else self.first
 
 
 def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
@@ -134,6 +144,7 @@ def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
     light, each as its option says or, "auto", decided on left-out shots with the model a reference fit chose."""
     o = st.opts
     t = time.perf_counter()
+    st.source = capture
     # the reference fit, made on first use, has the first Phong fit's options: on a capture small enough to be its
     # own grid, and left unchanged by the choices, it is the first Phong fit (stage_phong)
     st.ctx = ctx = reference_context(capture, {**o.fit_kwargs(), "lobe": o.choices.lobe, "robust": None})
@@ -186,10 +197,20 @@ def stage_phong(capture: Capture, st: State) -> tuple[Capture, State]:
     this very capture with the same options."""
     o = st.opts
     robust = None if o.solver.robust in ("auto", "none") else o.solver.robust
-    same = st.ctx.reference_fit(capture) if st.ctx is not None and robust is None else None
-    st.first = st.fit = same if same is not None else fit_phong(capture, robust=robust, lobe=o.choices.lobe, **o.fit_kwargs())
+    ctx = st.ctx
+    same = ctx.reference_fit(capture) if ctx is not None and robust is None else None
+    kw = {**o.fit_kwargs(), "lobe": o.choices.lobe}
+    if same is None and ctx is not None and ctx.resolved and capture is st.source:
+        # the choices left the capture as the reference fit saw it: its lobe stands, not chosen again (the weights
+        # are: their test gains power with the pixels, and the zoo's 8-bit photo_srgb8 lost them on the grid, z 2.7)
+        kw["lobe"] = ctx.model["lobe"]
+        st.chooser = ctx.fits[ctx.reference_key][1]
+    st.first = st.fit = same if same is not None else fit_phong(capture, robust=robust, **kw)
     st.stage_times.update({f"phong.{k}": v for k, v in st.first.stage_times.items()})
     st.skipped = list(st.first.skipped)
+    if st.chooser is not None:
+        st.skipped.append(f"lobe: the selection's reference fit chose it ({kw['lobe']}) on its grid; the Phong fit "
+                          f"does not choose it again")
     if same is not None:  # its time is the Phong fit's, not the choices'
         st.stage_times["choices"] -= st.stage_times.pop("choices.reference", 0.0)
         st.skipped.append("phong: not fitted again: the selection's reference fit was this capture with these options")

@@ -463,13 +463,14 @@ class Bench(SweepSection):
     def run_selection(self) -> None:
         from torchmetal.bench import selection  # the random scenes' fits (torchmetal.bench.selection)
 
-        n = selection.scene_count(self.plan.name == "quick")
-        self.section(f"Selection: the default's choices on {n} random scenes (torchmetal.synth.random_scenes)")
+        seeds = selection.section_seeds(self.plan.name == "quick")
+        self.section(f"Selection: the default's choices on {len(seeds)} random scenes, seeds {seeds.start}–{seeds.stop - 1} "
+                     f"(torchmetal.synth.random_scenes)")
         if self.plan.threads:
             import torch
 
             torch.set_num_threads(self.plan.threads)
-        res = selection.run_section(range(n), workdir=self.tmp, say=self.say, jsonl=self.out / "selection.jsonl")
+        res = selection.run_section(seeds, workdir=self.tmp, say=self.say, jsonl=self.out / "selection.jsonl")
         self.raw["selection"] = res["choices"] | {"overall": res["overall"]}
         (self.out / "selection.json").write_text(json.dumps(res, indent=1, default=str))
         self.add(selection.markdown(res))
