@@ -52,7 +52,8 @@ def decision_records(first: FitResult, fit: FitResult, normals_report: dict | No
                      lobe: FitResult | None = None) -> list[dict]:
     """Every choice made on left-out shots, in the order made, as :class:`~torchmetal.select.rule.Decision`
     dicts: the clipping, normals, the light calibration, the lobe and the weights (``first``, the first fit, chose
-    them; ``lobe``: the fit that chose the lobe where not the first, the selection's reference fit), the final fit's specular choices (evidence, clusters, relabelling, gloss maps), then the flake choices."""
+    them; ``lobe``: the fit that chose the lobe where not the first, the selection's reference fit), the final fit's
+    specular choices (evidence, clusters, relabelling, gloss maps), then the flake choices."""
     stages = ((clipping_report, "decision"), (normals_report, "decision"), (normals_report, "relief_decision"),
               (light_report, "decision"))
     out = [report[k] for report, k in stages if (report or {}).get(k)]
@@ -194,7 +195,7 @@ def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
 
 def stage_phong(capture: Capture, st: State) -> tuple[Capture, State]:
     """The first Phong fit (lobe, specular structure: chosen on left-out shots); the reference fit where that was
-    this very capture with the same options."""
+    this very capture with the same options; else with the reference's lobe where the capture is as it saw it."""
     o = st.opts
     robust = None if o.solver.robust in ("auto", "none") else o.solver.robust
     ctx = st.ctx
