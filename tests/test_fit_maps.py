@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchmetal.report.disagreement import disagreement_map, disagreement_png
-from torchmetal.report.registration import shot_shifts
+from torchmetal.registration import shot_shifts
 
 
 def _texture(h=128, w=128, seed=0):

@@ -72,7 +72,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
               "torchmetal.select.plan", "torchmetal.config")),
     ("io", ("torchmetal.io",)),
     ("model", ("torchmetal.flakes.model", "torchmetal.material", "torchmetal.renderer", "torchmetal.metrics", "torchmetal.synth")),
-    ("fit", ("torchmetal.fit", "torchmetal.normals", "torchmetal.lightcal", "torchmetal.clipping")),
+    ("fit", ("torchmetal.fit", "torchmetal.normals", "torchmetal.lightcal", "torchmetal.clipping", "torchmetal.registration")),
     ("select", ("torchmetal.select.harness", "torchmetal.select.choices", "torchmetal.select.screens")),
     ("flakes", ("torchmetal.flakes",)),
     ("pipeline", ("torchmetal.pipeline",)),

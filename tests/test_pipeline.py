@@ -122,7 +122,7 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
     assert "weights" in records  # the first fit's choice, kept by the flake stage's refits, is on record
     assert records["observed flakes"]["chosen"] == ("observed" if kept.material.observed_flakes is not None
                                                     else "statistical")
-    assert set(records) <= {"clipping", "normals", "relief", "light", "weights", "lobe", "specular evidence", "specular clusters", "relabel",
+    assert set(records) <= {"registration", "clipping", "normals", "relief", "light", "weights", "lobe", "specular evidence", "specular clusters", "relabel",
                             "gloss maps", "specular colour", "observed flakes", "flakes", "density map"}
     times = kept.report["stage_times"]  # the total counts the flake choices too
     assert kept.report["total_time"] >= times["flakes"] + times["flakes.observed"] + times["flakes.choice"]
@@ -153,8 +153,9 @@ def test_default_chooses_lobe_and_normals_on_left_out_shots():
     assert given.report["normals"]["chosen"] == "given" and given.material.normals is not None
     assert given.report["lobe"] == "ggx" == given.report["lobe_selection"]["lobe"], given.report["lobe_selection"]
     names = [d["name"] for d in rep["decisions"]]
-    assert names[:4] == ["clipping", "normals", "light", "lobe"] and rep["decisions"][1]["chosen"] == "estimate"
-    assert rep["clipping"]["chosen"] == rep["decisions"][0]["chosen"]  # the stage's report holds its record
+    assert names[:5] == ["registration", "clipping", "normals", "light", "lobe"] and rep["decisions"][2]["chosen"] == "estimate"
+    assert rep["clipping"]["chosen"] == rep["decisions"][1]["chosen"]  # the stage's report holds its record
+    assert rep["registered"]["chosen"] == rep["decisions"][0]["chosen"] == "off"  # a synthetic capture: untested
     assert [d["chosen"] for d in given.report["decisions"] if d["name"] == "lobe"] == ["ggx"]
 
 
@@ -164,7 +165,8 @@ def test_light_calibration_stage_records_its_decision():
     cap, *_ = flash_capture()
     res = fit_material(cap, flakes="off", normals="given", lobe="phong")  # light="auto", the default
     names = [d["name"] for d in res.report["decisions"]]
-    assert names[:2] == ["clipping", "light"] and res.report["decisions"][1]["chosen"] == res.report["light"]["chosen"]
+    assert names[:3] == ["registration", "clipping", "light"]
+    assert res.report["decisions"][2]["chosen"] == res.report["light"]["chosen"]
     assert res.report["light"]["chosen"] == "flash" and len(res.report["light"]["flash"]) == 3
     assert res.report["stage_times"]["light"] > 0
     off = fit_material(cap, flakes="off", normals="given", lobe="phong", light="off")

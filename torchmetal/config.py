@@ -33,6 +33,9 @@ def option(default: Any, help: str, choices: tuple | None = None, tiled: tuple |
 class ChoiceOptions:
     """The automatic choices: ``auto`` decides each on shots the fit left out (docs/design.md §4)."""
 
+    registration: str = option("auto", "the shots as captured (off), or each moved back by its measured shift against "
+                                       "the others (shift: phone photos rectified from markers)",
+                               ("auto", "off", "shift"), tiled=("auto", "off"))
     clipping: str = option("auto", "how an observation with a clipped channel is read: channel keeps its other "
                                    "channels (a linear sensor), pixel drops all three (a phone's processing)",
                            ("auto", "channel", "pixel"), tiled=("auto", "channel"))

@@ -23,7 +23,8 @@ from torchmetal.io.capture import Capture
 from torchmetal.lightcal import LightCalibration, with_light
 from torchmetal.material import Material
 from torchmetal.normals import with_normals
-from torchmetal.select.choices import CLIPPING, LIGHT, NORMALS, RELIEF, reference_context
+from torchmetal.registration import with_registration
+from torchmetal.select.choices import CLIPPING, LIGHT, NORMALS, REGISTRATION, RELIEF, reference_context
 from torchmetal.select.harness import Context, decide
 from torchmetal.select.plan import ShotPlan
 from torchmetal.select.rule import Decision
@@ -49,13 +50,13 @@ FIRST_FIT_CHOICES = ("lobe", "weights")  # made once (the lobe by the reference 
 
 def decision_records(first: FitResult, fit: FitResult, normals_report: dict | None, flake_result: FlakeStageResult | None,
                      light_report: dict | None = None, clipping_report: dict | None = None,
-                     lobe: FitResult | None = None) -> list[dict]:
+                     lobe: FitResult | None = None, registration_report: dict | None = None) -> list[dict]:
     """Every choice made on left-out shots, in the order made, as :class:`~torchmetal.select.rule.Decision`
-    dicts: the clipping, normals, the light calibration, the lobe and the weights (``first``, the first fit, chose
-    them; ``lobe``: the fit that chose the lobe where not the first, the selection's reference fit), the final fit's
-    specular choices (evidence, clusters, relabelling, gloss maps), then the flake choices."""
-    stages = ((clipping_report, "decision"), (normals_report, "decision"), (normals_report, "relief_decision"),
-              (light_report, "decision"))
+    dicts: the registration, the clipping, normals, the light calibration, the lobe and the weights (``first``, the
+    first fit, chose them; ``lobe``: the fit that chose the lobe where not the first, the selection's reference fit),
+    the final fit's specular choices (evidence, clusters, relabelling, gloss maps), then the flake choices."""
+    stages = ((registration_report, "decision"), (clipping_report, "decision"), (normals_report, "decision"),
+              (normals_report, "relief_decision"), (light_report, "decision"))
     out = [report[k] for report, k in stages if (report or {}).get(k)]
     chooser = {"lobe": lobe or first, "weights": first}
     out += [d for name in FIRST_FIT_CHOICES for d in chooser[name].decisions if d["name"] == name]  # the refits keep these
@@ -83,7 +84,7 @@ def fit_material(capture: Capture, config: FitConfig | None = None, **options: A
         ``result.light.lights(capture)`` and is multiplied by ``result.light.factor(capture)``.
 
     The stages run in order (:data:`STAGES`), each ``(capture, state) → (capture, state)``: the choices before the
-    fit (clipping, normals, relief, light), the Phong fit, the flake stage, the material, then the flake choices
+    fit (registration, clipping, normals, relief, light), the Phong fit, the flake stage, the material, then the flake choices
     (observed flakes, flakes or none, the density map), each on shots left out; every choice's record ends in the
     report's "decisions" (:func:`decision_records`).
     """
@@ -94,11 +95,13 @@ def fit_material(capture: Capture, config: FitConfig | None = None, **options: A
     material = state.material
     material.report["light"] = state.light_report
     material.report["clipping"] = state.clipping_report
+    material.report["registered"] = state.registration_report
     t1 = time.perf_counter()
     material.report["uncertainty"] = fit_uncertainty(state.fit, capture)  # the intervals of s, α and the texture
     state.stage_times["uncertainty"] = time.perf_counter() - t1
     material.report["decisions"] = decision_records(state.first, state.fit, state.normals_report, state.flake_result,
-                                                    state.light_report, state.clipping_report, lobe=state.lobe_chooser)
+                                                    state.light_report, state.clipping_report, lobe=state.lobe_chooser,
+                                                    registration_report=state.registration_report)
     material.report["total_time"] = time.perf_counter() - t0  # the flake choices included
     return PipelineResult(material=material, fit=state.fit, flakes=state.flake_result, report=material.report,
                           light=state.light)
@@ -110,6 +113,7 @@ class State:
 
     opts: FitConfig
     ctx: Context | None = None  # the selection's context (its reference fit and the model's fits)
+    registration_report: dict | None = None
     clipping_report: dict | None = None
     normals_report: dict | None = None
     light: LightCalibration = field(default_factory=LightCalibration)
@@ -141,8 +145,8 @@ class State:
 
 
 def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
-    """The choices before the Phong fit (:data:`torchmetal.select.choices.PREFIT`): clipping, normals, relief,
-    light, each as its option says or, "auto", decided on left-out shots with the model a reference fit chose."""
+    """The choices before the Phong fit (:data:`torchmetal.select.choices.PREFIT`): registration, clipping, normals,
+    relief, light, each as its option says or, "auto", decided on left-out shots with the model a reference fit chose."""
     o = st.opts
     t = time.perf_counter()
     st.source = capture
@@ -157,6 +161,12 @@ def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
         ctx.chosen[choice.name] = d.chosen
         return d
 
+    if o.choices.registration == "auto":
+        d = auto(REGISTRATION, capture)
+        capture, st.registration_report = with_registration(capture, d.chosen)
+        st.registration_report |= {"mode": "auto", "decision": d.to_dict()}
+    else:
+        capture, st.registration_report = with_registration(capture, o.choices.registration)
     if o.choices.clipping == "auto":
         d = auto(CLIPPING, capture)
         capture, st.clipping_report = with_clipping(capture, d.chosen)

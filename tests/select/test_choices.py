@@ -15,7 +15,7 @@ from torchmetal.geometry import shading_geometry
 from torchmetal.lightcal import LightCalibration, with_light
 from torchmetal.normals import with_normals
 from torchmetal.phong import phong_shading
-from torchmetal.select.choices import CLIPPING, LIGHT, NORMALS, RELIEF, choose
+from torchmetal.select.choices import CLIPPING, LIGHT, NORMALS, REGISTRATION, RELIEF, choose
 from torchmetal.select.rule import z_min_for
 from torchmetal.synth import synth_capture
 
@@ -238,3 +238,51 @@ def test_light_skips_are_reported():
     with pytest.raises(InputError, match="light: expected one of"):
         with_light(_light_capture(), "auto")
     assert LightCalibration().identity
+
+
+# ----------------------------------------------------------------------------- registration
+
+SHIFTS = [[0, 0], [3, 0], [0, -2], [4, 3], [-3, 1], [0, 0], [2, -4], [-2, -2]]  # px, x right and y down
+
+
+def _misregistered(capture, shifts=SHIFTS):
+    """``capture`` with each shot moved by ``shifts`` (a rectification's residual), the pixels moved in from outside
+    clipped in every channel."""
+    from torchmetal.registration import moved
+
+    m = moved(capture.images, shifts, sign=1.0)
+    return replace(capture, images=torch.nan_to_num(m, nan=0.0), saturated=capture.saturated | torch.isnan(m))
+
+
+@pytest.fixture(scope="module")
+def textured():
+    return synth_capture(size=96, shots=8, seed=3, noise=0.003, texture="procedural").capture
+
+
+def test_registered_shots_are_not_tested(textured):
+    d = choose(REGISTRATION, textured)
+    assert d.chosen == "off" and not d.mse and "registered within" in d.reason, d.reason
+
+
+def test_shots_off_by_pixels_are_moved_back(textured):
+    from torchmetal.registration import shot_shifts, with_registration
+
+    bad = _misregistered(textured)
+    d = choose(REGISTRATION, bad)
+    assert d.chosen == "shift" and d.mse["shift"] < 0.8 * d.mse["off"] and d.z["shift"] > 4, d.reason
+    fixed, rep = with_registration(bad, "shift")
+    assert rep["chosen"] == "shift" and rep["max"] > 2.0
+    assert shot_shifts(fixed.images)["max"] < 0.5 * rep["max"]  # what is left of the shifts after moving back
+    with pytest.raises(InputError, match="registration: expected one of"):
+        with_registration(bad, "affine")
+
+
+def test_moved_there_and_back_is_the_image_inside():
+    from torchmetal.registration import moved
+
+    x = torch.rand(2, 3, 20, 24, dtype=torch.float64)
+    there = moved(x, [[2.0, -1.0], [0.0, 3.0]], sign=1.0)
+    back = moved(torch.nan_to_num(there, nan=0.0), [[2.0, -1.0], [0.0, 3.0]])
+    inside = ~torch.isnan(there) & ~torch.isnan(back)
+    inside[..., :4, :] = inside[..., -4:, :] = inside[..., :, :4] = inside[..., :, -4:] = False
+    assert bool(torch.isnan(there[0, :, :, :2]).all()) and torch.allclose(back[inside], x[inside])

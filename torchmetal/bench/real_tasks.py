@@ -214,6 +214,7 @@ def _material_fit_render(method: str, coats: list | None = None, calibrated: lis
         res = fit_material(train, seed=0, **variants[method])
         # the photos' lights: the calibration's falloff (a left-out shot has no gain, no offset)
         seen = one is train
+        frame = _photo_frames(res, train, one, seen)
         light = res.light if seen else res.light.for_unseen()
         factor, lights = light.factor(one), light.lights(one)
         renderer = MaterialRenderer(res.material)
@@ -223,13 +224,33 @@ def _material_fit_render(method: str, coats: list | None = None, calibrated: lis
                 m = res.material
                 coat = pred if m.flakes is None and m.observed_flakes is None else \
                     MaterialRenderer(replace(m, flakes=None, observed_flakes=None))(lights, one.intensities, one.cameras)
-                coats.append((coat * factor).detach().float().cpu())
+                coats.append(frame(coat * factor).detach().float().cpu())
             if calibrated is not None and not seen:
                 fitted = moved_lights(one.lights, material_offsets(res.material, one, factor))
-                calibrated.append((renderer(fitted, one.intensities, one.cameras) * factor).detach().float().cpu())
-        return pred * factor
+                calibrated.append(frame(renderer(fitted, one.intensities, one.cameras) * factor).detach().float().cpu())
+        return frame(pred * factor)
 
     return fit_render
+
+
+def _photo_frames(res, train, one, seen: bool):
+    """The renders of ``one``'s shots moved into their photos' frames where the fit registered its shots (the
+    material lies in their mean frame): a fitted shot by its measured shift, a left-out one by its shift against the
+    registered shots (the registration a new photo gets). Pixels with no source keep the unmoved render."""
+    import torch
+
+    from torchmetal.registration import moved, registered, shifts_against
+
+    rep = res.report.get("registered") or {}
+    if rep.get("chosen") != "shift":
+        return lambda pred: pred
+    shifts = rep["shifts"] if seen else shifts_against(registered(train, rep["shifts"]).images, one.images)
+
+    def frame(pred):
+        m = moved(pred, shifts, sign=1.0)
+        return torch.where(torch.isnan(m), pred, m)
+
+    return frame
 
 
 def task_realflakes(cfg: dict) -> dict:

@@ -1,5 +1,5 @@
 """The fit report's measurements of the capture against the fitted material: each shot's registration
-(:mod:`torchmetal.report.registration`) and the map of the pixels whose shots disagree with the model beyond the
+(:mod:`torchmetal.registration`) and the map of the pixels whose shots disagree with the model beyond the
 noise (:mod:`torchmetal.report.disagreement`), written beside the material as ``disagreement.png``.
 
 They read the result, they never change it: ``torchmetal fit`` calls :func:`add_fit_maps` after the fit and before
@@ -16,21 +16,13 @@ import torch
 import torch.nn.functional as F
 
 from torchmetal.io.capture import Capture
+from torchmetal.registration import shot_shifts, valid_observations
 from torchmetal.renderer import MaterialRenderer
 from torchmetal.report.disagreement import disagreement_map, disagreement_png
-from torchmetal.report.registration import shot_shifts
 
 __all__ = ["add_fit_maps", "fit_maps", "DISAGREEMENT_PNG"]
 
 DISAGREEMENT_PNG = "disagreement.png"  # its name in the material directory
-
-
-def _valid(capture: Capture) -> torch.Tensor:
-    """(N, 3, H, W) bool: on the sample's mask, not saturated, finite."""
-    v = torch.isfinite(capture.images) & capture.mask.bool().reshape(1, 1, *capture.images.shape[-2:])
-    if capture.saturated is not None:
-        v = v & ~capture.saturated.bool()
-    return v
 
 
 def fit_renders(capture: Capture, result) -> torch.Tensor:
@@ -50,7 +42,7 @@ def fit_renders(capture: Capture, result) -> torch.Tensor:
 def fit_maps(capture: Capture, result) -> tuple[dict, torch.Tensor, torch.Tensor]:
     """The report entries ``registration`` and ``disagreement`` (``render`` in the latter: {"time": the seconds of
     the renders the map needs}), the (H', W') disagreement map and the first photo at the map's size."""
-    valid = _valid(capture)
+    valid = valid_observations(capture)
     registration = shot_shifts(capture.images, valid)
     t0 = time.perf_counter()
     renders = fit_renders(capture, result)

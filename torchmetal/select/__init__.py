@@ -6,7 +6,7 @@
 - :mod:`~torchmetal.select.harness`: a choice declared (:class:`~torchmetal.select.harness.Choice`: its candidates,
   the simplest first, how a candidate is fitted, its error measure, its screen) and the one harness that runs it
   (grid, folds, candidate fits, pairing, futility stop, the record);
-- :mod:`~torchmetal.select.choices`: the choices made before the Phong fit (clipping, normals, relief, light),
+- :mod:`~torchmetal.select.choices`: the choices made before the Phong fit (registration, clipping, normals, relief, light),
   each declared there and registered in :data:`~torchmetal.select.choices.PREFIT`.
 
 This ``__init__`` imports nothing: the rule and the plan sit below the fit (the fit's own choices use them),

@@ -9,6 +9,7 @@ two-material sample misfits, and estimated normals, a relief or a moved light th
 ============ ============================= ================ ============================================
 choice       candidates (reference first)  error (paired)   screen (skips the test)
 ============ ============================= ================ ============================================
+registration off, shift                    pixel median     every shot within 1 px of the others (untested)
 clipping     channel, pixel                block mean       their other channels hold < 0.5 % of the residual
 normals      flat, estimate                pixel median     the residual follows no tilt (tilt_screen)
 relief       flat, relief                  pixel median     as normals, on its downsampled grid
@@ -35,6 +36,14 @@ from torchmetal.io.grid import strided_capture
 from torchmetal.lightcal.estimate import calibrate_positions
 from torchmetal.normals.estimate import estimate_normals
 from torchmetal.normals.relief import RES, factor_for, fit_normals, fit_relief
+from torchmetal.registration import (
+    moved,
+    registered,
+    registration_shifts,
+    shifts_against,
+    shot_shifts,
+    valid_observations,
+)
 from torchmetal.select.harness import Choice, Context, decide, observation_errors, pixel_errors
 from torchmetal.select.rule import Decision
 from torchmetal.select.screens import clipping_screen, light_screen, tilt_screen
@@ -201,8 +210,47 @@ LIGHT = Choice(
     rule={"min_gain": LIGHT_GAIN}, untested=_light_untested, screen=_reference_screen(light_screen))
 
 
+# ----------------------------------------------------------------------------- registration
+
+
+REGISTRATION_WIDTH = 256  # the test's grid: box-averaged to this width (a shift of 2-30 px at 1 MP stays 0.5-8 px)
+REGISTRATION_PX = 1.0  # shots registered within this many (full-size) pixels are not tested: the measurement's accuracy
+
+
+def _registration_grid(capture: Capture) -> Capture:
+    return capture.downsampled(max(1, -(-capture.width // REGISTRATION_WIDTH)))
+
+
+def _registration_untested(capture: Capture, ctx: Context) -> str | None:
+    grid = _registration_grid(capture)
+    f = capture.width / grid.width
+    worst = f * shot_shifts(grid.images, valid_observations(grid), max_width=REGISTRATION_WIDTH)["max"]
+    return None if worst >= REGISTRATION_PX else f"the shots are registered within {worst:.2f} px (< {REGISTRATION_PX:g})"
+
+
+def _registration_fit(train: Capture, candidate: str, ctx: Context):
+    """"shift": the training shots moved back by their shifts against each other, the model fitted on them; a
+    left-out shot's render is moved into its photo's frame by the shot's shift against the registered ones (the
+    registration a new photo gets when it is taken), so both candidates are scored on the same photos."""
+    if candidate == "off":
+        return _render(_fit(train, ctx))
+    reg = registered(train, registration_shifts(train, max_width=REGISTRATION_WIDTH))
+    fit = _fit(reg, ctx)
+
+    def predict(hold: Capture):
+        render = fit.render(hold.lights, hold.intensities, hold.cameras)
+        return moved(render, shifts_against(reg.images, hold.images, max_width=REGISTRATION_WIDTH), sign=1.0)
+
+    return predict
+
+
+REGISTRATION = Choice(
+    "registration", ("off", "shift"), fit=_registration_fit, errors=pixel_errors, grid=_registration_grid,
+    rule={"min_gain": NORMALS_GAIN}, untested=_registration_untested, floor=0.0)
+
+
 #: the choices before the Phong fit, in the order they are made
-PREFIT = (CLIPPING, NORMALS, RELIEF, LIGHT)
+PREFIT = (REGISTRATION, CLIPPING, NORMALS, RELIEF, LIGHT)
 DEFAULT_FIT = {"lobe": "auto", "weights": "auto"}  # the reference fit's options where a caller gives none
 
 
@@ -213,5 +261,5 @@ def choose(choice: Choice, capture: Capture, *, fit_kwargs: dict | None = None, 
     ctx.chosen.update(chosen or {})
     return decide(choice, capture, ctx)
 
-__all__ = ["CLIPPING", "DEFAULT_FIT", "LIGHT", "NORMALS", "PREFIT", "RELIEF", "Context", "choose", "model_of",
-           "reference_context"]
+__all__ = ["CLIPPING", "DEFAULT_FIT", "LIGHT", "NORMALS", "PREFIT", "REGISTRATION", "RELIEF", "Context", "choose",
+           "model_of", "reference_context"]

@@ -9,7 +9,7 @@ see. Which shots those are is decided once, not by each choice:
   specular structures, apart. The single-shot choices hold the first of that ranking; the lobe deals the
   first ``HOLDS`` of it round-robin into groups. A refit of the same capture (the flake stage's) is given the
   first fit's plan, so it holds the same shots;
-- the choices made before the fit (:mod:`torchmetal.select.harness`: clipping, normals, relief, light) deal
+- the choices made before the fit (:mod:`torchmetal.select.harness`: registration, clipping, normals, relief, light) deal
   every shot into groups (:func:`shot_groups`);
 - the flake choices (observed flakes, keep flakes, density map) hold the shots with the most detections
   associated with a flake (:func:`flake_holds`): a shot without glints cannot tell flake models apart.
