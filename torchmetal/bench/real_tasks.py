@@ -241,7 +241,7 @@ def _photo_frames(res, train, one, seen: bool):
 
     from torchmetal.registration import moved, registered, shifts_against
 
-    rep = res.report.get("registered") or {}
+    rep = (getattr(res, "report", None) or {}).get("registered") or {}
     if rep.get("chosen") != "shift":
         return lambda pred: pred
     shifts = rep["shifts"] if seen else shifts_against(registered(train, rep["shifts"]).images, one.images)
