@@ -36,11 +36,12 @@ from torchmetal.errors import InputError
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
 
-__all__ = ["MAX_WIDTH", "moved", "registered", "registration_shifts", "shifts_against", "shot_shifts", "valid_observations",
+__all__ = ["MAX_WIDTH", "MIN_REGISTER_SIDE", "moved", "registered", "registration_shifts", "shifts_against", "shot_shifts", "valid_observations",
            "with_registration"]
 
 REFINE_PX = 0.1  # refine a shift while the last step moved it by more (px of the measured images)
 REFINE_STEPS = 2
+MIN_REGISTER_SIDE = 16  # a phase correlation needs a window and some texture: smaller captures are not registered
 PASSES = 3  # measurements of the shifts, each on the shots moved back by the ones before (registration_shifts)
 MAX_WIDTH = 512  # wider images are box-averaged by a whole factor first (shifts reported in full-size pixels):
 # a 1 MP capture measures at a quarter of the cost, and ±0.6 full-size px still finds a shot off by a pixel or more
@@ -172,6 +173,8 @@ def with_registration(capture: Capture, mode: str) -> tuple[Capture, dict]:
         raise InputError(f"registration: expected one of ['off', 'shift'], found {mode!r}")
     if capture.num_shots < 2:
         return capture, {"chosen": "off", "reason": "one shot: nothing to register against"}
+    if min(capture.height, capture.width) < MIN_REGISTER_SIDE:
+        return capture, {"chosen": "off", "reason": f"too small to measure a shift (< {MIN_REGISTER_SIDE} px a side)"}
     shifts = registration_shifts(capture)
     mag = [float(np.hypot(*d)) for d in shifts]
     return registered(capture, shifts), {"chosen": "shift", "shifts": shifts, "max": max(mag)}
