@@ -58,7 +58,7 @@ def test_an_abstaining_candidate_keeps_the_reference():
 def test_the_prefit_choices_are_declared_in_order():
     from torchmetal.select.choices import PREFIT
 
-    assert [c.name for c in PREFIT] == ["clipping", "normals", "relief", "light"]
+    assert [c.name for c in PREFIT] == ["registration", "clipping", "normals", "relief", "light"]
     for c in PREFIT:  # the reference first; every choice follows only choices made before it
         assert len(c.candidates) >= 2 and c.reference == c.candidates[0]
         assert set(c.follows) <= {p.name for p in PREFIT[: PREFIT.index(c)]}, c.name
