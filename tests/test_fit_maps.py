@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchmetal.report.disagreement import disagreement_map, disagreement_png
 from torchmetal.registration import shot_shifts
+from torchmetal.report.disagreement import disagreement_map, disagreement_png
 
 
 def _texture(h=128, w=128, seed=0):
