@@ -75,3 +75,14 @@ def test_real_scales_table_has_one_row_per_variant_and_score_kind():
     assert lines[0].split(" | ")[1:7] == ["own shots", "20.00", "21.00", "22.00", "5.0%", "–"]
     assert lines[2].split(" | ")[1:7] == ["left out, as captured", "18.00", "19.00", "20.00", "5.0%", "10.0%"]
     assert "cap" in text and "64×64" in text
+
+
+def test_extrapolation_share_of_an_image_smaller_than_a_block_is_nan():
+    import math
+
+    import torch
+
+    from torchmetal.bench.scoring import extrapolation_share
+
+    photo = torch.rand(3, 28, 28)
+    assert math.isnan(extrapolation_share(photo, torch.rand(2, 3, 28, 28)))  # the quick plan's sphere is 28 px

@@ -174,10 +174,13 @@ def extrapolation_share(photo, fitted, mask=None, block: int = 32) -> float:
     """Share of ``block``×``block`` blocks where the left-out ``photo`` (3, H, W, linear) is brighter (mean
     Rec. 709 luminance) than every one of the ``fitted`` photos (M, 3, H, W): where a left-out shot asks the
     material for more than any fitted shot showed it (a highlight no fitted shot saw), the render extrapolates.
-    ``mask`` (H, W) bool: a block counts where at least half of it is inside. NaN when no block counts."""
+    ``mask`` (H, W) bool: a block counts where at least half of it is inside. NaN when no block counts (an image
+    smaller than a block included)."""
     import torch
 
     photo, fitted = photo.detach().double(), fitted.detach().double()
+    if min(photo.shape[-2:]) < block:
+        return float("nan")
     if fitted.dim() != 4 or fitted.shape[0] == 0 or fitted.shape[1:] != photo.shape:
         raise InputError(f"extrapolation_share: expected fitted photos (M, {', '.join(map(str, photo.shape))}), "
                          f"found {tuple(fitted.shape)}")
