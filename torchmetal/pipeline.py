@@ -161,18 +161,16 @@ def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
         ctx.chosen[choice.name] = d.chosen
         return d
 
-    if o.choices.registration == "auto":
-        d = auto(REGISTRATION, capture)
-        capture, st.registration_report = with_registration(capture, d.chosen)
-        st.registration_report |= {"mode": "auto", "decision": d.to_dict()}
-    else:
-        capture, st.registration_report = with_registration(capture, o.choices.registration)
-    if o.choices.clipping == "auto":
-        d = auto(CLIPPING, capture)
-        capture, st.clipping_report = with_clipping(capture, d.chosen)
-        st.clipping_report |= {"mode": "auto", "decision": d.to_dict()}
-    else:
-        capture, st.clipping_report = with_clipping(capture, o.choices.clipping)
+    def applied(choice, mode: str, apply, cap):
+        """A choice whose outcome one function applies: as ``mode`` says, or "auto" decided first."""
+        if mode != "auto":
+            return apply(cap, mode)
+        d = auto(choice, cap)
+        cap, report = apply(cap, d.chosen)
+        return cap, report | {"mode": "auto", "decision": d.to_dict()}
+
+    capture, st.registration_report = applied(REGISTRATION, o.choices.registration, with_registration, capture)
+    capture, st.clipping_report = applied(CLIPPING, o.choices.clipping, with_clipping, capture)
     if o.choices.normals == "auto" and capture.normals_given:
         chosen, record = "given", {"decision": Decision("normals", ("given",), "given",
                                                         reason="the capture's own normals (normals.npy)").to_dict()}
