@@ -36,8 +36,8 @@ from torchmetal.errors import InputError
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
 
-__all__ = ["MAX_WIDTH", "MIN_REGISTER_SIDE", "moved", "registered", "registration_shifts", "shifts_against", "shot_shifts", "valid_observations",
-           "with_registration"]
+__all__ = ["MAX_WIDTH", "MIN_REGISTER_SIDE", "moved", "registered", "registration_shifts", "shifts_against", "shot_shifts",
+           "unregistrable", "valid_observations", "with_registration"]
 
 REFINE_PX = 0.1  # refine a shift while the last step moved it by more (px of the measured images)
 REFINE_STEPS = 2
@@ -171,13 +171,21 @@ def with_registration(capture: Capture, mode: str) -> tuple[Capture, dict]:
         return capture, {"chosen": "off"}
     if mode != "shift":
         raise InputError(f"registration: expected one of ['off', 'shift'], found {mode!r}")
-    if capture.num_shots < 2:
-        return capture, {"chosen": "off", "reason": "one shot: nothing to register against"}
-    if min(capture.height, capture.width) < MIN_REGISTER_SIDE:
-        return capture, {"chosen": "off", "reason": f"too small to measure a shift (< {MIN_REGISTER_SIDE} px a side)"}
+    why = unregistrable(capture)
+    if why is not None:
+        return capture, {"chosen": "off", "reason": why}
     shifts = registration_shifts(capture)
     mag = [float(np.hypot(*d)) for d in shifts]
     return registered(capture, shifts), {"chosen": "shift", "shifts": shifts, "max": max(mag)}
+
+
+def unregistrable(capture: Capture) -> str | None:
+    """Why ``capture``'s shots cannot be measured against each other (None: they can)."""
+    if capture.num_shots < 2:
+        return "one shot: nothing to register against"
+    if min(capture.height, capture.width) < MIN_REGISTER_SIDE:
+        return f"{capture.height}x{capture.width} px: too small to measure a shift (< {MIN_REGISTER_SIDE} px a side)"
+    return None
 
 
 def registration_shifts(capture: Capture, *, max_width: int = MAX_WIDTH, passes: int = PASSES) -> list[list[float]]:

@@ -211,10 +211,10 @@ def _joint_stages(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor, f
         inside = capture.mask[0]
         zero = torch.zeros(3, dtype=normals.dtype, device=normals.device)
         tex = fit.texture.to(normals.dtype)[:, inside].mean(1) if bool(inside.any()) else torch.zeros_like(zero)
-        tried = try_weak_lobe(capture, normals, tex, iters=iters, active=solvable)
-        if tried[3]["kept"] or not bool((s > 0).any()):  # not kept: the rounds' own (partial) lobe stays
-            normals, s, alpha = tried[:3]
-        history.append({"round": "weak_lobe", **tried[3], "time": time.perf_counter() - t1})
+        weak_normals, weak_s, weak_alpha, rep = try_weak_lobe(capture, normals, tex, iters=iters, active=solvable)
+        if rep["kept"] or not bool((s > 0).any()):  # not kept: the rounds' own (partial) lobe stays
+            normals, s, alpha = weak_normals, weak_s, weak_alpha
+        history.append({"round": "weak_lobe", **rep, "time": time.perf_counter() - t1})
     if bool((s > 0).any()):
         t1 = time.perf_counter()
         normals, s, alpha, rep = joint_refine(capture, normals, s, alpha, active=solvable)

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from torchmetal.io.capture import Capture
-from torchmetal.registration import MIN_REGISTER_SIDE, shot_shifts, valid_observations
+from torchmetal.registration import shot_shifts, unregistrable, valid_observations
 from torchmetal.renderer import MaterialRenderer
 from torchmetal.report.disagreement import disagreement_map, disagreement_png
 
@@ -43,11 +43,8 @@ def fit_maps(capture: Capture, result) -> tuple[dict, torch.Tensor, torch.Tensor
     """The report entries ``registration`` and ``disagreement`` (``render`` in the latter: {"time": the seconds of
     the renders the map needs}), the (H', W') disagreement map and the first photo at the map's size."""
     valid = valid_observations(capture)
-    if capture.num_shots < 2 or min(capture.height, capture.width) < MIN_REGISTER_SIDE:
-        registration = {"measured": False, "reason": f"{capture.num_shots} shot(s) of {capture.height}x{capture.width} "
-                                                      f"px: nothing to register (>= 2 shots, >= {MIN_REGISTER_SIDE} px a side)"}
-    else:
-        registration = shot_shifts(capture.images, valid)
+    why = unregistrable(capture)
+    registration = shot_shifts(capture.images, valid) if why is None else {"measured": False, "reason": why}
     t0 = time.perf_counter()
     renders = fit_renders(capture, result)
     render_time = time.perf_counter() - t0

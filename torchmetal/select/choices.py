@@ -37,12 +37,12 @@ from torchmetal.lightcal.estimate import calibrate_positions
 from torchmetal.normals.estimate import estimate_normals
 from torchmetal.normals.relief import RES, factor_for, fit_normals, fit_relief
 from torchmetal.registration import (
-    MIN_REGISTER_SIDE,
     moved,
     registered,
     registration_shifts,
     shifts_against,
     shot_shifts,
+    unregistrable,
     valid_observations,
 )
 from torchmetal.select.harness import Choice, Context, decide, observation_errors, pixel_errors
@@ -224,8 +224,9 @@ def _registration_grid(capture: Capture) -> Capture:
 
 def _registration_untested(capture: Capture, ctx: Context) -> str | None:
     grid = _registration_grid(capture)
-    if min(grid.height, grid.width) < MIN_REGISTER_SIDE:
-        return f"{grid.height}x{grid.width} px: too small to measure a shift (< {MIN_REGISTER_SIDE} px a side)"
+    why = unregistrable(grid)
+    if why is not None:
+        return why
     f = capture.width / grid.width
     worst = f * shot_shifts(grid.images, valid_observations(grid), max_width=REGISTRATION_WIDTH)["max"]
     return None if worst >= REGISTRATION_PX else f"the shots are registered within {worst:.2f} px (< {REGISTRATION_PX:g})"
