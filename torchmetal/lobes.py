@@ -41,7 +41,7 @@ from torchmetal.geometry import (
     dot,
     shading_geometry,
 )
-from torchmetal.phong import PhongModel, channel_map, phong_shading, specular_lobe
+from torchmetal.phong import PhongModel, channel_map, phong_render, phong_shading, specular_lobe
 
 __all__ = [
     "LOBES", "F0", "check_lobe", "half_terms", "grid_half_terms", "ggx_k", "fresnel_ratio", "blinn_lobe", "ggx_lobe",
@@ -211,6 +211,8 @@ def lobe_render(
     size: tuple[float, float], lobe: str = "phong",
 ) -> Tensor:
     """:func:`torchmetal.phong.phong_render` with a choice of lobe; (B, 3, H, W)."""
+    if check_lobe(lobe) == "phong":
+        return phong_render(texture, s, alpha, normals, light, intensity, camera, size)
     geom = shading_geometry(normals, light, intensity, camera, size)
     return lobe_shading(texture, s, alpha, geom, lobe)
 

@@ -169,10 +169,39 @@ def fit_relief(capture: Capture, *, start: ReliefFit | None = None, relief: bool
     return _fit(capture, heights if relief else None, start.s, start.alpha, iters if relief else FLAT_ITERS, cell)
 
 
+@dataclass
+class _Rays:
+    """What a relief fit's shading needs that no parameter moves, formed once per fit: (N, 3, H, W) float64 unit
+    directions to the light ``l`` and ``l + v`` (v to the camera), and the irradiance E (N, 3, H, W)."""
+
+    l: Tensor
+    lv: Tensor
+    irradiance: Tensor
+
+    @classmethod
+    def of(cls, capture: Capture) -> _Rays:
+        g = shading_geometry(_flat_normals(capture), capture.lights.double(), capture.intensities.double(),
+                             capture.cameras.double(), capture.size)
+        return cls(g.l, g.l + g.v, g.irradiance)
+
+    def shading(self, normals: Tensor, s: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
+        """:func:`_shading` for ``normals`` (3, H, W): n·l and |r − v|²/2 from the stored rays (r − v = 2(n·l)n − (l + v))."""
+        n = normals.unsqueeze(0)
+        nl = (n * self.l).sum(1, keepdim=True)
+        rv = 2.0 * nl * n - self.lv
+        q = 0.5 * rv.square().sum(1, keepdim=True)
+        inside = (nl > 0) & (q < 1.0)
+        lobe = torch.exp(alpha.view(1, 3, 1, 1) * torch.log1p(-torch.where(inside, q, torch.full_like(q, 0.5))))
+        a = self.irradiance * nl.clamp_min(0.0)
+        b = torch.where(inside, self.irradiance * s.view(1, 3, 1, 1) * lobe, torch.zeros_like(a))
+        return a, b
+
+
 def _fit(capture: Capture, heights: Tensor | None, s: Tensor, alpha: Tensor, iters: int, cell: int) -> ReliefFit:
     y = capture.images.double()
     valid = valid_pixels(capture)
     flat = _flat_normals(capture)
+    rays = _Rays.of(capture)  # the lights and cameras do not move: their directions are formed once, not per step
     shape = None if heights is None else heights.shape
     x0 = torch.cat([s.clamp_min(1e-6).log(), alpha.clamp_min(1e-3).log()] + ([] if heights is None else [heights.reshape(-1)]))
     weight = valid.double()
@@ -182,7 +211,7 @@ def _fit(capture: Capture, heights: Tensor | None, s: Tensor, alpha: Tensor, ite
     def value_grad(x: Tensor) -> tuple[float, Tensor]:
         x = x.detach().requires_grad_(True)
         n = flat if shape is None else relief_normals(x[6:].view(shape), (capture.height, capture.width), capture.size)
-        a, b = _shading(capture, n, x[:3].exp(), x[3:6].exp())
+        a, b = rays.shading(n, x[:3].exp(), x[3:6].exp())
         # an unlit observation counts (its render is 0): else tilting a pixel away from the light would drop it
         r = (y - a * _texture(a, b, y, weight) - b) * weight
         loss = r.square().sum() / count
