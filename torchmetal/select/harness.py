@@ -14,7 +14,8 @@ error measure, the pixel grid it is decided on, the choices it follows, and a ch
    the group; the errors (per pixel, or per block of pixels: :func:`block_means`) pair up across candidates and
    the paired rule (:func:`~torchmetal.select.rule.paired_choice`)
    decides on all groups so far;
-4. futility: once every extension predicts worse beyond noise, the remaining groups are not fitted;
+4. futility: once every extension predicts worse beyond noise (z below −:data:`FUTILE_Z`), the remaining groups
+   are not fitted;
 5. the :class:`~torchmetal.select.rule.Decision` record, with the screen's reading and the seconds it took.
 """
 
@@ -31,12 +32,16 @@ from torch import Tensor
 from torchmetal.fit.api import fit_phong
 from torchmetal.fit.holdout import valid_mean_square, valid_pixels
 from torchmetal.select.plan import shot_groups
-from torchmetal.select.rule import MIN_GAIN_ABS, Decision, paired_choice, z_min_for
+from torchmetal.select.rule import MIN_GAIN_ABS, Decision, paired_choice
 
 if TYPE_CHECKING:
     from torchmetal.fit.result import FitResult
     from torchmetal.io.capture import Capture
 
+#: the futility stop's bar: an extension worse by more than the smallest calibrated z (select.rule.CALIBRATED_Z's
+#: floor) on the groups so far is not fitted on the rest. Its own calibrated z would rarely stop (normals 20):
+#: the later groups would have to outweigh a loss beyond noise by that z to take the extension (docs/measurements.md)
+FUTILE_Z = 4.0
 Predict = Callable[["Capture"], Tensor]  # a fitted candidate: held-out shots (M shots) → its render (M, 3, H, W)
 
 
@@ -190,7 +195,6 @@ def _decide(choice: Choice, capture: Capture, ctx: Context) -> Decision:
     groups = shot_groups(n, choice.folds)
     errors: dict[str, list[Tensor]] = {c: [] for c in choice.candidates}
     rule = dict(choice.rule)
-    z_min = rule.get("z_min", z_min_for(choice.name))
     d = None
     for i, group in enumerate(groups):
         train = grid.subset([k for k in range(n) if k not in group])
@@ -206,7 +210,7 @@ def _decide(choice: Choice, capture: Capture, ctx: Context) -> Decision:
         d = _paired(choice, errors, rule, grid)
         if choice.check is not None:
             choice.check(d, errors)
-        if i + 1 < len(groups) and all(z < -z_min for z in d.z.values()):
+        if i + 1 < len(groups) and all(z < -FUTILE_Z for z in d.z.values()):
             d.reason += f"; stopped after {i + 1} of {len(groups)} shot groups (every extension worse beyond noise)"
             groups = groups[: i + 1]
             break
