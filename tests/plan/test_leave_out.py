@@ -81,3 +81,18 @@ def test_flake_jackknife_log_scale_and_failed_refits(capture):
     assert got["aspect_mean"]["std"] == pytest.approx(0.0, abs=1e-12)  # every refit the same
     with pytest.raises(InputError, match="no flake model"):
         flake_intervals(capture, fit=lambda c: None)
+
+
+def test_flake_intervals_stay_in_the_statistics_range():
+    """A symmetric interval around a small aspect or colour would leave its range: it is cut at 0 (aspect also at 1),
+    and a statistic every refit agrees on has the value at both ends exactly (log scale included)."""
+    from torchmetal.plan.leave_out import flake_jackknife
+
+    full = FlakeModel(density=0.004, aspect_mean=0.1, color_mean=(0.05, 0.5, 0.5))
+    reps = [FlakeModel(density=0.004, aspect_mean=a, color_mean=(c, 0.5, 0.5))
+            for a, c in ((0.05, 0.01), (0.4, 0.2), (0.1, 0.05), (0.95, 0.3))]
+    got = flake_jackknife(full, reps)
+    assert got["aspect_mean"]["low"] == 0.0 and got["aspect_mean"]["high"] <= 1.0
+    assert got["color_r"]["low"] == 0.0 < got["color_r"]["high"]
+    for name in ("density", "glint_sigma", "color_g"):
+        assert got[name]["low"] == got[name]["value"] == got[name]["high"], (name, got[name])

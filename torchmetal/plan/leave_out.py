@@ -15,10 +15,13 @@ F(2, m) has the closed quantile m/2·((1−q)^(−2/m) − 1), ln 10 = 2.30 as m
 **Flake statistics** (:func:`flake_intervals`): density, the area's log-normal mean and std, the aspect
 mean, the colour mean (per channel), the tilt and the glint widths. Positive scales (density, the widths,
 the area's log std) on a log scale, so the interval stays positive; the rest linear. Interval: the full
-capture's estimate ± t₀.₉₅(N−1)·jackknife std. A refit whose flake stage found no model is left out (and
-counted); with fewer than 3 left the statistic gets no interval.
+capture's estimate ± t₀.₉₅(N−1)·jackknife std, cut at the statistic's range (aspect in [0, 1], colour ≥ 0).
+A refit whose flake stage found no model is left out (and counted); with fewer than 3 left the statistic gets
+no interval.
 
 Both are N times the cost of the estimate; measured coverage: docs/measurements.md (2026-12-06).
+:func:`normals_jackknife` and :func:`flake_jackknife` take refits already made (``torchmetal intervals``,
+:mod:`torchmetal.plan.intervals`, refits the material's whole fit once per left-out shot for both).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from torchmetal.errors import InputError
 LEVEL = 0.9
 LOG_STATS = ("density", "area_log_std", "tilt_sigma", "glint_sigma")
 LINEAR_STATS = ("area_log_mean", "aspect_mean")
+BOUNDS = {"aspect_mean": (0.0, 1.0), "color": (0.0, math.inf)}  # the linear statistics' ranges: intervals are cut there
 
 
 def f2_quantile(q: float, dof: int) -> float:
@@ -64,11 +68,18 @@ def normals_intervals(capture, *, level: float = LEVEL, full: Tensor | None = No
 
     full = estimate(capture) if full is None else full
     reps = torch.stack([estimate(_left_out(capture, i)).double() for i in range(n)])
+    return normals_jackknife(full, reps, capture.mask.bool().reshape(capture.height, capture.width), level=level)
+
+
+def normals_jackknife(full: Tensor, reps: Tensor, inside: Tensor, *, level: float = LEVEL) -> dict:
+    """:func:`normals_intervals` on refits already made: ``full`` (3, H, W) the full capture's normals, ``reps``
+    (N, 3, H, W) one per shot left out, ``inside`` (H, W) bool the pixels the summaries count."""
+    n = reps.shape[0]
+    reps = reps.double()
     mean = torch.nn.functional.normalize(reps.mean(0), dim=0)
     ang = _angle(reps, mean.unsqueeze(0), 1)  # (N, H, W) radians
     std = ((n - 1) / n * (ang**2).sum(0)).sqrt()
     radius = std * math.sqrt(f2_quantile(level, n - 1))
-    inside = capture.mask.bool().reshape(capture.height, capture.width)
     r = torch.rad2deg(radius)[inside]
     return {"normals": full.double(), "refits": reps, "std_deg": torch.rad2deg(std), "radius_deg": torch.rad2deg(radius),
             "level": level, "median_radius_deg": float(r.median()) if r.numel() else math.nan,
@@ -111,14 +122,20 @@ def flake_intervals(capture, *, level: float = LEVEL, full=None, fit: Callable |
     """The jackknife of the flake statistics of ``capture``: {name: {"value", "low", "high", "std", "scale"
     ("log"|"linear"), "refits"}} plus "failed_refits" and "level". ``fit``: capture → FlakeModel or None
     (default :func:`default_flake_fit`); ``full``: the full capture's model, when already made."""
-    from torchmetal.fit.uncertainty import _student_t
-
     fit = fit or default_flake_fit
     n = capture.num_shots
     full = fit(capture) if full is None else full
     if full is None:
         raise InputError("flake_intervals: the full capture's flake stage found no flake model")
-    reps = [fit(_left_out(capture, i)) for i in range(n)]
+    return flake_jackknife(full, [fit(_left_out(capture, i)) for i in range(n)], level=level)
+
+
+def flake_jackknife(full, reps: list, *, level: float = LEVEL) -> dict:
+    """:func:`flake_intervals` on refits already made: ``full`` the full capture's FlakeModel, ``reps`` one
+    FlakeModel (or None: no model found) per shot left out."""
+    from torchmetal.fit.uncertainty import _student_t
+
+    n = len(reps)
     ok = [flake_stats(m) for m in reps if m is not None]
     out: dict = {"level": level, "failed_refits": n - len(ok)}
     t = _student_t(0.5 + level / 2, len(ok) - 1) if len(ok) >= 3 else math.nan
@@ -128,10 +145,11 @@ def flake_intervals(capture, *, level: float = LEVEL, full=None, fit: Callable |
         vals = torch.tensor([f(s[name]) for s in ok], dtype=torch.float64)
         m = len(ok)
         std = float(((m - 1) / m * ((vals - vals.mean()) ** 2).sum()).sqrt()) if m >= 3 else math.nan
-        centre = f(value)
-        lo, hi = centre - t * std, centre + t * std
-        if log:
-            lo, hi = math.exp(lo), math.exp(hi)
+        if log:  # value·e^(∓t·std): exactly the value where the refits agree (exp(log v) is not always v)
+            lo, hi = value * math.exp(-t * std), value * math.exp(t * std)
+        else:  # and within the statistic's range (a symmetric interval can leave it: aspect < 0, a negative colour)
+            low_bound, high_bound = BOUNDS.get(name[:5] if name.startswith("color") else name, (-math.inf, math.inf))
+            lo, hi = max(value - t * std, low_bound), min(value + t * std, high_bound)
         out[name] = {"value": value, "low": lo, "high": hi, "std": std, "scale": "log" if log else "linear",
                      "refits": [s[name] for s in ok]}
     return out
