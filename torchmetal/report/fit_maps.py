@@ -9,7 +9,6 @@ saving (the report layer sits above the pipeline, docs/design.md §4 keeps the f
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -17,7 +16,7 @@ import torch.nn.functional as F
 
 from torchmetal.io.capture import Capture
 from torchmetal.registration import shot_shifts, unregistrable, valid_observations
-from torchmetal.renderer import MaterialRenderer
+from torchmetal.lobes import lobe_render
 from torchmetal.report.disagreement import disagreement_map, disagreement_png
 
 __all__ = ["add_fit_maps", "fit_maps", "DISAGREEMENT_PNG"]
@@ -31,9 +30,12 @@ def fit_renders(capture: Capture, result) -> torch.Tensor:
     (the map's median over the shots leaves a glint out either way), and they cost 4× the coat's render."""
     light = getattr(result, "light", None)
     lights = capture.lights if light is None else light.lights(capture)
-    renderer = MaterialRenderer(replace(result.material, flakes=None, observed_flakes=None))
-    with torch.no_grad():
-        pred = renderer(lights.float(), capture.intensities.float(), capture.cameras.float())
+    m = result.material
+    s, alpha = m.specular_maps()
+    dt = torch.float32
+    with torch.no_grad():  # the coat as the fit renders it (lobes.lobe_render; the ONNX renderer's model, not its ops)
+        pred = lobe_render(m.texture.to(dt), s.to(dt), alpha.to(dt), m.flat_normals().to(dt), lights.to(dt),
+                           capture.intensities.to(dt), capture.cameras.to(dt), m.size, m.lobe)
         if light is not None:
             pred = pred * light.factor(capture)
     return pred.detach().float().cpu()
