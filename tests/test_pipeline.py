@@ -126,6 +126,9 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
                             "gloss maps", "specular colour", "observed flakes", "flakes", "density map"}
     times = kept.report["stage_times"]  # the total counts the flake choices too
     assert kept.report["total_time"] >= times["flakes"] + times["flakes.observed"] + times["flakes.choice"]
+    # every choice's seconds under its own name, the Phong fit's own ones too (not as "phong.choice.…")
+    assert {"choice.weights", "choice.specular evidence"} <= set(times)
+    assert not any(k.startswith("phong.choice") for k in times)
     monkeypatch.setattr(flake_run, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))
     dropped, off = fit_material(cap, seed=0), fit_material(cap, seed=0, flakes="off")
     m = dropped.material

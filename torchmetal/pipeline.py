@@ -215,7 +215,8 @@ def stage_phong(capture: Capture, st: State) -> tuple[Capture, State]:
         kw["lobe"] = ctx.model["lobe"]
         st.chooser = ctx.fits[ctx.reference_key][1]
     st.first = st.fit = same if same is not None else fit_phong(capture, robust=robust, **kw)
-    st.stage_times.update({f"phong.{k}": v for k, v in st.first.stage_times.items()})
+    # the fit's own choices keep their names (choice.weights, choice.lobe, …), beside the choices made before it
+    st.stage_times.update({k if k.startswith("choice.") else f"phong.{k}": v for k, v in st.first.stage_times.items()})
     st.skipped = list(st.first.skipped)
     if st.chooser is not None:
         st.skipped.append(f"lobe: the selection's reference fit chose it ({kw['lobe']}) on its grid; the Phong fit "

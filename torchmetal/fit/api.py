@@ -241,7 +241,7 @@ def _choose_lobe(capture, run: FitRun, d, *, tol, max_iters, select_pixels, chun
     shot: a highlight of another shape may, and the decisions are then made again with that lobe).
     Returns (lobe, selection)."""
     h, w = capture.images.shape[-2:]
-    with run.stage("lobe"):
+    with run.stage("lobe"), run.stage("choice.lobe"):
         sel = choose_lobe(capture, stride=grid_stride(h, w, select_pixels), tol=max(tol, 1e-4), max_iters=max_iters,
                           dtype=compute_dtype(capture.images), chunk=chunk,
                           labeler=d.labeler if d.spec is not None else None, plan=d.plan)

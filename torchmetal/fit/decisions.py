@@ -95,13 +95,15 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
         plan = shot_plan(sub, glob)
     weighting = None
     if noise == "auto":
-        sub, glob, weighting = _weights_decision(capture, run, grids, sub, glob, robust=robust, outliers=outliers,
-                                                 sub_tol=sub_tol, max_iters=max_iters, plan=plan)
+        with run.stage("choice.weights"):
+            sub, glob, weighting = _weights_decision(capture, run, grids, sub, glob, robust=robust, outliers=outliers,
+                                                     sub_tol=sub_tol, max_iters=max_iters, plan=plan)
     elif outliers is not None or robust is not None or noise:
         sub, glob, weighting = _weighted_refit(capture, run, grids, sub, glob, robust=robust, outliers=outliers,
                                                noise=noise, sub_tol=sub_tol, max_iters=max_iters)
-    glob, s_fixed = _highlight_evidence(capture, run, grids, glob, sub_tol=sub_tol, max_iters=max_iters,
-                                        weighting=weighting, plan=plan)
+    with run.stage("choice.specular evidence"):
+        glob, s_fixed = _highlight_evidence(capture, run, grids, glob, sub_tol=sub_tol, max_iters=max_iters,
+                                            weighting=weighting, plan=plan)
     # 4. global vs clustered
     sel: Selection | None = None
     if glob is not None and specular in ("auto", "clustered"):
@@ -111,7 +113,7 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
             run.skipped.append("specular clusters: not tried (some channels show no highlight)")
         else:
             hold = plan.hold if n_shots >= 3 else None
-            with run.stage("select"):
+            with run.stage("select"), run.stage("choice.specular clusters"):
                 sel = choose_specular(capture, glob, candidates=clusters, stride=sel_stride, hold=hold,
                                       force=specular == "clustered", tol=sub_tol, max_iters=max_iters, dtype=dt,
                                       chunk=chunk, weighting=weighting, seed=seed, relabel=relabel)
@@ -120,16 +122,18 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
                 run.skipped.append(f"specular clusters: not kept ({sel.reason})")
     labeler: Labeler | None = sel.labeler if sel is not None and sel.k > 1 else None
     # 4b. gloss maps (from the global fit): forced, or kept when they beat global/clustered on the held-out shot
-    use_maps, maps_info = _maps_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, plan=plan,
-                                         sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
-                                         weighting=weighting, lobe=lobe)
+    with run.stage("choice.gloss maps"):
+        use_maps, maps_info = _maps_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, plan=plan,
+                                             sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
+                                             weighting=weighting, lobe=lobe)
     if maps_info is not None and maps_info.get("decision") is not None:
         run.decisions.append(maps_info["decision"])
     if use_maps:
         labeler = None
-    white = colour and _colour_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, use_maps=use_maps,
-                                        labeler=labeler, plan=plan, grids=grids, tol=sub_tol, max_iters=max_iters,
-                                        weighting=weighting)
+    with run.stage("choice.specular colour"):
+        white = colour and _colour_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, use_maps=use_maps,
+                                            labeler=labeler, plan=plan, grids=grids, tol=sub_tol, max_iters=max_iters,
+                                            weighting=weighting)
     if labeler is not None:
         with run.stage("refine"):
             sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
