@@ -13,7 +13,14 @@ import math
 import torch
 from torch import Tensor, nn
 
-from torchmetal.geometry import ShadingGeometry, grid_shading_terms, is_flat, pixel_axes, shading_geometry, surface_points
+from torchmetal.geometry import (
+    ShadingGeometry,
+    grid_shading_terms,
+    is_flat,
+    pixel_axes,
+    shading_geometry,
+    surface_points,
+)
 
 
 def log1p_exact(y: Tensor) -> Tensor:
@@ -107,7 +114,7 @@ def _plane_phong(texture: Tensor, s: Tensor, alpha: Tensor, normals: Tensor, lig
     return spec.addcmul_(texture, nl.clamp_min(0.0)).mul_(e)
 
 
-def plane_render_ok(*tensors: Tensor) -> bool:
+def _plane_ok(*tensors: Tensor) -> bool:
     """Whether :func:`_plane_phong` may stand in for the vector geometry: float32/float64, nothing needing a gradient."""
     return all(t.dtype in (torch.float32, torch.float64) and not (t.requires_grad and torch.is_grad_enabled())
                for t in tensors)
@@ -130,9 +137,10 @@ def phong_render(
         light: (B, 4); intensity: (B, 3); camera: (B, 4); size: (width, height).
 
     Returns:
-        (B, 3, H, W) linear radiance.
+        (B, 3, H, W) linear radiance. Values without a gradient come from the plane's separable terms
+        (:func:`_plane_phong`, faster; the same within float rounding).
     """
-    if plane_render_ok(texture, s, alpha, normals, light, intensity, camera):
+    if _plane_ok(texture, s, alpha, normals, light, intensity, camera):
         return _plane_phong(texture, s, alpha, normals, light, intensity, camera, size)
     geom = shading_geometry(normals, light, intensity, camera, size)
     return phong_shading(texture, s, alpha, geom)

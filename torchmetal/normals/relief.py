@@ -34,7 +34,6 @@ from torch import Tensor
 from torchmetal.fit.holdout import valid_pixels
 from torchmetal.geometry import shading_geometry
 from torchmetal.lbfgs import minimize
-from torchmetal.phong import specular_lobe
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -114,14 +113,33 @@ def _slope_square(heights: Tensor, size: tuple[float, float]) -> Tensor:
     return sx.square().mean() + sy.square().mean()
 
 
-def _shading(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
-    """(a, b) (N, 3, H, W): the diffuse factor E·max(n·l, 0) and the specular term E·s·lobe (0 where n·l ≤ 0)."""
-    dt = normals.dtype
-    geom = shading_geometry(normals, capture.lights.to(dt), capture.intensities.to(dt), capture.cameras.to(dt), capture.size)
-    lit = geom.n_dot_l > 0
-    a = geom.irradiance * geom.n_dot_l.clamp_min(0.0)
-    b = torch.where(lit, geom.irradiance * s.view(1, 3, 1, 1) * specular_lobe(geom.spec_q, alpha), torch.zeros_like(a))
-    return a, b
+@dataclass
+class _Rays:
+    """What a relief fit's shading needs that no parameter moves, formed once per fit: (N, 3, H, W) float64 unit
+    directions to the light ``l`` and ``l + v`` (v to the camera), and the irradiance E (N, 3, H, W)."""
+
+    l: Tensor
+    lv: Tensor
+    irradiance: Tensor
+
+    @classmethod
+    def of(cls, capture: Capture) -> _Rays:
+        g = shading_geometry(_flat_normals(capture), capture.lights.double(), capture.intensities.double(),
+                             capture.cameras.double(), capture.size)
+        return cls(g.l, g.l + g.v, g.irradiance)
+
+    def shading(self, normals: Tensor, s: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
+        """(a, b) (N, 3, H, W) for ``normals`` (3, H, W): the diffuse factor E·max(n·l, 0) and the specular term
+        E·s·lobe (0 where n·l ≤ 0), n·l and q = |r − v|²/2 from the stored rays (r − v = 2(n·l)n − (l + v))."""
+        n = normals.unsqueeze(0)
+        nl = (n * self.l).sum(1, keepdim=True)
+        rv = 2.0 * nl * n - self.lv
+        q = 0.5 * rv.square().sum(1, keepdim=True)
+        inside = (nl > 0) & (q < 1.0)
+        lobe = torch.exp(alpha.view(1, 3, 1, 1) * torch.log1p(-torch.where(inside, q, torch.full_like(q, 0.5))))
+        a = self.irradiance * nl.clamp_min(0.0)
+        b = torch.where(inside, self.irradiance * s.view(1, 3, 1, 1) * lobe, torch.zeros_like(a))
+        return a, b
 
 
 def _texture(a: Tensor, b: Tensor, y: Tensor, weight: Tensor) -> Tensor:
@@ -146,9 +164,9 @@ def render_heldout(fit: ReliefFit, train: Capture, hold: Capture) -> Tensor:
     (both captures of one sample, at the resolution the fit's normals are wanted)."""
     with torch.no_grad():
         n = fit_normals(fit, train)
-        a, b = _shading(train, n, fit.s, fit.alpha)
+        a, b = _Rays.of(train).shading(n, fit.s, fit.alpha)
         tex = _texture(a, b, train.images.double(), valid_pixels(train).double())
-        a, b = _shading(hold, n, fit.s, fit.alpha)
+        a, b = _Rays.of(hold).shading(n, fit.s, fit.alpha)
         return a * tex + b
 
 
@@ -167,34 +185,6 @@ def fit_relief(capture: Capture, *, start: ReliefFit | None = None, relief: bool
     if relief and heights is None:
         heights = torch.zeros(grid_shape(capture.height, capture.width, cell), dtype=torch.float64)
     return _fit(capture, heights if relief else None, start.s, start.alpha, iters if relief else FLAT_ITERS, cell)
-
-
-@dataclass
-class _Rays:
-    """What a relief fit's shading needs that no parameter moves, formed once per fit: (N, 3, H, W) float64 unit
-    directions to the light ``l`` and ``l + v`` (v to the camera), and the irradiance E (N, 3, H, W)."""
-
-    l: Tensor
-    lv: Tensor
-    irradiance: Tensor
-
-    @classmethod
-    def of(cls, capture: Capture) -> _Rays:
-        g = shading_geometry(_flat_normals(capture), capture.lights.double(), capture.intensities.double(),
-                             capture.cameras.double(), capture.size)
-        return cls(g.l, g.l + g.v, g.irradiance)
-
-    def shading(self, normals: Tensor, s: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
-        """:func:`_shading` for ``normals`` (3, H, W): n·l and |r − v|²/2 from the stored rays (r − v = 2(n·l)n − (l + v))."""
-        n = normals.unsqueeze(0)
-        nl = (n * self.l).sum(1, keepdim=True)
-        rv = 2.0 * nl * n - self.lv
-        q = 0.5 * rv.square().sum(1, keepdim=True)
-        inside = (nl > 0) & (q < 1.0)
-        lobe = torch.exp(alpha.view(1, 3, 1, 1) * torch.log1p(-torch.where(inside, q, torch.full_like(q, 0.5))))
-        a = self.irradiance * nl.clamp_min(0.0)
-        b = torch.where(inside, self.irradiance * s.view(1, 3, 1, 1) * lobe, torch.zeros_like(a))
-        return a, b
 
 
 def _fit(capture: Capture, heights: Tensor | None, s: Tensor, alpha: Tensor, iters: int, cell: int) -> ReliefFit:

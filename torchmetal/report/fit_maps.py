@@ -15,8 +15,8 @@ import torch
 import torch.nn.functional as F
 
 from torchmetal.io.capture import Capture
-from torchmetal.registration import shot_shifts, unregistrable, valid_observations
 from torchmetal.lobes import lobe_render
+from torchmetal.registration import shot_shifts, unregistrable, valid_observations
 from torchmetal.report.disagreement import disagreement_map, disagreement_png
 
 __all__ = ["add_fit_maps", "fit_maps", "DISAGREEMENT_PNG"]
