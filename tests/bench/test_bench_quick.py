@@ -336,10 +336,10 @@ def test_quick_run_sections_report_numbers_or_a_reason(quick_run):
 def test_quick_run_zoo_has_a_row_per_scene_with_numbers(quick_run):
     import json
 
-    from torchmetal.synth.zoo import ci_scenes
+    from torchmetal.bench.plans import quick_plan
 
     _, out, _ = quick_run
-    names = [s.name for s in ci_scenes()]
+    names = list(quick_plan().zoo_scenes)
     rows = json.loads((out / "zoo.json").read_text())
     assert [r["scene"] for r in rows] == names
     for r in rows:

@@ -77,7 +77,9 @@ def quick_plan() -> Plan:
         flake_size=64, onnx_size=32, real_downsample=8, real_captures=("uw_gray_sphere",), real_max_shots=5,
         real_speculars=("global", "paper", "default"), realflakes_captures=("uw_gray_sphere",), isolate=False,
         timeout_s=120.0, threads=1,
-        zoo_ci=True,  # every scene at its ci_scenes() size: ~25 s in all on 2 cores
+        # three zoo scenes at their ci_scenes() size (a photo texture, two materials, bright flakes): the section's
+        # plumbing; the whole CI zoo is fitted once, by tests/bench/test_zoo.py (~3.5 min on 2 cores)
+        zoo_ci=True, zoo_scenes=("photo_srgb8", "two_materials", "flakes_bright_hemi"),
         robust_options=("default", "flakes on"), robust_scenes=("sphere_sharp72",), robust_real=False,
         robust_share=False,
     )
