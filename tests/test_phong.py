@@ -133,3 +133,33 @@ def test_zero_texture_keeps_its_gradient_under_finite_irradiance():
     phong_shading(tex, torch.zeros(3, dtype=torch.float64), torch.ones(3, dtype=torch.float64), geom).sum().backward()
     expected = (geom.irradiance * geom.n_dot_l.clamp_min(0.0)).sum(0)
     torch.testing.assert_close(tex.grad, expected)
+
+
+def test_the_plane_path_without_gradients_matches_the_autograd_path():
+    """phong_render without a gradient uses the plane's separable terms (phong._plane_phong); with one, the
+    vector geometry: the same values, normal maps and spatially varying α up to the thousands included."""
+    rng = np.random.default_rng(11)
+    n, L, I, C = (torch.from_numpy(x) for x in random_config(rng, grazing=True))
+    tex = torch.rand(3, *n.shape[1:], dtype=torch.float64)
+    s = torch.tensor([0.3, 1.0, 4.0], dtype=torch.float64)
+    a = torch.tensor([1.0, 40.0, 3000.0], dtype=torch.float64)[:, None, None].expand(3, *n.shape[1:]).clone()
+    with torch.no_grad():
+        plane = phong_render(tex, s, a, n, L, I, C, (0.1, 0.1))
+    tex_g = tex.clone().requires_grad_(True)
+    vector = phong_render(tex_g, s, a, n, L, I, C, (0.1, 0.1))
+    torch.testing.assert_close(plane, vector.detach(), rtol=1e-10, atol=1e-12)
+    vector.sum().backward()
+    assert tex_g.grad is not None and bool(torch.isfinite(tex_g.grad).all())
+
+
+def test_the_plane_path_keeps_the_overflow_rule():
+    """An irradiance that overflows float32 (intensity 3e38 at 0.3 units) is inf where the surface is lit and 0
+    where it faces away, through phong_render's plane path as through phong_shading."""
+    n = torch.zeros(3, 2, 2)
+    n[2, :, 0], n[2, :, 1] = 1.0, -1.0
+    light = torch.tensor([[0.01, 0.0, 0.3, 1.0]])
+    cam = torch.tensor([[0.0, 0.0, 0.3, 1.0]])
+    with torch.no_grad():
+        out = phong_render(torch.full((3, 2, 2), 0.5), torch.ones(3), torch.full((3,), 10.0), n, light,
+                           torch.full((1, 3), 3e38), cam, (0.1, 0.1))
+    assert bool(torch.isinf(out[..., 0]).all()) and bool((out[..., 1] == 0).all())
