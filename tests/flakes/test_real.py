@@ -41,7 +41,18 @@ def test_statistics_are_fitted(cards_blue):
     assert model.density == pytest.approx(min(rep["density"], MAX_DENSITY))
     assert 0.02 < model.tilt_sigma < 0.5 and 1e-3 < model.glint_sigma < 0.2
     assert all(0.0 < c < 1.0 for c in model.color_mean)
-    assert rep["identified"]["log_tilt_sigma"] and rep["identified"]["log_glint_sigma"]
+    assert rep["identified"]["log_amp_mean"]  # the flakes' brightness: standard error 0.006-0.009 in every run
+
+
+@pytest.mark.xfail(strict=False, reason=(
+    "open: whether the card's tilt and glint σ count as identified (standard error < 0.15) is knife-edge: the "
+    "photos times (1 + 1e-6·noise) move glint σ's standard error 0.086 -> 0.191 at 5281ce8, and the plane render's "
+    "float rounding moves both to 0.45 / 1.30 with the estimates unchanged (tilt 0.113 vs 0.114, glint 0.0303 vs "
+    "0.0298): docs/measurements.md 2026-12-07"))
+def test_tilt_and_glint_width_are_identified(cards_blue):
+    _, _, res = cards_blue
+    ident = res.flakes.report["identified"]
+    assert ident["log_tilt_sigma"] and ident["log_glint_sigma"]
 
 
 def test_flake_term_lowers_md_of_the_left_out_shot(cards_blue):
