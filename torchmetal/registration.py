@@ -193,8 +193,8 @@ def registration_shifts(capture: Capture, *, max_width: int = MAX_WIDTH, passes:
     times. The reference (the others' mean) is itself misregistered on the first pass, and shading that the
     normalisation leaves pulls the peak: one pass left a synthetic capture's shots 1–2 px apart where they had been
     3–6 px; a pass on the moved shots measures what is left."""
-    # measured at the measurement's width throughout: each pass moves the box-averaged shots, not the full-size ones
-    # (at 1 MP × 7, 2 s of full-size resampling a pass)
+    # each pass moves the box-averaged shots it measures, not the full-size ones: resampling the full size cost
+    # more than the measurement (docs/measurements.md, 2026-12-07)
     f = max(1, -(-capture.width // max_width))
     small = capture.downsampled(f)
     total = [[0.0, 0.0] for _ in range(capture.num_shots)]
