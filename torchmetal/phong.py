@@ -44,7 +44,12 @@ def exp_normal(x: Tensor) -> Tensor:
     """exp(x) with x clamped to 1 + log(smallest normal number) of its dtype: the result is never
     subnormal. A far-off lobe exp(α·log cos) lands there (α in the thousands) and subnormal
     arithmetic is ~10× slower on x86; the clamp changes values below 3.2e-38 (float32) only."""
-    return torch.exp(x.clamp_min(1.0 + math.log(torch.finfo(x.dtype).tiny)))
+    return torch.exp(x.clamp_min(_exp_floor(x.dtype)))
+
+
+def _exp_floor(dtype: torch.dtype) -> float:
+    """The smallest argument :func:`exp_normal` passes to exp: 1 + log(smallest normal number of ``dtype``)."""
+    return 1.0 + math.log(torch.finfo(dtype).tiny)
 
 
 def specular_lobe(spec_q: Tensor, alpha: Tensor) -> Tensor:
@@ -109,7 +114,7 @@ def _plane_phong(texture: Tensor, s: Tensor, alpha: Tensor, normals: Tensor, lig
     # the same terms, fewer passes over (B, 3, H, W): the lobe's log and its gate per pixel, in place after
     gate = ((nl > 0) & (q < 1.0)).to(e.dtype)
     log_rv = torch.log1p(-torch.where(q < 1.0, q, torch.full_like(q, 0.5)))
-    spec = (channel_map(alpha) * log_rv).clamp_min_(1.0 + math.log(torch.finfo(e.dtype).tiny)).exp_()
+    spec = (channel_map(alpha) * log_rv).clamp_min_(_exp_floor(e.dtype)).exp_()  # exp_normal, in place
     spec.mul_(channel_map(s)).mul_(gate)
     return spec.addcmul_(texture, nl.clamp_min(0.0)).mul_(e)
 

@@ -34,6 +34,7 @@ from torch import Tensor
 from torchmetal.fit.holdout import valid_pixels
 from torchmetal.geometry import shading_geometry
 from torchmetal.lbfgs import minimize
+from torchmetal.phong import specular_lobe
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -135,10 +136,8 @@ class _Rays:
         nl = (n * self.l).sum(1, keepdim=True)
         rv = 2.0 * nl * n - self.lv
         q = 0.5 * rv.square().sum(1, keepdim=True)
-        inside = (nl > 0) & (q < 1.0)
-        lobe = torch.exp(alpha.view(1, 3, 1, 1) * torch.log1p(-torch.where(inside, q, torch.full_like(q, 0.5))))
         a = self.irradiance * nl.clamp_min(0.0)
-        b = torch.where(inside, self.irradiance * s.view(1, 3, 1, 1) * lobe, torch.zeros_like(a))
+        b = torch.where(nl > 0, self.irradiance * s.view(1, 3, 1, 1) * specular_lobe(q, alpha), torch.zeros_like(a))
         return a, b
 
 
