@@ -11,6 +11,8 @@ material/
   flakes_density_map.npy, flakes_color_map.npy   (gh, gw) / (gh, gw, 3) float32 flake-density map and
                          per-block colour means (torchmetal.flakes.estimate.density_map), named in material.json
   flakes_area_map.npy    (gh, gw) float32 per-block flake log-area offsets, named in material.json
+  normals_interval_deg.npy   (H, W) float32 90 % radius of the estimated normals in degrees (``torchmetal
+                         intervals``), named in the report at fit.uncertainty.leave_out.normals.file
   renderer.onnx          when exported
 ```
 Writes are atomic: everything goes to a temporary sibling directory that replaces the target in
@@ -56,6 +58,9 @@ class Material:
         report: the fit report (per-stage times, iterations, errors, what was skipped).
         lobe: the specular lobe of ``s``/``alpha``: "phong" (docs/design.md §2.2, the default), "blinn" or
             "ggx" (:mod:`torchmetal.lobes`); saved as ``"lobe"`` in material.json (absent = phong).
+        normals_interval: (H, W) float32 per-pixel 90 % radius in degrees of the estimated normals, from refits
+            with one shot left out (``torchmetal intervals``, :mod:`torchmetal.plan.intervals`), or None. Carried
+            here so that a re-saved material keeps the file its report names (:data:`NORMALS_INTERVAL_FILE`).
     """
 
     texture: Tensor
@@ -72,6 +77,7 @@ class Material:
     observed_flakes: "ObservedFlakes | None" = None  # the sample's own flakes (torchmetal.flakes.model.observed)
     gloss_s: Tensor | None = None  # (3, H, W) gloss maps (torchmetal.fit.gloss); s, alpha hold their means
     gloss_alpha: Tensor | None = None
+    normals_interval: Tensor | None = None  # (H, W) degrees, torchmetal intervals' normals radius map
 
     def __post_init__(self) -> None:
         if self.lobe not in LOBES:
@@ -96,6 +102,8 @@ class Material:
             if self.cluster_s.shape != (k, 3) or self.cluster_alpha.shape != (k, 3):
                 raise MaterialError(f"cluster_s/cluster_alpha: expected (K, 3), found {tuple(self.cluster_s.shape)}, {tuple(self.cluster_alpha.shape)}")
         self._check_gloss()
+        if self.normals_interval is not None and tuple(self.normals_interval.shape) != tuple(t.shape[1:]):
+            raise MaterialError(f"normals_interval: expected shape {tuple(t.shape[1:])}, found {tuple(self.normals_interval.shape)}")
         if not (all(math.isfinite(v) and v > 0 for v in self.size) and len(self.size) == 2):
             raise MaterialError(f"size: expected two positive numbers (width, height), found {self.size!r}")
 
@@ -152,6 +160,7 @@ class Material:
             move(self.texture), move(self.s), move(self.alpha), self.size, move(self.normals),
             move(self.spec_labels), move(self.cluster_s), move(self.cluster_alpha), self.flakes, dict(self.report),
             lobe=self.lobe, observed_flakes=self.observed_flakes, gloss_s=move(self.gloss_s), gloss_alpha=move(self.gloss_alpha),
+            normals_interval=move(self.normals_interval),
         )
 
 
@@ -193,8 +202,40 @@ def material_to_json(m: Material) -> dict:
         },
         "flakes": _flakes_json(m.flakes),
         "observed_flakes": None if m.observed_flakes is None else observed_json(m.observed_flakes),
-        "fit": json_finite(m.report),
+        "fit": json_finite(_report_naming_files(m)),
     }
+
+
+NORMALS_INTERVAL_FILE = "normals_interval_deg.npy"
+_INTERVAL_PATH = ("uncertainty", "leave_out", "normals")  # where in the report the interval entry names its file
+
+
+def _report_naming_files(m: Material) -> dict:
+    """``m.report`` as saved: its leave-out normals entry names :data:`NORMALS_INTERVAL_FILE` exactly when the file
+    is written (``m.normals_interval`` is set), so the report never names a file the directory lacks (a material
+    loaded from a directory that lost it: the name goes) nor holds one it does not name."""
+    want = None if m.normals_interval is None else NORMALS_INTERVAL_FILE
+    if _interval_file(m.report) == want:
+        return m.report
+    report = json.loads(json.dumps(json_finite(m.report)))  # a copy: the caller's report is not changed
+    node = report
+    for key in _INTERVAL_PATH:
+        if not isinstance(node.get(key), dict):
+            node[key] = {}
+        node = node[key]
+    if want is None:
+        node.pop("file", None)
+    else:
+        node["file"] = want
+    return report
+
+
+def _interval_file(report: dict) -> str | None:
+    """The file the report's leave-out normals entry names (None: none)."""
+    entry = report
+    for key in _INTERVAL_PATH:
+        entry = entry.get(key) if isinstance(entry, dict) else None
+    return entry.get("file") if isinstance(entry, dict) else None
 
 
 FLAKE_MAP_FILES = {"density_map": "flakes_density_map.npy", "color_map": "flakes_color_map.npy",
@@ -255,6 +296,8 @@ def save_material(m: Material, path: str | os.PathLike, *, extra_files: dict[str
             arr = None if m.flakes is None else getattr(m.flakes, key)
             if arr is not None:
                 np.save(tmp / name, np.ascontiguousarray(arr.detach().cpu().float().numpy()))
+        if m.normals_interval is not None:
+            np.save(tmp / NORMALS_INTERVAL_FILE, np.ascontiguousarray(m.normals_interval.detach().cpu().float().numpy()))
         (tmp / "material.json").write_text(json.dumps(material_to_json(m), indent=2, allow_nan=False))
         keep = path / "renderer.onnx"
         if keep.is_file() and not (extra_files and "renderer.onnx" in extra_files):
@@ -324,6 +367,7 @@ def load_material(path: str | os.PathLike) -> Material:
         observed = load_observed(root, meta.get("observed_flakes")) if flakes is not None else None
         size = (float(meta["surface"]["width"]), float(meta["surface"]["height"]))
         lobe = meta.get("lobe", "phong")  # absent: a material from before the lobe choice
+        interval = _load_interval(root, meta.get("fit") or {}, texture.shape[1:])
     except KeyError as e:
         raise MaterialError(f"{meta_file}: expected key {e.args[0]!r}, found it missing") from None
     except (TypeError, ValueError) as e:
@@ -332,4 +376,16 @@ def load_material(path: str | os.PathLike) -> Material:
         if not bool(torch.isfinite(x).all()):
             raise MaterialError(f"{root}: expected finite {name}, found NaN/Inf")
     return Material(texture, s, alpha, size, normals, labels, cs, ca, flakes, meta.get("fit") or {}, lobe=lobe,
-                    observed_flakes=observed, gloss_s=gs, gloss_alpha=ga)
+                    observed_flakes=observed, gloss_s=gs, gloss_alpha=ga, normals_interval=interval)
+
+
+def _load_interval(root: Path, report: dict, hw: torch.Size) -> Tensor | None:
+    """The (H, W) normals radius map the report names, or None: none named, or named but missing (a material
+    re-saved before the map was carried dropped it; its next save drops the name, :func:`_report_naming_files`)."""
+    name = _interval_file(report)
+    if name is None or not (root / str(name)).is_file():
+        return None
+    a = _load_array(root, str(name), "(H, W)")
+    if a.shape != tuple(hw):
+        raise MaterialError(f"{root / name}: expected shape {tuple(hw)}, found {a.shape}")
+    return torch.from_numpy(a.astype(np.float32))

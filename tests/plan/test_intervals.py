@@ -116,6 +116,41 @@ def test_the_flake_line(fitted, with_flakes, monkeypatch, capsys):
     assert lo < value < hi and value == pytest.approx(0.004)
 
 
+def _named(material_dir):
+    """The normals file material.json's leave-out entry names (None: none)."""
+    entry = json.loads((material_dir / "material.json").read_text())["fit"]["uncertainty"].get("leave_out") or {}
+    return (entry.get("normals") or {}).get("file")
+
+
+def test_the_normals_map_survives_a_reload_and_resave_and_the_report_names_only_what_is_there(fitted, with_flakes,
+                                                                                             tmp_path):
+    # estimated normals: the map is written and named; a reload and re-save (in place or elsewhere) keeps both
+    leave_out_intervals(with_flakes, fitted / "cap", refit=fake_refit(fitted / "cap"))
+    radius = np.load(with_flakes / NORMALS_FILE)
+    m = load_material(with_flakes)
+    for target in (with_flakes, tmp_path / "copy"):
+        save_material(m, target)
+        assert _named(target) == NORMALS_FILE and (target / NORMALS_FILE).is_file(), target
+        assert np.array_equal(np.load(target / NORMALS_FILE), radius)
+    assert np.array_equal(m.normals_interval.numpy(), radius)  # carried by the Material
+    # a directory that lost the map (a re-save before this fix): it loads, and its next save stops naming it
+    (tmp_path / "copy" / NORMALS_FILE).unlink()
+    lost = load_material(tmp_path / "copy")
+    assert lost.normals_interval is None
+    save_material(lost, tmp_path / "copy")
+    assert _named(tmp_path / "copy") is None and not (tmp_path / "copy" / NORMALS_FILE).exists()
+    assert "median_radius_deg" in load_material(tmp_path / "copy").report["uncertainty"]["leave_out"]["normals"]  # the rest kept
+    # flat normals: no map and no name, and an earlier run's map does not stay behind unnamed
+    flat = load_material(with_flakes)
+    flat.normals, flat.report["normals"]["chosen"] = None, "flat"
+    save_material(flat, tmp_path / "flat")
+    assert _named(tmp_path / "flat") == NORMALS_FILE  # still the estimated run's report and map
+    entry = leave_out_intervals(tmp_path / "flat", fitted / "cap", refit=fake_refit(fitted / "cap"))
+    assert "normals" not in entry and _named(tmp_path / "flat") is None
+    assert not (tmp_path / "flat" / NORMALS_FILE).exists()
+    assert load_material(tmp_path / "flat").normals_interval is None
+
+
 def test_refit_options_fix_the_fits_choices(fitted):
     m = load_material(fitted / "mat")
     opts = refit_options(m.report, m)

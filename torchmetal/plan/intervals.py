@@ -16,6 +16,9 @@ What is written (docs/design.md §2.3: the report is free-form, nothing required
 "low", "high", "std", "scale", "refits"}, "failed_refits"}, "normals": {"median_radius_deg", "p90_radius_deg",
 "file"}} (each of the last two only where the material has it), and for normals the per-pixel 90 % radius in
 degrees, ``normals_interval_deg.npy`` (H, W) float32. Every other byte of material.json stays as the fit wrote it.
+The report names that file exactly when it is in the directory: a run without normals removes an earlier run's
+file, and :func:`~torchmetal.material.save_material` carries it (``Material.normals_interval``) through a reload
+and re-save, or drops the name where the map is gone.
 """
 
 from __future__ import annotations
@@ -30,10 +33,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 from torchmetal.errors import InputError
+from torchmetal.material import NORMALS_INTERVAL_FILE as NORMALS_FILE  # the material directory's name for the map
 from torchmetal.plan.leave_out import LEVEL, flake_jackknife, normals_jackknife
 
 REPORT_KEY = "leave_out"  # under the report's "uncertainty"
-NORMALS_FILE = "normals_interval_deg.npy"
 ESTIMATED_NORMALS = ("estimate", "relief")  # the normals modes that estimate normals from the photos
 MIN_SHOTS = 4  # three shots left in every refit
 
@@ -137,7 +140,9 @@ def leave_out_intervals(material_dir: str | Path, capture_dir: str | Path, *, le
 
 def write_entry(material_dir: Path, entry: dict, radius=None) -> None:
     """Put ``entry`` at material.json's ``fit.uncertainty.leave_out`` (and ``radius`` (H, W) into
-    :data:`NORMALS_FILE`), each file replaced atomically; the rest of material.json is written back as it was."""
+    :data:`NORMALS_FILE`, which ``entry["normals"]["file"]`` names), each file replaced atomically; the rest of
+    material.json is written back as it was. Without ``radius`` an earlier run's map is removed: the new entry does
+    not name it, and a file the report does not name would be carried by nothing (load_material reads what it names)."""
     import numpy as np
 
     from torchmetal.material import json_finite
@@ -148,10 +153,14 @@ def write_entry(material_dir: Path, entry: dict, radius=None) -> None:
     if not isinstance(fit.get("uncertainty"), dict):
         fit["uncertainty"] = {}
     fit["uncertainty"][REPORT_KEY] = json_finite(entry)
+    if (radius is not None) != bool((entry.get("normals") or {}).get("file")):
+        raise ValueError("write_entry: the entry names the normals file exactly when a radius map is given")
     if radius is not None:
         _atomic(material_dir / NORMALS_FILE, lambda f: np.save(f, np.ascontiguousarray(radius, dtype=np.float32)))
     text = json.dumps(doc, indent=2, allow_nan=False)  # as save_material writes it
     _atomic(meta_file, lambda f: f.write(text.encode()))
+    if radius is None:  # after material.json: it no longer names the map
+        (material_dir / NORMALS_FILE).unlink(missing_ok=True)
 
 
 def _atomic(path: Path, write: Callable) -> None:
