@@ -4,7 +4,8 @@
 2. Where Phong is the truth (global, or two materials; the shots sample the lobe), it is within
    1 dB of the oracle (the truth's own specular, texture solved from the same shots); so it is where the
    truth is Blinn or the renderer's GGX, and the default picks that lobe.
-3. No flake model on a flake-free scene; a model on every flake scene, with its statistics near the truth's.
+3. No flake model on a flake-free scene; a model on every flake scene, with its statistics near the truth's
+   and its sparkles (as rendered) as good as the truth's own flakes drawn again at other places.
 4. Where the shots never sample the lobe's peak, no highlight is invented.
 """
 
@@ -99,6 +100,31 @@ def test_flake_statistics_within_tolerance(zoo, name):
     assert d["density_err"] <= 0.10 and d["tilt_err"] <= 0.20, d
     if SCENES[name].flakes["area_median"] >= 3.0:
         assert d["area_err"] <= 0.15, d
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [n for n, s in SCENES.items() if s.flakes is not None])
+def test_sparkles_as_good_as_the_truths_redrawn(zoo, name):
+    """Sparkles at random places cost PSNR against any render without them, the truth's own included, so the
+    yardstick of a render with sparkles is the truth with its flakes redrawn (bench.zoo.SPARKLE_DRAWS), not the
+    paper scheme's flake-free render: the default's as-rendered PSNR is within 1 dB of it or above."""
+    r = zoo[name]
+    assert r["default"]["psnr"] >= r["oracle_sparkles"] - 1.0, (r["default"]["psnr"], r["oracle_sparkles"])
+
+
+SPARKLE_RATIO_CI = (0.5, 2.0)  # CI size: a tilt σ 8 % low already gives ×0.67 on a ring (glints from the tilt's tail)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [n for n, s in SCENES.items() if s.flakes is not None])
+def test_left_out_sparkle_count_near_the_truths(zoo, name):
+    """The left-out sparkle count over the truth's, where the truth shows at least 30: no gross drift at CI size
+    (the bench's full-size zoo reports the ratio against its 0.8–1.25 target)."""
+    d = zoo[name]["default"]
+    if d["truth_sparkles"] < 30:
+        pytest.skip(f"{d['truth_sparkles']} truth sparkles in the held-out shots: a count ratio says nothing")
+    lo, hi = SPARKLE_RATIO_CI
+    assert lo <= d["sparkle_ratio"] <= hi, (d["sparkle_ratio"], d["truth_sparkles"])
 
 
 def test_scores_are_against_the_clean_truth(tmp_path):

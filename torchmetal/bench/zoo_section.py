@@ -45,6 +45,13 @@ def _coat_cell(row: dict) -> str:
     return _db(coat)
 
 
+def _oracle_cell(r: dict) -> str:
+    """The oracle's PSNR; on flake scenes also the truth with its flakes redrawn (the yardstick of 'as rendered')."""
+    if "oracle_sparkles" not in r:
+        return _db(r.get("oracle"))
+    return f"{_db(r.get('oracle'))} (flakes redrawn {_db(r['oracle_sparkles'])})"
+
+
 def _err_cell(row: dict) -> str:
     if "s_err" not in row:
         return "–"
@@ -55,8 +62,9 @@ def _flake_cell(row: dict, truth: dict) -> str:
     true_flakes = "density" in (truth or {})
     if row.get("flake_model"):
         if "density_err" in row:
+            ratio = f", sparkles ×{_f(row['sparkle_ratio']):.2f}" if "sparkle_ratio" in row else ""
             return (f"yes (density {_f(row['density_err']):.0%}, area {_f(row['area_err']):.0%}, "
-                    f"tilt {_f(row['tilt_err']):.0%})")
+                    f"tilt {_f(row['tilt_err']):.0%}{ratio})")
         return "yes (FALSE: no flakes in the truth)"
     return "no" + (" (MISSED)" if true_flakes else "")
 
@@ -104,7 +112,7 @@ def zoo_markdown(names: list[str], results: list[dict], sizes: dict[str, str]) -
         if v is not None:
             total += 1
             ok += bool(v)
-        cells = [name, sizes.get(name, ""), _coat_cell(d), _coat_cell(p), _db(r.get("oracle")), _err_cell(d),
+        cells = [name, sizes.get(name, ""), _coat_cell(d), _coat_cell(p), _oracle_cell(r), _err_cell(d),
                  _err_cell(p), _flake_cell(d, r.get("truth", {})), _stages_cell(d), _skip_share_cell(d),
                  f"{_f(d.get('time')):.2f} / {_f(p.get('time')):.2f}", "–" if v is None else ("yes" if v else "no")]
         lines.append("| " + " | ".join(cells) + " |")
@@ -113,7 +121,9 @@ def zoo_markdown(names: list[str], results: list[dict], sizes: dict[str, str]) -
                  "fitted material against their noise-free renders (torchmetal.metrics.psnr: linear, clipped to "
                  "[0, 1], peak 1), coating only (no sparkle; on flake scenes away from the true flakes); "
                  "*as rendered*: sparkles included. *oracle*: the true specular and flakes with the texture solved "
-                 "from the same shots. s / α err: relative error of the mean s and the geometric-mean α "
+                 "from the same shots; *flakes redrawn*: the truth with its flakes drawn again from its own statistics "
+                 "(what sparkles at random places reach: the yardstick of *as rendered*, bench.zoo.SPARKLE_DRAWS draws); "
+                 "*sparkles ×*: the left-out sparkle count over the truth's. s / α err: relative error of the mean s and the geometric-mean α "
                  "(– where the truth is not one global Phong lobe). *flake stage / fit*: wall seconds of the flake "
                  "stage over the Phong fit's stages, in the child process (a loaded machine makes it noisy).")
     return "\n".join(lines)

@@ -412,3 +412,22 @@ def oracle_render(case: ZooCase) -> np.ndarray:
     fitted = replace(truth, texture=np.clip(tex, 0.0, None))
     return np.stack([render_clean(fitted, case.held_lights[k], case.held_intensities[k], case.held_cameras[k])
                      for k in range(len(case.held_lights))]).astype(np.float32)
+
+
+def redrawn_flakes_render(case: ZooCase, draw: int) -> np.ndarray:
+    """(H, 3, n, n) held-out renders of the truth with its flakes drawn again from the same statistics.
+
+    What a perfect statistical flake model renders: the true coating and flake statistics, the flakes at
+    other places (draw ``draw``, a stream apart from the capture's own). Its PSNR against the clean
+    held-out shots is what sparkles at random places can reach; ``case.truth`` without flakes
+    scores higher, so the coat alone is no yardstick for a render with sparkles.
+    """
+    scene, truth = case.scene, case.truth
+    if scene.flakes is None:
+        raise ValueError(f"redrawn_flakes_render: scene {scene.name!r} has no flakes")
+    fl = make_flakes(scene.flakes, scene.size, _rng(scene.seed, 100 + draw))
+    fl["spec"] = dict(scene.flakes)
+    redrawn = replace(truth, flakes=fl, cover=flake_cover(fl, scene.size))
+    fl["world_normal"] = flake_normals(redrawn)
+    return np.stack([render_clean(redrawn, case.held_lights[k], case.held_intensities[k], case.held_cameras[k])
+                     for k in range(len(case.held_lights))]).astype(np.float32)
