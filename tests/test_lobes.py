@@ -269,3 +269,38 @@ def test_cli_fit_lobe(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main(["fit", str(cap), "-o", str(mat), "--lobe", "cook"])
     assert e.value.code != 0
+
+
+@pytest.mark.parametrize("lobe", ["blinn", "ggx"])
+@pytest.mark.parametrize("bumpy", [False, True])
+def test_the_plane_path_without_gradients_matches_the_vector_path(lobe, bumpy):
+    """lobe_render without a gradient builds Blinn and GGX from the plane's separable terms (lobes._plane_lobe);
+    with one, from the vector geometry: the same values at grazing and back-facing shots, directional lights,
+    normal maps and α maps from 1 to 3000."""
+    h, w = 6, 7
+    n = _normals(h, w, bumpy, seed=3)
+    light, intensity, camera = _shots()
+    g = torch.Generator().manual_seed(5)
+    tex = torch.rand(3, h, w, generator=g, dtype=torch.float64)
+    s = torch.tensor([0.3, 1.0, 4.0], dtype=torch.float64)
+    a = torch.tensor([1.0, 40.0, 3000.0], dtype=torch.float64)[:, None, None] * (0.5 + torch.rand(3, h, w, generator=g,
+                                                                                                  dtype=torch.float64))
+    with torch.no_grad():
+        plane = lobe_render(tex, s, a, n, light, intensity, camera, SIZE, lobe)
+    tex_g = tex.clone().requires_grad_(True)
+    vector = lobe_render(tex_g, s, a, n, light, intensity, camera, SIZE, lobe)
+    torch.testing.assert_close(plane, vector.detach(), rtol=1e-10, atol=1e-12)
+    assert vector.grad_fn is not None
+
+
+def test_the_plane_path_keeps_the_overflow_rule_for_every_lobe():
+    """An irradiance that overflows float32 is inf where the surface is lit and 0 where it faces away, without a
+    gradient as with one."""
+    n = torch.zeros(3, 2, 2)
+    n[2, :, 0], n[2, :, 1] = 1.0, -1.0
+    light, cam = torch.tensor([[0.01, 0.0, 0.3, 1.0]]), torch.tensor([[0.0, 0.0, 0.3, 1.0]])
+    for lobe in ("blinn", "ggx"):
+        with torch.no_grad():
+            out = lobe_render(torch.full((3, 2, 2), 0.5), torch.ones(3), torch.full((3,), 10.0), n, light,
+                              torch.full((1, 3), 3e38), cam, (0.1, 0.1), lobe)
+        assert bool(torch.isinf(out[..., 0]).all()) and bool((out[..., 1] == 0).all()), lobe

@@ -39,9 +39,20 @@ from torchmetal.geometry import (
     ShadingGeometry,
     _grid_direction,  # the one separable direction builder
     dot,
+    grid_shading_terms,
+    is_flat,
+    pixel_axes,
     shading_geometry,
 )
-from torchmetal.phong import PhongModel, channel_map, phong_render, phong_shading, specular_lobe
+from torchmetal.phong import (
+    PhongModel,
+    _exp_floor,
+    _plane_ok,
+    channel_map,
+    phong_render,
+    phong_shading,
+    specular_lobe,
+)
 
 __all__ = [
     "LOBES", "F0", "check_lobe", "half_terms", "grid_half_terms", "ggx_k", "fresnel_ratio", "blinn_lobe", "ggx_lobe",
@@ -213,8 +224,48 @@ def lobe_render(
     """:func:`torchmetal.phong.phong_render` with a choice of lobe; (B, 3, H, W)."""
     if check_lobe(lobe) == "phong":
         return phong_render(texture, s, alpha, normals, light, intensity, camera, size)
+    if _plane_ok(texture, s, alpha, normals, light, intensity, camera):
+        out = _plane_lobe(texture, s, alpha, normals, light, intensity, camera, size, lobe)
+        if out is not None:
+            return out
     geom = shading_geometry(normals, light, intensity, camera, size)
     return lobe_shading(texture, s, alpha, geom, lobe)
+
+
+def _plane_lobe(texture: Tensor, s: Tensor, alpha: Tensor, normals: Tensor, light: Tensor, intensity: Tensor,
+                camera: Tensor, size: tuple[float, float], lobe: str) -> Tensor | None:
+    """:func:`lobe_render` for Blinn or GGX from the plane's separable scalar terms (as
+    :func:`torchmetal.phong._plane_phong` does for Phong): the formulas of :func:`blinn_lobe` /
+    :func:`ggx_lobe`, the (B, 3, H, W) products in place. For values, not gradients; None where an
+    irradiance overflowed (the vector path's inf·0 rule applies)."""
+    h, w = normals.shape[-2:]
+    x, y = pixel_axes(h, w, size, dtype=normals.dtype, device=normals.device)
+    flat = None if is_flat(normals) else normals
+    nl, _, d2 = grid_shading_terms(light, camera, x, y, flat)
+    e = intensity[:, :, None, None] / d2.unsqueeze(1)
+    if not bool(torch.isfinite(e).all()):
+        return None
+    half_q, nv, vh = (t.unsqueeze(1) for t in grid_half_terms(light, camera, x, y, flat))
+    nl = nl.unsqueeze(1)
+    if lobe == "blinn":  # specular_lobe of 1 − n·h, the gate n·l > 0
+        gate = ((nl > 0) & (half_q < 1.0)).to(e.dtype)
+        log_nh = torch.log1p(-torch.where(half_q < 1.0, half_q, torch.full_like(half_q, 0.5)))
+        spec = (channel_map(alpha) * log_nh).clamp_min_(_exp_floor(e.dtype)).exp_()
+    else:  # ggx_lobe: D̂²·F̂·G₁(n·l)·G₁(n·v)/(n·v), 0 where n·v ≤ 0 or n·l ≤ 0
+        gate = ((nl > 0) & (nv > 0)).to(e.dtype)
+        k = channel_map(ggx_k(alpha))
+        hq = half_q.clamp(0.0, 1.0)
+        wq = hq * (2.0 - hq)
+        nlc = nl.clamp(0.0, 1.0)
+        nvc = torch.where(nv > 0, nv.clamp_max(1.0), torch.ones_like(nv))
+        spec = (wq * (1.0 - k)).add_(k).reciprocal_().mul_(k).square_()  # D̂
+        sl = (nlc * nlc * (1.0 - k)).add_(k).sqrt_().add_(nlc)  # nl + S(nl)
+        spec.div_(sl).mul_(2.0 * nlc)
+        sv = (nvc * nvc * (1.0 - k)).add_(k).sqrt_().add_(nvc)  # nv + S(nv)
+        spec.div_(sv).mul_(2.0)
+        gate = gate * fresnel_ratio(vh)
+    spec.mul_(channel_map(s)).mul_(gate)
+    return spec.addcmul_(texture, nl.clamp_min(0.0)).mul_(e)
 
 
 class LobeModel(PhongModel):
