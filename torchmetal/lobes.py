@@ -178,13 +178,17 @@ def ggx_log_core(half_q: Tensor, n_dot_l: Tensor, n_dot_v: Tensor, k: Tensor) ->
     """
     hq = half_q.clamp(0.0, 1.0)
     w = hq * (2.0 - hq)
-    den = k + (1.0 - k) * w
+    k1 = 1.0 - k
+    d = k / torch.addcmul(k, k1, w)  # D̂^½ = k/(k + (1 − k)w)
     nl = n_dot_l.clamp(1e-12, 1.0)
     nv = n_dot_v.clamp(1e-12, 1.0)
-    sl, sv = _smith_sqrt(nl, k), _smith_sqrt(nv, k)
-    log_core = 2.0 * torch.log(k / den) + torch.log(4.0 * nl / ((nl + sl) * (nv + sv)))
-    dg = k * ((1.0 - nl * nl) / (2.0 * sl * (nl + sl)) + (1.0 - nv * nv) / (2.0 * sv * (nv + sv)))
-    return log_core, (1.0 - k) * (dg - 2.0 * w / den)
+    nl2, nv2 = nl * nl, nv * nv
+    sl, sv = torch.addcmul(k, k1, nl2).sqrt(), torch.addcmul(k, k1, nv2).sqrt()
+    gl, gv = 1.0 / (nl + sl), 1.0 / (nv + sv)  # G₁(x) = 2x/(x + S)
+    log_core = torch.log((d * d) * (gl * gv) * (4.0 * nl))
+    # ∂/∂β: (1 − k)·[k·((1 − nl²)/(2 S_l (nl + S_l)) + (1 − nv²)/(2 S_v (nv + S_v))) − 2w·D̂^½/k]
+    dg = ((1.0 - nl2) * gl / sl + (1.0 - nv2) * gv / sv) * (0.5 * k) - (2.0 * w) * d / k
+    return log_core, k1 * dg
 
 
 def lobe_value(lobe: str, geom: ShadingGeometry, alpha: Tensor) -> Tensor:
