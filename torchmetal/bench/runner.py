@@ -30,7 +30,8 @@ robust    every fit option set on the zoo's flake scenes, the sharp-highlight sp
           captures: a material each, wall time against the numpy paper process; the flake stage's share
           of the fit on flake-free captures (torchmetal.bench.robust)
 uncertainty  coverage of the clean truth by the fit's 90 % intervals (s, α, texture) on random synthetic
-          scenes (torchmetal.bench.uncertainty)
+          scenes, and by ``torchmetal intervals``' leave-out ones (flake statistics, estimated normals) on
+          torchmetal.synth.random_scenes draws (torchmetal.bench.uncertainty)
 plan      the capture plan's next shot against a random reachable and a fixed one: held-out error after the
           refit on random synthetic scenes (torchmetal.bench.plan)
 selection the default's choices on randomized scenes with known truth: false positives, misses, the default
@@ -459,6 +460,10 @@ class Bench(SweepSection):
         res = uncertainty.run_section(100 if self.plan.name == "full" else 30, say=self.say)
         self.raw["uncertainty"] = res
         self.add(uncertainty.markdown(res))
+        # the leave-out intervals: N + 1 fits a scene, about 5 s a normals scene and 25–80 s a 64² flake one (2 CPUs)
+        lo = uncertainty.run_leave_out(40 if self.plan.name == "full" else 6, say=self.say)
+        self.raw["uncertainty_leave_out"] = lo
+        self.add(uncertainty.leave_out_markdown(lo))
 
     def run_selection(self) -> None:
         from torchmetal.bench import selection  # the random scenes' fits (torchmetal.bench.selection)
