@@ -67,3 +67,7 @@ def test_coverage_counts_per_kind(monkeypatch):
     md = unc.leave_out_markdown(res)
     assert "| flake density | 2 | 2 | 50.0% |" in md and "| normals (per pixel) | 2 | 400 | 35.0%" in md
     assert "the estimate was flat" in md and "(no interval)" in md
+    rows = iter([{"kind": "normals", "normals_in": 1, "normals_n": 2, "normals_scene": 0.5, "median_radius_deg": 1.0,
+                  "median_error_deg": 0.5, "p90_error_deg": 2.0}])
+    md = unc.leave_out_markdown(unc.run_leave_out(1, kinds=("normals",), say=None))
+    assert "flake density" not in md and "nan" not in md  # no flake scene: no flake rows

@@ -290,9 +290,11 @@ def leave_out_markdown(res: dict) -> str:
              f"{len(rows)} random_scenes draws, {res['errors']} failed" + (f"; not counted: {'; '.join(notes)}" if notes else "") + ".",
              "", "| parameter | scenes | intervals | truth inside |", "|---|---:|---:|---:|"]
     for k in FLAKE_STATS:
-        lines.append(f"| flake {k} | {res['scenes'][k]} | {res['n'][k]} | {res['coverage'][k]:.1%} |")
-    lines.append(f"| normals (per pixel) | {res['scenes']['normals']} | {res['n']['normals']} | {res['coverage']['normals']:.1%} "
-                 f"(median scene {res['coverage']['normals_scene_median']:.1%}) |")
+        if res["n"][k]:  # a kind no scene gave an interval of: no row (its draws are in the notes)
+            lines.append(f"| flake {k} | {res['scenes'][k]} | {res['n'][k]} | {res['coverage'][k]:.1%} |")
+    if res["n"]["normals"]:
+        lines.append(f"| normals (per pixel) | {res['scenes']['normals']} | {res['n']['normals']} | "
+                     f"{res['coverage']['normals']:.1%} (median scene {res['coverage']['normals_scene_median']:.1%}) |")
     fr = [r for r in rows if r.get("stats")]
     if fr:
         lines += ["", "| scene | shots | lobe | " + " | ".join(FLAKE_STATS) + " |", "|---|---:|---|" + "---|" * len(FLAKE_STATS)]
