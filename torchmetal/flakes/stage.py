@@ -19,6 +19,7 @@ from torchmetal.checks import check_shape
 from torchmetal.flakes.estimate.detect import Detection, detect_flakes
 from torchmetal.flakes.estimate.results import FlakeStageResult
 from torchmetal.flakes.estimate.shot_geometry import Geometry
+from torchmetal.flakes.estimate import stats as _stats
 from torchmetal.flakes.estimate.stats import flake_statistics
 from torchmetal.geometry import grid_distance2, pixel_axes
 
@@ -44,6 +45,8 @@ def detect_capture(capture: Capture, phong_images: Tensor, *, mirrored: bool = F
     empirical null of :func:`~torchmetal.flakes.estimate.null_test.glint_excess`. Noise and a misfit of the Phong model (texture edges,
     an imperfect lobe, quantisation) give residuals of both signs; glints are positive only, so
     what the detector finds in the mirror is what misfit alone produces at each SNR.
+    The glints' headroom is measured only where the statistics model clipped glints
+    (:data:`~torchmetal.flakes.estimate.stats.MODEL_CLIPS`).
     """
     images = capture.images
     n, _, h, w = images.shape
@@ -51,6 +54,7 @@ def detect_capture(capture: Capture, phong_images: Tensor, *, mirrored: bool = F
     irr = irradiance_maps(capture, dtype=images.dtype)
     valid = capture.mask.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)
     ph = phong_images.to(images.dtype)
+    detect = {"headroom": _stats.MODEL_CLIPS and not mirrored, **detect}
     return detect_flakes(2.0 * ph - images if mirrored else images, ph, irr, valid=valid, **detect)
 
 

@@ -86,7 +86,7 @@ class Detection:
     k_hi: float
     k_lo: float
     times: dict
-    headroom: Tensor | None = None  # (N, 1, H, W) the brightest measurable glint peak (:func:`glint_headroom`); None: nothing clipped
+    headroom: Tensor | None = None  # (N, 1, H, W) the brightest measurable glint peak (:func:`glint_headroom`); None: nothing clipped, or not measured (detect_flakes(headroom=False))
 
 
 def _check_inputs(photos: Tensor, phong: Tensor, irradiance: Tensor, valid: Tensor | None) -> None:
@@ -225,6 +225,7 @@ def detect_flakes(
     min_area: int = 1,
     cc_backend: str = "auto",
     chunk: int = 4,
+    headroom: bool = True,
 ) -> Detection:
     """Detect glinting flakes in every shot.
 
@@ -237,6 +238,8 @@ def detect_flakes(
         close, open: odd kernel sizes of the morphological closing / opening (≤ 1 = off).
         min_area: smallest region kept, in pixels; cc_backend: see :func:`regions.label_components`.
         chunk: shots processed at once (bounds memory).
+        headroom: measure :attr:`Detection.headroom` (what the flake statistics need only where they model
+            clipped glints).
 
     Returns:
         :class:`Detection` (particle table, signal, σ and label maps).
@@ -266,12 +269,14 @@ def detect_flakes(
             sigmas.append(sgm)
     particles = Particles.cat(tables)
     t0 = time.perf_counter()
-    with torch.no_grad():
-        headroom = glint_headroom(photos, phong, irradiance, valid, particles, chunk=chunk)
-    times["headroom"] = time.perf_counter() - t0
+    room = None
+    if headroom:
+        with torch.no_grad():
+            room = glint_headroom(photos, phong, irradiance, valid, particles, chunk=chunk)
+        times["headroom"] = time.perf_counter() - t0
     return Detection(
         particles=particles, signal=torch.cat(signals), sigma=torch.cat(sigmas),
-        labels=torch.cat(label_maps), valid=valid, k_hi=float(k_hi), k_lo=float(k_lo), times=times, headroom=headroom,
+        labels=torch.cat(label_maps), valid=valid, k_hi=float(k_hi), k_lo=float(k_lo), times=times, headroom=room,
     )
 
 
