@@ -142,26 +142,35 @@ def shifts_against(reference: Tensor, images: Tensor, *, max_width: int = MAX_WI
 
 def moved(images: Tensor, shifts, *, sign: float = -1.0) -> Tensor:
     """(N, C, H, W) ``images`` each moved by ``sign`` × its shift (``shifts`` [[dx, dy], …] in pixels; −1: back
-    into the others' frame, +1: from it into the shot's), bilinear; NaN where the moved image has no source pixel."""
-    n, _, h, w = images.shape
+    into the others' frame, +1: from it into the shot's), bilinear in their own float dtype (a float32 grid
+    places a 1 MP image's samples within 1e-4 px); NaN where the moved image has no source pixel."""
+    n, c, h, w = images.shape
+    x = images if images.is_floating_point() else images.float()
+    out = F.grid_sample(torch.cat([x, torch.ones_like(x[:, :1])], 1), _shift_grid(shifts, n, h, w, sign, x),
+                        mode="bilinear", padding_mode="zeros", align_corners=True)
+    out, inside = out[:, :c], out[:, c:]
+    return torch.where(inside > 1.0 - 1e-5, out, torch.full_like(out, math.nan))
+
+
+def _shift_grid(shifts, n: int, h: int, w: int, sign: float, like: Tensor) -> Tensor:
+    """(N, H, W, 2) grid_sample coordinates (align_corners) that read pixel p − ``sign`` × shift of each image."""
     d = torch.as_tensor(shifts, dtype=torch.float64).reshape(n, 2) * sign
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
-    gx = (xs[None] - d[:, 0, None, None]) * 2.0 / max(w - 1, 1) - 1.0  # output pixel p reads input p − shift
-    gy = (ys[None] - d[:, 1, None, None]) * 2.0 / max(h - 1, 1) - 1.0
-    grid = torch.stack([gx, gy], -1).to(images.device)
-    x = images.double()
-    out = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-    inside = F.grid_sample(torch.ones_like(x[:, :1]), grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-    return torch.where(inside > 1.0 - 1e-6, out, torch.full_like(out, math.nan)).to(images.dtype)
+    xs = torch.arange(w, dtype=torch.float64)
+    ys = torch.arange(h, dtype=torch.float64)
+    gx = ((xs[None] - d[:, :1]) * (2.0 / max(w - 1, 1)) - 1.0).to(like.dtype)  # (N, W)
+    gy = ((ys[None] - d[:, 1:]) * (2.0 / max(h - 1, 1)) - 1.0).to(like.dtype)  # (N, H)
+    return torch.stack(torch.broadcast_tensors(gx[:, None, :], gy[:, :, None]), -1).to(like.device)
 
 
 def registered(capture: Capture, shifts) -> Capture:
     """``capture`` with each shot moved back by its shift (``shifts``, full-size pixels); a pixel moved in from
-    outside the photo counts as clipped in every channel (no observation there)."""
-    images = moved(capture.images, shifts)
+    outside the photo counts as clipped in every channel (no observation there). Photos and clip flags move in
+    one resampling."""
+    imgs = capture.images
+    both = moved(torch.cat([imgs, capture.saturated.to(imgs.dtype)], 1), shifts)
+    images, sat = both[:, :3], both[:, 3:]
     outside = torch.isnan(images)
-    sat = moved(capture.saturated.to(capture.images.dtype), shifts) > 0
-    return replace(capture, images=torch.nan_to_num(images, nan=0.0), saturated=sat | outside)
+    return replace(capture, images=torch.nan_to_num(images, nan=0.0), saturated=(sat > 0) | outside)
 
 
 def with_registration(capture: Capture, mode: str) -> tuple[Capture, dict]:

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from torchmetal.bench.scoring import rel_err
+from torchmetal.bench.scoring import glint_scores, rel_err
 
 SPARKLE_DRAWS = 3  # redraws of the true flakes: one draw's PSNR varies by ~1 dB (zoo flakes_half 42.4-45.3)
 
@@ -91,10 +91,7 @@ def score_fit(case, result: PipelineResult, seconds: float, truth_base: np.ndarr
 
 
 def _glints(case, truth_base: np.ndarray, pred: np.ndarray, pred_base: np.ndarray) -> dict:
-    """Left-out sparkle counts of truth and prediction (bench.observed_flakes.glint_scores)."""
-    # on use: observed_flakes imports this module
-    from torchmetal.bench.observed_flakes import glint_scores
-
+    """Left-out sparkle counts of truth and prediction (bench.scoring.glint_scores)."""
     return glint_scores(case.clean, truth_base, pred, pred_base)
 
 

@@ -16,10 +16,10 @@ import torch
 from torch import Tensor
 
 from torchmetal.checks import check_shape
+from torchmetal.flakes.estimate import stats as _stats
 from torchmetal.flakes.estimate.detect import Detection, detect_flakes
 from torchmetal.flakes.estimate.results import FlakeStageResult
 from torchmetal.flakes.estimate.shot_geometry import Geometry
-from torchmetal.flakes.estimate import stats as _stats
 from torchmetal.flakes.estimate.stats import flake_statistics
 from torchmetal.geometry import grid_distance2, pixel_axes
 
