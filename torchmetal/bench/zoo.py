@@ -84,6 +84,8 @@ def score_fit(case, result: PipelineResult, seconds: float, truth_base: np.ndarr
         row["density_err"] = rel_err(fm.density, ts["density"])
         row["area_err"] = rel_err(fm.median_area, ts["median_area"])
         row["tilt_err"] = rel_err(fm.tilt_sigma, ts["tilt_sigma"])
+        if "color" in ts:  # the flakes' mean colour (channel mean) over the drawn flakes'
+            row["color_ratio"] = float(np.mean(fm.color_mean)) / ts["color"]
     if truth_base is not None:
         g = _glints(case, truth_base, pred, coat)
         row["sparkle_ratio"], row["truth_sparkles"] = float(g["count_ratio"]), int(g["truth_sparkles"])

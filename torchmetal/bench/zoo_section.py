@@ -62,7 +62,8 @@ def _flake_cell(row: dict, truth: dict) -> str:
     true_flakes = "density" in (truth or {})
     if row.get("flake_model"):
         if "density_err" in row:
-            ratio = f", sparkles ×{_f(row['sparkle_ratio']):.2f}" if "sparkle_ratio" in row else ""
+            ratio = f", colour ×{_f(row['color_ratio']):.2f}" if "color_ratio" in row else ""
+            ratio += f", sparkles ×{_f(row['sparkle_ratio']):.2f}" if "sparkle_ratio" in row else ""
             return (f"yes (density {_f(row['density_err']):.0%}, area {_f(row['area_err']):.0%}, "
                     f"tilt {_f(row['tilt_err']):.0%}{ratio})")
         return "yes (FALSE: no flakes in the truth)"
@@ -123,7 +124,7 @@ def zoo_markdown(names: list[str], results: list[dict], sizes: dict[str, str]) -
                  "*as rendered*: sparkles included. *oracle*: the true specular and flakes with the texture solved "
                  "from the same shots; *flakes redrawn*: the truth with its flakes drawn again from its own statistics "
                  "(what sparkles at random places reach: the yardstick of *as rendered*, bench.zoo.SPARKLE_DRAWS draws); "
-                 "*sparkles ×*: the left-out sparkle count over the truth's. s / α err: relative error of the mean s and the geometric-mean α "
+                 "*colour ×*: the flakes' mean colour over the drawn flakes'; *sparkles ×*: the left-out sparkle count over the truth's. s / α err: relative error of the mean s and the geometric-mean α "
                  "(– where the truth is not one global Phong lobe). *flake stage / fit*: wall seconds of the flake "
                  "stage over the Phong fit's stages, in the child process (a loaded machine makes it noisy).")
     return "\n".join(lines)

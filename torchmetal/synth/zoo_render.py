@@ -380,7 +380,7 @@ def make_case(scene: Scene, out_dir: str | os.PathLike) -> ZooCase:
     if truth.flakes is not None:
         fl = truth.flakes
         stats.update(density=len(fl["area"]) / scene.size ** 2, median_area=float(np.median(fl["area"])),
-                     tilt_sigma=float(scene.flakes["tilt_sigma"]))
+                     tilt_sigma=float(scene.flakes["tilt_sigma"]), color=float(np.mean(fl["color"])))
     return ZooCase(scene=scene, capture_dir=out, truth=truth, held_lights=lights[held], held_intensities=ints[held],
                    held_cameras=cams[held], clean=clean.astype(np.float32), fit_lights=lights[:scene.shots],
                    fit_intensities=ints[:scene.shots], fit_cameras=cams[:scene.shots], truth_stats=stats,
