@@ -13,7 +13,8 @@ Modules: the estimate, the core its steps share, the steps in the order they run
 * :mod:`~torchmetal.normals.restart`: second chances for pixels in a wrong minimum (:func:`restart_and_settle`);
 * :mod:`~torchmetal.normals.median`: the neighbourhood's normal where it explains a pixel as well
   (:func:`median_where_as_good`);
-* :mod:`~torchmetal.normals.flat`: flat where the photos cannot tell (:func:`flat_where_unresolved`);
+* :mod:`~torchmetal.normals.flat`: flat where the photos cannot tell (:func:`flat_where_unresolved`), and the tilt
+  it could not reject (:func:`unrejected_tilt_deg`);
 * :mod:`~torchmetal.normals.relief`: an embossing's relief, a high-passed height field fitted with the
   global Phong terms (:func:`with_relief`);
 * :mod:`~torchmetal.normals.modes`: the normals a fit uses, by mode (:func:`with_normals`); ``normals="auto"``
@@ -21,7 +22,7 @@ Modules: the estimate, the core its steps share, the steps in the order they run
 """
 
 from torchmetal.normals.estimate import NormalsEstimate, angular_error, estimate_normals
-from torchmetal.normals.flat import flat_where_unresolved
+from torchmetal.normals.flat import flat_where_unresolved, unrejected_tilt_deg
 from torchmetal.normals.joint import joint_refine, try_weak_lobe
 from torchmetal.normals.median import median_where_as_good
 from torchmetal.normals.modes import NORMALS_MODES, with_normals
@@ -32,5 +33,5 @@ from torchmetal.normals.restart import restart_and_settle
 __all__ = [
     "NORMALS_MODES", "NormalsEstimate", "estimate_normals", "with_normals", "with_relief",
     "refine_normals", "joint_refine", "try_weak_lobe", "restart_and_settle", "median_where_as_good",
-    "flat_where_unresolved", "angular_error",
+    "flat_where_unresolved", "unrejected_tilt_deg", "angular_error",
 ]

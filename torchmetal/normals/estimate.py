@@ -77,7 +77,7 @@ class NormalsEstimate:
     Attributes:
         normals: (3, H, W) unit normals, n·z > 0; (0, 0, 1) outside the mask.
         s, alpha: (3,) the specular terms the normals were refined with (the joint stage's, else the last round's).
-        report: JSON-able: per stage s, α, iterations and time; pixels unsolved or kept flat.
+        report: JSON-able: per stage s, α, iterations and time; pixels unsolved or kept flat; "s", "alpha" as above.
     """
 
     normals: Tensor
@@ -238,6 +238,7 @@ def _finish(capture: Capture, normals: Tensor, s: Tensor, alpha: Tensor, solvabl
     report = {
         "mode": "estimate", "rounds": history, "time": time.perf_counter() - t0,
         "pixels": int(inside.sum()), "unsolved_pixels": int((inside & ~solvable).sum()), **counts,
+        "s": s.tolist(), "alpha": alpha.tolist(),  # the terms of the last steps, the flat test's (plan.intervals.flat_floor)
         "tilt_deg": {"mean": float(tilt.mean()) if tilt.numel() else 0.0,
                      "max": float(tilt.max()) if tilt.numel() else 0.0},
     }

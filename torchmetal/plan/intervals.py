@@ -15,7 +15,9 @@ What is written (docs/design.md §2.3: the report is free-form, nothing required
 ``fit.uncertainty.leave_out`` = {"method", "level", "refits", "options", "seconds", "flakes": {statistic: {"value",
 "low", "high", "std", "scale", "refits"}, "failed_refits"}, "normals": {"median_radius_deg", "p90_radius_deg",
 "file"}} (each of the last two only where the material has it), and for normals the per-pixel 90 % radius in
-degrees, ``normals_interval_deg.npy`` (H, W) float32. Every other byte of material.json stays as the fit wrote it.
+degrees, ``normals_interval_deg.npy`` (H, W) float32 — at least, where the material's normal is the flat test's
+(0, 0, 1), the tilt that test could not reject on this capture (:func:`flat_floor`). Every other byte of
+material.json stays as the fit wrote it.
 The report names that file exactly when it is in the directory: a run without normals removes an earlier run's
 file, and :func:`~torchmetal.material.save_material` carries it (``Material.normals_interval``) through a reload
 and re-save, or drops the name where the map is gone.
@@ -130,12 +132,30 @@ def leave_out_intervals(material_dir: str | Path, capture_dir: str | Path, *, le
         entry["flakes"] = {k: v for k, v in fl.items() if k != "level"}
     if want_normals:
         inside = capture.mask.bool().reshape(capture.height, capture.width).cpu()
-        nj = normals_jackknife(material.normals.detach().double().cpu(), torch.stack(normals), inside, level=level)
+        full = material.normals.detach().double().cpu()
+        nj = normals_jackknife(full, torch.stack(normals), inside, level=level,
+                               flat_floor_deg=flat_floor(capture, full, report, material))
         radius = nj["radius_deg"].float().numpy()
         entry["normals"] = {"median_radius_deg": nj["median_radius_deg"], "p90_radius_deg": nj["p90_radius_deg"],
                             "file": NORMALS_FILE}
     write_entry(material_dir, entry, radius)
     return entry
+
+
+def flat_floor(capture, normals, report: dict, material):
+    """(H, W) float64 degrees: the tilt the material's flat test could not reject where it set a normal flat
+    (:func:`~torchmetal.normals.flat.unrejected_tilt_deg` on ``capture``), with the specular terms the estimate
+    ran it with (the report's ``normals`` "s", "alpha"; a material fitted before they were recorded: its own s, α)."""
+    import torch
+
+    from torchmetal.normals.flat import unrejected_tilt_deg
+
+    entry = report.get("normals") or {}
+    s, alpha = entry.get("s"), entry.get("alpha")
+    if not (isinstance(s, list) and isinstance(alpha, list) and len(s) == len(alpha) == 3):
+        s, alpha = material.s.reshape(-1)[:3].tolist(), material.alpha.reshape(-1)[:3].tolist()
+    dt = capture.images.dtype
+    return unrejected_tilt_deg(capture, normals.to(dt), torch.tensor(s, dtype=dt), torch.tensor(alpha, dtype=dt)).cpu()
 
 
 def write_entry(material_dir: Path, entry: dict, radius=None) -> None:
