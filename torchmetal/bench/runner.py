@@ -460,8 +460,11 @@ class Bench(SweepSection):
         res = uncertainty.run_section(100 if self.plan.name == "full" else 30, say=self.say)
         self.raw["uncertainty"] = res
         self.add(uncertainty.markdown(res))
-        # the leave-out intervals: N + 1 fits a scene, about 5 s a normals scene and 25–80 s a 64² flake one (2 CPUs)
-        lo = uncertainty.run_leave_out(40 if self.plan.name == "full" else 6, say=self.say)
+        # the leave-out intervals: N + 1 fits a scene, about 5 s a normals scene and 25–80 s a 64² flake one (2 CPUs);
+        # --quick (CI: the section's plumbing) two normals scenes, tests/bench/test_uncertainty.py the flake part
+        full = self.plan.name == "full"
+        lo = uncertainty.run_leave_out(40 if full else 2, kinds=uncertainty.LEAVE_OUT_KINDS if full else ("normals",),
+                                       say=self.say)
         self.raw["uncertainty_leave_out"] = lo
         self.add(uncertainty.leave_out_markdown(lo))
 
