@@ -107,3 +107,35 @@ def test_report_with_non_finite_numbers_saves_as_strings(tmp_path):
     m.flakes = FlakeModel(density=0.01, extra={"std_err": {"log_glint_sigma": math.nan}})  # not computed: NaN
     save_material(m, tmp_path / "f")
     assert load_material(tmp_path / "f").flakes.extra == {"std_err": {"log_glint_sigma": "nan"}}
+
+
+def _disagreement_named(material_dir):
+    """The file material.json's disagreement entry names (None: none)."""
+    return (json.loads((material_dir / "material.json").read_text())["fit"].get("disagreement") or {}).get("file")
+
+
+def test_the_disagreement_map_survives_a_reload_and_resave_and_the_report_names_only_what_is_there(tmp_path):
+    # as torchmetal fit writes it: the report names disagreement.png and the file comes in as an extra file
+    from torchmetal.report.disagreement import disagreement_png
+
+    png = disagreement_png(tmp_path / "d.png", torch.zeros(6, 5, dtype=torch.bool), torch.full((3, 6, 5), 0.2))
+    m = make_material()
+    m.report["disagreement"] = {"share": 0.01, "file": "disagreement.png"}
+    save_material(m, tmp_path / "fit", extra_files={"disagreement.png": png})
+    data = (tmp_path / "fit" / "disagreement.png").read_bytes()
+    loaded = load_material(tmp_path / "fit")
+    for target in (tmp_path / "fit", tmp_path / "copy"):  # a re-save in place or elsewhere keeps the file and the name
+        save_material(loaded, target)
+        assert _disagreement_named(target) == "disagreement.png", target
+        assert (target / "disagreement.png").is_file() and (target / "disagreement.png").read_bytes() == data, target
+    assert loaded.disagreement_png == data  # carried by the Material
+    # a directory that lost the map (a re-save before this fix): it loads, and its next save stops naming it
+    (tmp_path / "copy" / "disagreement.png").unlink()
+    lost = load_material(tmp_path / "copy")
+    assert lost.disagreement_png is None
+    save_material(lost, tmp_path / "copy")
+    assert _disagreement_named(tmp_path / "copy") is None and not (tmp_path / "copy" / "disagreement.png").exists()
+    assert load_material(tmp_path / "copy").report["disagreement"] == {"share": 0.01}  # the rest of the entry kept
+    assert lost.report["disagreement"]["file"] == "disagreement.png"  # the caller's report is not changed
+    with pytest.raises(MaterialError, match="disagreement_png: expected the bytes of a PNG file"):
+        Material(m.texture, m.s, m.alpha, m.size, disagreement_png=b"GIF89a")

@@ -13,6 +13,8 @@ material/
   flakes_area_map.npy    (gh, gw) float32 per-block flake log-area offsets, named in material.json
   normals_interval_deg.npy   (H, W) float32 90 % radius of the estimated normals in degrees (``torchmetal
                          intervals``), named in the report at fit.uncertainty.leave_out.normals.file
+  disagreement.png       the fit report's disagreement map (``torchmetal fit``), named in the report at
+                         fit.disagreement.file
   renderer.onnx          when exported
 ```
 Writes are atomic: everything goes to a temporary sibling directory that replaces the target in
@@ -61,6 +63,9 @@ class Material:
         normals_interval: (H, W) float32 per-pixel 90 % radius in degrees of the estimated normals, from refits
             with one shot left out (``torchmetal intervals``, :mod:`torchmetal.plan.intervals`), or None. Carried
             here so that a re-saved material keeps the file its report names (:data:`NORMALS_INTERVAL_FILE`).
+        disagreement_png: the bytes of the fit report's disagreement map (:data:`DISAGREEMENT_FILE`,
+            :mod:`torchmetal.report.fit_maps`), as read from a material directory, or None; carried for the same
+            reason (the report's ``disagreement`` entry names the file).
     """
 
     texture: Tensor
@@ -78,6 +83,7 @@ class Material:
     gloss_s: Tensor | None = None  # (3, H, W) gloss maps (torchmetal.fit.gloss); s, alpha hold their means
     gloss_alpha: Tensor | None = None
     normals_interval: Tensor | None = None  # (H, W) degrees, torchmetal intervals' normals radius map
+    disagreement_png: bytes | None = None  # the disagreement map's PNG file, verbatim
 
     def __post_init__(self) -> None:
         if self.lobe not in LOBES:
@@ -104,6 +110,9 @@ class Material:
         self._check_gloss()
         if self.normals_interval is not None and tuple(self.normals_interval.shape) != tuple(t.shape[1:]):
             raise MaterialError(f"normals_interval: expected shape {tuple(t.shape[1:])}, found {tuple(self.normals_interval.shape)}")
+        if self.disagreement_png is not None and not (isinstance(self.disagreement_png, bytes)
+                                                      and self.disagreement_png.startswith(PNG_MAGIC)):
+            raise MaterialError(f"disagreement_png: expected the bytes of a PNG file, found {repr(self.disagreement_png)[:24]}")
         if not (all(math.isfinite(v) and v > 0 for v in self.size) and len(self.size) == 2):
             raise MaterialError(f"size: expected two positive numbers (width, height), found {self.size!r}")
 
@@ -160,7 +169,7 @@ class Material:
             move(self.texture), move(self.s), move(self.alpha), self.size, move(self.normals),
             move(self.spec_labels), move(self.cluster_s), move(self.cluster_alpha), self.flakes, dict(self.report),
             lobe=self.lobe, observed_flakes=self.observed_flakes, gloss_s=move(self.gloss_s), gloss_alpha=move(self.gloss_alpha),
-            normals_interval=move(self.normals_interval),
+            normals_interval=move(self.normals_interval), disagreement_png=self.disagreement_png,
         )
 
 
@@ -183,7 +192,7 @@ def json_finite(x):
     return x
 
 
-def material_to_json(m: Material) -> dict:
+def material_to_json(m: Material, files: set[str] | None = None) -> dict:
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -202,38 +211,48 @@ def material_to_json(m: Material) -> dict:
         },
         "flakes": _flakes_json(m.flakes),
         "observed_flakes": None if m.observed_flakes is None else observed_json(m.observed_flakes),
-        "fit": json_finite(_report_naming_files(m)),
+        "fit": json_finite(_report_naming_files(m, files)),
     }
 
 
 NORMALS_INTERVAL_FILE = "normals_interval_deg.npy"
-_INTERVAL_PATH = ("uncertainty", "leave_out", "normals")  # where in the report the interval entry names its file
+DISAGREEMENT_FILE = "disagreement.png"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+# the report entries that name a file of the directory: where, and the file's name
+_REPORT_FILES = ((("uncertainty", "leave_out", "normals"), NORMALS_INTERVAL_FILE), (("disagreement",), DISAGREEMENT_FILE))
 
 
-def _report_naming_files(m: Material) -> dict:
-    """``m.report`` as saved: its leave-out normals entry names :data:`NORMALS_INTERVAL_FILE` exactly when the file
-    is written (``m.normals_interval`` is set), so the report never names a file the directory lacks (a material
-    loaded from a directory that lost it: the name goes) nor holds one it does not name."""
-    want = None if m.normals_interval is None else NORMALS_INTERVAL_FILE
-    if _interval_file(m.report) == want:
-        return m.report
-    report = json.loads(json.dumps(json_finite(m.report)))  # a copy: the caller's report is not changed
-    node = report
-    for key in _INTERVAL_PATH:
-        if not isinstance(node.get(key), dict):
-            node[key] = {}
-        node = node[key]
-    if want is None:
-        node.pop("file", None)
-    else:
-        node["file"] = want
+def _report_naming_files(m: Material, files: set[str] | None = None) -> dict:
+    """``m.report`` as saved: each entry of :data:`_REPORT_FILES` names its file exactly when the file is written
+    (``files``, the names in the directory; default those the Material carries: ``normals_interval``,
+    ``disagreement_png``), so the report never names a file the directory lacks (a material loaded from a
+    directory that lost it: the name goes) nor holds one it does not name."""
+    if files is None:
+        files = {name for name, x in ((NORMALS_INTERVAL_FILE, m.normals_interval), (DISAGREEMENT_FILE, m.disagreement_png))
+                 if x is not None}
+    report = m.report
+    for path, name in _REPORT_FILES:
+        want = name if name in files else None
+        if _named_file(report, path) == want:
+            continue
+        if report is m.report:
+            report = json.loads(json.dumps(json_finite(m.report)))  # a copy: the caller's report is not changed
+        node = report
+        for key in path:
+            if not isinstance(node.get(key), dict):
+                node[key] = {}
+            node = node[key]
+        if want is None:
+            node.pop("file", None)
+        else:
+            node["file"] = want
     return report
 
 
-def _interval_file(report: dict) -> str | None:
-    """The file the report's leave-out normals entry names (None: none)."""
+def _named_file(report: dict, path: tuple[str, ...]) -> str | None:
+    """The file the report's entry at ``path`` names (None: none)."""
     entry = report
-    for key in _INTERVAL_PATH:
+    for key in path:
         entry = entry.get(key) if isinstance(entry, dict) else None
     return entry.get("file") if isinstance(entry, dict) else None
 
@@ -298,12 +317,16 @@ def save_material(m: Material, path: str | os.PathLike, *, extra_files: dict[str
                 np.save(tmp / name, np.ascontiguousarray(arr.detach().cpu().float().numpy()))
         if m.normals_interval is not None:
             np.save(tmp / NORMALS_INTERVAL_FILE, np.ascontiguousarray(m.normals_interval.detach().cpu().float().numpy()))
-        (tmp / "material.json").write_text(json.dumps(material_to_json(m), indent=2, allow_nan=False))
+        if m.disagreement_png is not None:
+            (tmp / DISAGREEMENT_FILE).write_bytes(m.disagreement_png)
         keep = path / "renderer.onnx"
         if keep.is_file() and not (extra_files and "renderer.onnx" in extra_files):
             shutil.copy2(keep, tmp / "renderer.onnx")
         for name, src in (extra_files or {}).items():
             shutil.copy2(src, tmp / name)
+        # last: the report names the files the directory has (torchmetal fit's map comes in extra_files)
+        files = {name for name in (NORMALS_INTERVAL_FILE, DISAGREEMENT_FILE) if (tmp / name).is_file()}
+        (tmp / "material.json").write_text(json.dumps(material_to_json(m, files), indent=2, allow_nan=False))
         replace_dir(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -368,6 +391,7 @@ def load_material(path: str | os.PathLike) -> Material:
         size = (float(meta["surface"]["width"]), float(meta["surface"]["height"]))
         lobe = meta.get("lobe", "phong")  # absent: a material from before the lobe choice
         interval = _load_interval(root, meta.get("fit") or {}, texture.shape[1:])
+        disagreement = _load_disagreement(root, meta.get("fit") or {})
     except KeyError as e:
         raise MaterialError(f"{meta_file}: expected key {e.args[0]!r}, found it missing") from None
     except (TypeError, ValueError) as e:
@@ -376,16 +400,30 @@ def load_material(path: str | os.PathLike) -> Material:
         if not bool(torch.isfinite(x).all()):
             raise MaterialError(f"{root}: expected finite {name}, found NaN/Inf")
     return Material(texture, s, alpha, size, normals, labels, cs, ca, flakes, meta.get("fit") or {}, lobe=lobe,
-                    observed_flakes=observed, gloss_s=gs, gloss_alpha=ga, normals_interval=interval)
+                    observed_flakes=observed, gloss_s=gs, gloss_alpha=ga, normals_interval=interval,
+                    disagreement_png=disagreement)
 
 
 def _load_interval(root: Path, report: dict, hw: torch.Size) -> Tensor | None:
     """The (H, W) normals radius map the report names, or None: none named, or named but missing (a material
     re-saved before the map was carried dropped it; its next save drops the name, :func:`_report_naming_files`)."""
-    name = _interval_file(report)
+    name = _named_file(report, _REPORT_FILES[0][0])
     if name is None or not (root / str(name)).is_file():
         return None
     a = _load_array(root, str(name), "(H, W)")
     if a.shape != tuple(hw):
         raise MaterialError(f"{root / name}: expected shape {tuple(hw)}, found {a.shape}")
     return torch.from_numpy(a.astype(np.float32))
+
+
+def _load_disagreement(root: Path, report: dict) -> bytes | None:
+    """The PNG bytes of the disagreement map the report names, or None: none named, or named but missing (a
+    material re-saved before the map was carried dropped it; its next save drops the name)."""
+    name = _named_file(report, _REPORT_FILES[1][0])
+    f = root / str(name) if name is not None else None
+    if f is None or not f.is_file():
+        return None
+    data = f.read_bytes()
+    if not data.startswith(PNG_MAGIC):
+        raise MaterialError(f"{f}: expected a PNG file, found {data[:8]!r}")
+    return data

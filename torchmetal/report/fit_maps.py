@@ -16,12 +16,13 @@ import torch.nn.functional as F
 
 from torchmetal.io.capture import Capture
 from torchmetal.lobes import lobe_render
+from torchmetal.material import DISAGREEMENT_FILE
 from torchmetal.registration import shot_shifts, unregistrable, valid_observations
 from torchmetal.report.disagreement import disagreement_map, disagreement_png
 
 __all__ = ["add_fit_maps", "fit_maps", "DISAGREEMENT_PNG"]
 
-DISAGREEMENT_PNG = "disagreement.png"  # its name in the material directory
+DISAGREEMENT_PNG = DISAGREEMENT_FILE  # its name in the material directory (save_material carries it: Material.disagreement_png)
 
 
 def fit_renders(capture: Capture, result) -> torch.Tensor:
