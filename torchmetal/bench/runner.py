@@ -448,7 +448,7 @@ class Bench(SweepSection):
         from torchmetal.bench import plan as plan_bench
 
         self.section("Capture plan: one more shot, planned vs random reachable vs fixed overhead, held-out error")
-        res = plan_bench.run_section(30 if self.plan.name == "full" else 8, say=self.say)
+        res = plan_bench.run_section(30 if self.plan.name == "full" else 4, say=self.say)
         self.raw["plan"] = res
         self.add(plan_bench.markdown(res))
 
