@@ -12,13 +12,12 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from torchmetal.bench.scoring import glint_scores
 from torchmetal.bench.zoo import _psnr, render_material
 
 if TYPE_CHECKING:  # annotations only: a real import would load torch (this module imports numpy only)
     from torchmetal.material import Material
+
 
 def score_observed(case, material: Material) -> dict:
     """{"none", "statistical", "observed"} → {"psnr", "md", and for the flake renders the glint scores}."""
@@ -26,11 +25,11 @@ def score_observed(case, material: Material) -> dict:
 
     # on use: loads torch (this module imports numpy only)
     from torchmetal.metrics import md
-    from torchmetal.synth.zoo_render import render_clean
+    from torchmetal.synth.zoo_render import held_out_renders
 
     args = (case.held_lights, case.held_intensities, case.held_cameras)
     none = render_material(material, *args, flakes=False)
-    base = np.stack([render_clean(case.truth, lt, e, c, flakes=False) for lt, e, c in zip(*args)]).astype(np.float32)
+    base = held_out_renders(case, flakes=False)
     out = {"observed_count": 0 if material.observed_flakes is None else len(material.observed_flakes),
            "density_map": material.observed_flakes is not None and material.observed_flakes.density is not None}
     renders = {"none": none}

@@ -116,7 +116,8 @@ def run_scene(scene, methods: dict | None = None, *, workdir: str | Path | None 
     # on use: loads torch (this module imports numpy only)
     from torchmetal.io.capture import load_capture
     from torchmetal.pipeline import fit_material
-    from torchmetal.synth.zoo import make_case, oracle_render, render_clean
+    from torchmetal.synth.zoo import make_case, oracle_render
+    from torchmetal.synth.zoo_render import held_out_renders
 
     methods = METHODS if methods is None else methods
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
@@ -124,8 +125,7 @@ def run_scene(scene, methods: dict | None = None, *, workdir: str | Path | None 
         out = {"scene": scene.name, "oracle": _psnr(oracle_render(case), case.clean), "truth": case.truth_stats}
         base = None
         if scene.flakes is not None:
-            base = np.stack([render_clean(case.truth, *shot, flakes=False) for shot in
-                             zip(case.held_lights, case.held_intensities, case.held_cameras)]).astype(np.float32)
+            base = held_out_renders(case, flakes=False)
             out.update(_sparkle_oracle(case, base))
         for name, kw in methods.items():
             t0 = time.perf_counter()

@@ -328,11 +328,19 @@ def make_truth(scene: Scene) -> Truth:
         tex = np.where(disc[None], 0.3 * tex, tex)
     truth = Truth(texture=tex, normals=normals, s=s, alpha=alpha, lobe=scene.lobe)
     if scene.flakes is not None:
-        fl = make_flakes(scene.flakes, n, _rng(scene.seed, 2))
-        fl["spec"] = dict(scene.flakes)
-        truth.flakes, truth.cover = fl, flake_cover(fl, n)
-        fl["world_normal"] = flake_normals(truth)  # (3, F), fixed: computed once, not per shot
+        truth = with_drawn_flakes(truth, scene.flakes, _rng(scene.seed, 2))
     return truth
+
+
+def with_drawn_flakes(truth: Truth, spec: dict, rng: np.random.Generator) -> Truth:
+    """``truth`` with flakes drawn from ``spec`` (:func:`~torchmetal.synth.zoo_flakes.make_flakes`) by ``rng``: their
+    discs, the pixels they cover and their world normals ((3, F), fixed: computed once, not per shot)."""
+    n = truth.texture.shape[-1]
+    fl = make_flakes(spec, n, rng)
+    fl["spec"] = dict(spec)
+    drawn = replace(truth, flakes=fl, cover=flake_cover(fl, n))
+    fl["world_normal"] = flake_normals(drawn)
+    return drawn
 
 
 def write_capture_dir(out: Path, truth: Truth, shots: int, lights: np.ndarray, ints: np.ndarray, cams: np.ndarray, *,
@@ -409,9 +417,15 @@ def oracle_render(case: ZooCase) -> np.ndarray:
         num += np.where(ok, diffuse * (y - other), 0.0)
         den += np.where(ok, diffuse * diffuse, 0.0)
     tex = np.where(den > 0, num / np.where(den > 0, den, 1.0), truth.texture)
-    fitted = replace(truth, texture=np.clip(tex, 0.0, None))
-    return np.stack([render_clean(fitted, case.held_lights[k], case.held_intensities[k], case.held_cameras[k])
-                     for k in range(len(case.held_lights))]).astype(np.float32)
+    return held_out_renders(case, replace(truth, texture=np.clip(tex, 0.0, None)))
+
+
+def held_out_renders(case: ZooCase, truth: Truth | None = None, *, flakes: bool = True) -> np.ndarray:
+    """(H, 3, n, n) float32 noise-free renders of ``case``'s held-out shots: of ``truth`` (default the case's own),
+    with or without its flakes."""
+    truth = case.truth if truth is None else truth
+    return np.stack([render_clean(truth, lt, e, c, flakes=flakes)
+                     for lt, e, c in zip(case.held_lights, case.held_intensities, case.held_cameras)]).astype(np.float32)
 
 
 def redrawn_flakes_render(case: ZooCase, draw: int) -> np.ndarray:
@@ -422,12 +436,7 @@ def redrawn_flakes_render(case: ZooCase, draw: int) -> np.ndarray:
     held-out shots is what sparkles at random places can reach; ``case.truth`` without flakes
     scores higher, so the coat alone is no yardstick for a render with sparkles.
     """
-    scene, truth = case.scene, case.truth
+    scene = case.scene
     if scene.flakes is None:
         raise ValueError(f"redrawn_flakes_render: scene {scene.name!r} has no flakes")
-    fl = make_flakes(scene.flakes, scene.size, _rng(scene.seed, 100 + draw))
-    fl["spec"] = dict(scene.flakes)
-    redrawn = replace(truth, flakes=fl, cover=flake_cover(fl, scene.size))
-    fl["world_normal"] = flake_normals(redrawn)
-    return np.stack([render_clean(redrawn, case.held_lights[k], case.held_intensities[k], case.held_cameras[k])
-                     for k in range(len(case.held_lights))]).astype(np.float32)
+    return held_out_renders(case, with_drawn_flakes(case.truth, scene.flakes, _rng(scene.seed, 100 + draw)))
