@@ -39,15 +39,14 @@ from torchmetal.geometry import (
     ShadingGeometry,
     _grid_direction,  # the one separable direction builder
     dot,
-    grid_shading_terms,
-    is_flat,
-    pixel_axes,
     shading_geometry,
 )
 from torchmetal.phong import (
     PhongModel,
-    _exp_floor,
+    _plane_cos_lobe,
     _plane_ok,
+    _plane_radiance,
+    _plane_terms,
     channel_map,
     phong_render,
     phong_shading,
@@ -242,34 +241,25 @@ def _plane_lobe(texture: Tensor, s: Tensor, alpha: Tensor, normals: Tensor, ligh
     :func:`torchmetal.phong._plane_phong` does for Phong): the formulas of :func:`blinn_lobe` /
     :func:`ggx_lobe`, the (B, 3, H, W) products in place. For values, not gradients; None where an
     irradiance overflowed (the vector path's inf·0 rule applies)."""
-    h, w = normals.shape[-2:]
-    x, y = pixel_axes(h, w, size, dtype=normals.dtype, device=normals.device)
-    flat = None if is_flat(normals) else normals
-    nl, _, d2 = grid_shading_terms(light, camera, x, y, flat)
-    e = intensity[:, :, None, None] / d2.unsqueeze(1)
+    nl, _, e, (x, y, flat) = _plane_terms(normals, light, intensity, camera, size)
     if not bool(torch.isfinite(e).all()):
         return None
     half_q, nv, vh = (t.unsqueeze(1) for t in grid_half_terms(light, camera, x, y, flat))
-    nl = nl.unsqueeze(1)
     if lobe == "blinn":  # specular_lobe of 1 − n·h, the gate n·l > 0
-        gate = ((nl > 0) & (half_q < 1.0)).to(e.dtype)
-        log_nh = torch.log1p(-torch.where(half_q < 1.0, half_q, torch.full_like(half_q, 0.5)))
-        spec = (channel_map(alpha) * log_nh).clamp_min_(_exp_floor(e.dtype)).exp_()
-    else:  # ggx_lobe: D̂²·F̂·G₁(n·l)·G₁(n·v)/(n·v), 0 where n·v ≤ 0 or n·l ≤ 0
-        gate = ((nl > 0) & (nv > 0)).to(e.dtype)
-        k = channel_map(ggx_k(alpha))
-        hq = half_q.clamp(0.0, 1.0)
-        wq = hq * (2.0 - hq)
-        nlc = nl.clamp(0.0, 1.0)
-        nvc = torch.where(nv > 0, nv.clamp_max(1.0), torch.ones_like(nv))
-        spec = (wq * (1.0 - k)).add_(k).reciprocal_().mul_(k).square_()  # D̂
-        sl = (nlc * nlc * (1.0 - k)).add_(k).sqrt_().add_(nlc)  # nl + S(nl)
-        spec.div_(sl).mul_(2.0 * nlc)
-        sv = (nvc * nvc * (1.0 - k)).add_(k).sqrt_().add_(nvc)  # nv + S(nv)
-        spec.div_(sv).mul_(2.0)
-        gate = gate * fresnel_ratio(vh)
-    spec.mul_(channel_map(s)).mul_(gate)
-    return spec.addcmul_(texture, nl.clamp_min(0.0)).mul_(e)
+        return _plane_radiance(texture, s, *_plane_cos_lobe(half_q, nl, alpha, e.dtype), nl, e)
+    # ggx_lobe: D̂²·F̂·G₁(n·l)·G₁(n·v)/(n·v), 0 where n·v ≤ 0 or n·l ≤ 0
+    gate = ((nl > 0) & (nv > 0)).to(e.dtype) * fresnel_ratio(vh)
+    k = channel_map(ggx_k(alpha))
+    hq = half_q.clamp(0.0, 1.0)
+    wq = hq * (2.0 - hq)
+    nlc = nl.clamp(0.0, 1.0)
+    nvc = torch.where(nv > 0, nv.clamp_max(1.0), torch.ones_like(nv))
+    spec = (wq * (1.0 - k)).add_(k).reciprocal_().mul_(k).square_()  # D̂
+    sl = (nlc * nlc * (1.0 - k)).add_(k).sqrt_().add_(nlc)  # nl + S(nl)
+    spec.div_(sl).mul_(2.0 * nlc)
+    sv = (nvc * nvc * (1.0 - k)).add_(k).sqrt_().add_(nvc)  # nv + S(nv)
+    spec.div_(sv).mul_(2.0)
+    return _plane_radiance(texture, s, spec, gate, nl, e)
 
 
 class LobeModel(PhongModel):

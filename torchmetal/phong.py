@@ -105,18 +105,35 @@ def _plane_phong(texture: Tensor, s: Tensor, alpha: Tensor, normals: Tensor, lig
     """:func:`phong_render` on the plane's pixel grid from the separable scalar terms
     (:func:`~torchmetal.geometry.grid_shading_terms`): no (B, 3, H, W) light or view vectors, about a third of
     the geometry's time and memory. The same formulas; for values, not gradients (its in-place steps)."""
-    h, w = normals.shape[-2:]
-    x, y = pixel_axes(h, w, size, dtype=normals.dtype, device=normals.device)
-    nl, q, d2 = (t.unsqueeze(1) for t in grid_shading_terms(light, camera, x, y, None if is_flat(normals) else normals))
-    e = intensity[:, :, None, None] / d2
+    nl, q, e, _ = _plane_terms(normals, light, intensity, camera, size)
     if not bool(torch.isfinite(e).all()):  # an overflowed irradiance: the inf·0 rule of _phong_terms
         return _phong_terms(texture, s, alpha, nl, q, e)
-    # the same terms, fewer passes over (B, 3, H, W): the lobe's log and its gate per pixel, in place after
-    gate = ((nl > 0) & (q < 1.0)).to(e.dtype)
-    log_rv = torch.log1p(-torch.where(q < 1.0, q, torch.full_like(q, 0.5)))
-    spec = (channel_map(alpha) * log_rv).clamp_min_(_exp_floor(e.dtype)).exp_()  # exp_normal, in place
-    spec.mul_(channel_map(s)).mul_(gate)
-    return spec.addcmul_(texture, nl.clamp_min(0.0)).mul_(e)
+    return _plane_radiance(texture, s, *_plane_cos_lobe(q, nl, alpha, e.dtype), nl, e)
+
+
+def _plane_terms(normals: Tensor, light: Tensor, intensity: Tensor, camera: Tensor, size: tuple[float, float]
+                 ) -> tuple[Tensor, Tensor, Tensor, tuple]:
+    """The plane path's shared terms: n·l and q = |r − v|²/2 (B, 1, H, W), the irradiance E (B, 3, H, W), and the
+    grid (x (W,), y (H,), the normals or None where flat) for more separable terms (:mod:`torchmetal.lobes`)."""
+    h, w = normals.shape[-2:]
+    x, y = pixel_axes(h, w, size, dtype=normals.dtype, device=normals.device)
+    flat = None if is_flat(normals) else normals
+    nl, q, d2 = (t.unsqueeze(1) for t in grid_shading_terms(light, camera, x, y, flat))
+    return nl, q, intensity[:, :, None, None] / d2, (x, y, flat)
+
+
+def _plane_cos_lobe(q: Tensor, nl: Tensor, alpha: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """:func:`specular_lobe` of q = 1 − cos (B, 1, H, W) in fewer passes over (B, 3, H, W): the lobe (exp_normal in
+    place) and its gate [n·l > 0]·[q < 1] (B, 1, H, W), applied by :func:`_plane_radiance`."""
+    gate = ((nl > 0) & (q < 1.0)).to(dtype)
+    log_cos = torch.log1p(-torch.where(q < 1.0, q, torch.full_like(q, 0.5)))
+    return (channel_map(alpha) * log_cos).clamp_min_(_exp_floor(dtype)).exp_(), gate
+
+
+def _plane_radiance(texture: Tensor, s: Tensor, lobe: Tensor, gate: Tensor, nl: Tensor, e: Tensor) -> Tensor:
+    """E·(d·max(n·l, 0) + gate·s·lobe), in place in ``lobe`` (B, 3, H, W)."""
+    lobe.mul_(channel_map(s)).mul_(gate)
+    return lobe.addcmul_(texture, nl.clamp_min(0.0)).mul_(e)
 
 
 def _plane_ok(*tensors: Tensor) -> bool:
