@@ -35,7 +35,7 @@ from torchmetal.flakes.estimate.prescreen import screen_fit
 from torchmetal.flakes.estimate.results import FlakeStageResult, Particles
 from torchmetal.flakes.estimate.rim import drop_rim
 from torchmetal.flakes.estimate.texture import glint_energy_share, grown_detections, texture_without_glints
-from torchmetal.flakes.stage import detect_capture, flake_stage
+from torchmetal.flakes.stage import detect_capture, flake_stage, irradiance_maps
 from torchmetal.select.plan import ShotPlan, flake_holds
 
 if TYPE_CHECKING:
@@ -103,7 +103,8 @@ def flake_stage_with_refits(capture, fit, seed: int, refit=None, coat_fit=None):
                   "screen": screen, "times": {"total": time.perf_counter() - t0}}
         return FlakeStageResult(None, Particles.empty(capture.images.device), report), fit, fit.texture
     phong_images = render_shots(fit, capture)
-    det = detect_capture(capture, phong_images)
+    irr = irradiance_maps(capture, dtype=capture.images.dtype)  # the same for each of the stage's detections
+    det = detect_capture(capture, phong_images, irradiance=irr)
     if len(det.particles) < CLEAN_MIN_PARTICLES:  # fewer particles than the statistics' minimum flake count
         report = {"skipped": (f"{len(det.particles)} detections, fewer than {CLEAN_MIN_PARTICLES} (the flake "
                               "statistics' minimum): consistent with noise"),
@@ -111,7 +112,7 @@ def flake_stage_with_refits(capture, fit, seed: int, refit=None, coat_fit=None):
         return FlakeStageResult(None, det.particles, report), fit, fit.texture
     # the core of the coating's own highlight is left out of both sides: a lobe of the wrong shape leaves
     # compact positive peaks there (a sharp highlight on a sphere), glints are counted everywhere else
-    mirror = detect_capture(capture, phong_images, mirrored=True)
+    mirror = detect_capture(capture, phong_images, mirrored=True, irradiance=irr)
     # and so is the rim of the sample's mask (partial pixels, unreliable normals: flakes.estimate.rim)
     positive, core_pos = drop_core(fit, capture, det.particles)
     mirrored, core_mir = drop_core(fit, capture, mirror.particles)
@@ -135,11 +136,12 @@ def flake_stage_with_refits(capture, fit, seed: int, refit=None, coat_fit=None):
     if refit is not None:
         fit = refit()
         phong_images = render_shots(fit, capture)
-        det = detect_capture(capture, phong_images, k_hi=k_hi)
+        det = detect_capture(capture, phong_images, k_hi=k_hi, irradiance=irr)
     elif k_hi != det.k_hi:
-        det = detect_capture(capture, phong_images, k_hi=k_hi)
-    texture, phong_images, _ = texture_without_glints(capture, fit.texture, phong_images, det.labels)
-    result = flake_stage(capture, phong_images, seed=seed, detect={"k_hi": k_hi})
+        det = detect_capture(capture, phong_images, k_hi=k_hi, irradiance=irr)
+    gains: dict = {}  # the shots' diffuse gains, formed by the first texture re-solve for the second
+    texture, phong_images, _ = texture_without_glints(capture, fit.texture, phong_images, det.labels, gains=gains)
+    result = flake_stage(capture, phong_images, seed=seed, detect={"k_hi": k_hi, "irradiance": irr})
     result.report["null_test"] = counts
     result.report["detection_snr"] = k_hi
     coat = first
@@ -151,7 +153,7 @@ def flake_stage_with_refits(capture, fit, seed: int, refit=None, coat_fit=None):
         if share >= REFIT_ENERGY_SHARE:
             coat = coat_fit(without_glints(capture, det.labels))
             coat_images = render_shots(coat, capture)
-        texture, _, _ = texture_without_glints(capture, coat.texture, coat_images, det.labels, guard=False)
+        texture, _, _ = texture_without_glints(capture, coat.texture, coat_images, det.labels, guard=False, gains=gains)
         result.report["robust_fit"] = {"s": fit.s.tolist(), "alpha": fit.alpha.tolist()}
     return result, coat, texture
 

@@ -36,7 +36,8 @@ def irradiance_maps(capture: Capture, *, dtype: torch.dtype = torch.float32) -> 
     return capture.intensities.to(dtype)[:, :, None, None] / dist2.unsqueeze(1)
 
 
-def detect_capture(capture: Capture, phong_images: Tensor, *, mirrored: bool = False, **detect) -> Detection:
+def detect_capture(capture: Capture, phong_images: Tensor, *, mirrored: bool = False, irradiance: Tensor | None = None,
+                   **detect) -> Detection:
     """:func:`~torchmetal.flakes.estimate.detect.detect_flakes` on every shot of ``capture``: residual
     against ``phong_images`` (N, 3, H, W), irradiance from the shots' lights, and only mask pixels
     that are not saturated in any channel.
@@ -47,11 +48,14 @@ def detect_capture(capture: Capture, phong_images: Tensor, *, mirrored: bool = F
     what the detector finds in the mirror is what misfit alone produces at each SNR.
     The glints' headroom is measured only where the statistics model clipped glints
     (:data:`~torchmetal.flakes.estimate.stats.MODEL_CLIPS`).
+
+    ``irradiance``: :func:`irradiance_maps` of the capture in its images' dtype, where the caller detects
+    more than once (formed here otherwise).
     """
     images = capture.images
     n, _, h, w = images.shape
     check_shape(phong_images, (n, 3, h, w), "phong_images")
-    irr = irradiance_maps(capture, dtype=images.dtype)
+    irr = irradiance_maps(capture, dtype=images.dtype) if irradiance is None else irradiance
     valid = capture.mask.unsqueeze(0) & ~capture.saturated.any(1, keepdim=True)
     ph = phong_images.to(images.dtype)
     detect = {"headroom": _stats.MODEL_CLIPS and not mirrored, **detect}

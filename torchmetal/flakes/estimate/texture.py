@@ -58,7 +58,8 @@ def glint_energy_share(capture: Capture, phong_images: Tensor, labels: Tensor) -
 
 
 def texture_without_glints(
-    capture: Capture, texture: Tensor, phong_images: Tensor, labels: Tensor, *, chunk: int = 4, guard: bool = True
+    capture: Capture, texture: Tensor, phong_images: Tensor, labels: Tensor, *, chunk: int = 4, guard: bool = True,
+    gains: dict | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Re-solve the texture under detected flakes and update the Phong renders to match.
 
@@ -89,7 +90,7 @@ def texture_without_glints(
     dt = texture.dtype
     idx = torch.nonzero(changed[0].flatten(), as_tuple=True)[0]  # (M,) pixels to re-solve
     shots = [slice(k0, min(n, k0 + chunk)) for k0 in range(0, n, chunk)]
-    est, gain, a_idx = _clean_estimates(capture, texture, phong_images, flagged, idx, shots)
+    est, gain, a_idx = _clean_estimates(capture, texture, phong_images, flagged, idx, shots, gains)
     # a glint below the detection threshold in a few clean shots (those next to the detected
     # ones) would raise the mean, and with it lower every detected glint's amplitude: shots
     # more than 2.5 robust σ above the median are left out of the weighted mean
@@ -117,9 +118,10 @@ def texture_without_glints(
 
 
 def _clean_estimates(capture: Capture, texture: Tensor, phong_images: Tensor, flagged: Tensor, idx: Tensor,
-                     shots: list[slice]) -> tuple[Tensor, Tensor, Tensor]:
+                     shots: list[slice], gains: dict | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Per shot, the texture each pixel ``idx`` (M,) implies (N, 3, M) (NaN where the shot is not usable
-    there: masked, saturated, shadowed or detected), its diffuse gain a (N, 3, M) (0 there) and a itself."""
+    there: masked, saturated, shadowed or detected), its diffuse gain a (N, 3, M) (0 there) and a itself
+    (``gains``: :func:`texture_without_glints`)."""
     n = capture.images.shape[0]
     dt = texture.dtype
     valid = capture.mask.unsqueeze(0) & ~capture.saturated
@@ -127,7 +129,10 @@ def _clean_estimates(capture: Capture, texture: Tensor, phong_images: Tensor, fl
     gain = torch.empty_like(est)
     a_idx = torch.empty_like(est)
     for sl in shots:
-        a = _diffuse_gain(capture, sl, dt)
+        key = (sl.start, sl.stop, dt)
+        a = _diffuse_gain(capture, sl, dt) if gains is None or key not in gains else gains[key]
+        if gains is not None:
+            gains[key] = a
         a_idx[sl] = a.flatten(2)[:, :, idx]
         spec = phong_images[sl] - texture * a
         ok = valid[sl] & ~flagged[sl] & (a > 0)
