@@ -40,7 +40,20 @@ def test_false_positives_and_misses_are_counted():
     assert ov["within_best"] == 0.0  # scene 0: 30 vs 32 fixed; scene 1: 28 vs 29
     assert ov["below_paper"] == 1 and ov["below_paper_scenes"] == [1]
     md = selection.markdown(selection.summarise(scenes))
-    assert "| light | 1 | 1 | 0.0% (0/1) | 100.0% (1/1) | 2 | 50.0% (1/2) **over** |" in md
+    assert "| light | 1 | 1 | 0.0% (0/1) | 100.0% (1/1) | 2 | 50.0% (1/2) **over** | – |" in md  # no times: no share
+
+
+def test_cost_shares_are_the_choices_seconds_over_the_default_fits():
+    times = [{"normals": 0.5, "light": 1.0, "reference": 0.5}, {"normals": 1.0}]
+    scenes = [{"seed": k, "truth": {}, "chosen": {}, "base": {}, "fixed": {}, "paper": {"psnr_coat": 1.0},
+               "default": {"psnr_coat": 1.0, "time": 4.0, "choice_s": t}} for k, t in enumerate(times)]
+    st = selection.choice_stats(scenes)
+    assert st["normals"]["cost_share"] == (0.125 + 0.25) / 2 and st["light"]["cost_share"] == 0.125  # 0 where not run
+    ov = selection.overall_stats(scenes)
+    assert (ov["choices_share_median"], ov["choices_share_max"], ov["reference_share"]) == (0.375, 0.5, 0.0625)
+    md = selection.markdown(selection.summarise(scenes))
+    assert "| normals | 0 | 0 | – | – | 0 | – | 18.8% |" in md
+    assert "median 37.5%, at most 50.0% of a default fit's time (target ≤ 25%)" in md
 
 
 def test_section_end_to_end_on_two_tiny_scenes(tmp_path):
@@ -59,5 +72,8 @@ def test_section_end_to_end_on_two_tiny_scenes(tmp_path):
     assert res["scenes"][1]["base"]["normals"] == "given" and not any(
         k.startswith("normals=") for k in res["scenes"][1]["fixed"])  # scene 21 brings its normals.npy
     assert res["choices"]["flakes"]["n_ref"] == 2
+    assert all(r["default"]["choice_s"] and all(v >= 0 for v in r["default"]["choice_s"].values())
+               for r in res["scenes"])  # the default's choices timed (stage_times' choice.NAME)
+    assert 0.0 < res["overall"]["choices_share_median"] <= res["overall"]["choices_share_max"] <= 1.0
     again = selection.run_section([7, 21], size=24, say=lines.append, jsonl=tmp_path / "s.jsonl")  # resumed: no refit
     assert len(lines) == 2 and json.dumps(again["overall"]) == json.dumps(res["overall"])

@@ -70,6 +70,7 @@ BEST_DB = 0.5  # the default within this of the best fixed option set ...
 BEST_SHARE = 0.95  # ... on this share of the scenes
 PAPER_DB = 1.0  # and never this far below the paper scheme
 FP_TARGET, MISS_TARGET = 0.02, 0.10
+CHOICES_SHARE = 0.25  # all choices together, of any default fit's time
 FULL_SCENES, QUICK_SCENES = 200, 3  # --quick: the section's plumbing (each scene ~6 s there)
 #: the section's first seed: the thresholds (torchmetal.select.rule.CALIBRATED_Z) were set on seeds 0–198, so the
 #: bench measures them on scenes they were not set on
@@ -100,6 +101,22 @@ def chosen(result) -> dict[str, dict]:
             out[d["name"]] = {"chosen": d["chosen"], "reference": d["reference"], "z": d.get("z", {})}
     out["flakes"] = {"chosen": "flakes" if result.material.flakes is not None else "none", "reference": "none"}
     return out
+
+
+def choice_seconds(result) -> dict[str, float]:
+    """Seconds of each choice in one fit (``stage_times["choice.NAME"]``) and of the selection's reference fit
+    ("reference": made for the choices alone where the Phong fit does not reuse it)."""
+    st = result.report.get("stage_times", {})
+    out = {k.removeprefix("choice."): float(v) for k, v in st.items() if k.startswith("choice.")}
+    if "choices.reference" in st:
+        out["reference"] = float(st["choices.reference"])
+    return out
+
+
+def cost_shares(results: list[dict]) -> list[dict[str, float]]:
+    """Per fitted scene with choice times: each choice's seconds over the default fit's seconds."""
+    return [{k: v / r["default"]["time"] for k, v in r["default"]["choice_s"].items()}
+            for r in results if "error" not in r and "choice_s" in r["default"] and r["default"]["time"] > 0]
 
 
 def resolved_options(result) -> dict:
@@ -166,6 +183,7 @@ def run_scene(seed: int, *, workdir: str | Path | None = None, size: int | None 
             return res, {**score(case, res), "time": time.perf_counter() - t0}
 
         res, out["default"] = fit(capture, {})
+        out["default"]["choice_s"] = choice_seconds(res)
         out["chosen"] = chosen(res)
         base = resolved_options(res)
         out["base"] = base
@@ -209,8 +227,9 @@ def extension_gain(r: dict, name: str) -> float:
 def choice_stats(results: list[dict]) -> dict[str, dict]:
     """Per choice: n scenes with the truth the reference / the extension (where the default made the choice),
     false positives, extensions taken where the truth is the extension, scenes where an extension gains
-    ≥ MISS_DB and the misses among them."""
+    ≥ MISS_DB and the misses among them, and its mean share of the default fit's time (``cost_share``)."""
     out = {}
+    shares = cost_shares(results)
     for name in CHOICES:
         st = {"n_ref": 0, "fp": 0, "n_ext": 0, "taken_ext": 0, "n_gain": 0, "miss": 0, "fp_scenes": [],
               "miss_scenes": []}
@@ -238,6 +257,7 @@ def choice_stats(results: list[dict]) -> dict[str, dict]:
         st["fp_rate"] = st["fp"] / st["n_ref"] if st["n_ref"] else float("nan")
         st["miss_rate"] = st["miss"] / st["n_gain"] if st["n_gain"] else float("nan")
         st["forced"] = name in FORCED
+        st["cost_share"] = float(np.mean([sh.get(name, 0.0) for sh in shares])) if shares else float("nan")
         out[name] = st
     return out
 
@@ -261,7 +281,11 @@ def overall_stats(results: list[dict]) -> dict:
     vb, vp = np.asarray(vs_best), np.asarray(vs_paper)
     fin = lambda a: a[np.isfinite(a)]  # noqa: E731 - a perfect (infinite-dB) fit on both sides gives nan
     vb, vp = fin(vb), fin(vp)
-    return {"scenes": len(results), "fitted": len(ok), "errors": [r["seed"] for r in results if "error" in r],
+    together = np.asarray([sum(sh.values()) for sh in cost_shares(results)])
+    return {"choices_share_median": float(np.median(together)) if together.size else float("nan"),
+            "choices_share_max": float(together.max()) if together.size else float("nan"),
+            "reference_share": float(np.mean([sh.get("reference", 0.0) for sh in cost_shares(results)]))
+            if together.size else float("nan"),"scenes": len(results), "fitted": len(ok), "errors": [r["seed"] for r in results if "error" in r],
             "within_best": float(np.mean(vb >= -BEST_DB)) if vb.size else float("nan"),
             "median_vs_best": float(np.median(vb)) if vb.size else float("nan"),
             "min_vs_best": float(vb.min()) if vb.size else float("nan"),
@@ -338,23 +362,30 @@ def _rate(k: int, n: int, target: float | None = None) -> str:
     return s if target is None else s + ("" if k / n <= target else " **over**")
 
 
+def _share(x: float) -> str:
+    return "–" if math.isnan(x) else f"{x:.1%}"
+
+
 def markdown(res: dict) -> str:
     ch, ov = res["choices"], res["overall"]
     lines = ["| choice | truth = reference | truth = extension | false positives (target ≤ 2 %) | "
-             "extension taken where true | extension gains ≥ 1 dB | misses (target ≤ 10 %) |",
-             "|---|---|---|---|---|---|---|"]
+             "extension taken where true | extension gains ≥ 1 dB | misses (target ≤ 10 %) | cost share |",
+             "|---|---|---|---|---|---|---|---|"]
     for name in CHOICES:
         s = ch[name]
         lines.append("| " + " | ".join([
             name, str(s["n_ref"]), str(s["n_ext"]), _rate(s["fp"], s["n_ref"], FP_TARGET),
             _rate(s["taken_ext"], s["n_ext"]), str(s["n_gain"]) if s["forced"] else "– (no forced fit)",
-            _rate(s["miss"], s["n_gain"], MISS_TARGET) if s["forced"] else "–"]) + " |")
+            _rate(s["miss"], s["n_gain"], MISS_TARGET) if s["forced"] else "–", _share(s["cost_share"])]) + " |")
     lines += ["", f"Default vs the best fixed option set: within {BEST_DB} dB on {ov['within_best']:.1%} of "
               f"{ov['fitted']} scenes (target ≥ {BEST_SHARE:.0%}); median {ov['median_vs_best']:+.2f} dB, worst "
               f"{ov['min_vs_best']:+.2f} dB. Default vs the paper scheme: more than {PAPER_DB} dB below on "
               f"{ov['below_paper']} scenes (target 0); median {ov['median_vs_paper']:+.2f} dB, worst "
               f"{ov['min_vs_paper']:+.2f} dB. Default fit {ov['default_s']:.2f} s a scene on average."
-              + (f" Scenes that failed: {ov['errors']}." if ov["errors"] else ""),
+              + (f" Scenes that failed: {ov['errors']}." if ov["errors"] else "")
+              + f" All choices together (the selection's reference fit {_share(ov['reference_share'])} of it): "
+              f"median {_share(ov['choices_share_median'])}, at most {_share(ov['choices_share_max'])} of a default "
+              f"fit's time (target ≤ {CHOICES_SHARE:.0%}).",
               "", "Worst scenes against the best fixed set: " + ", ".join(
                   f"{w['seed']} ({w['vs_best']:+.2f} dB, best {w['best']})" for w in ov["worst"][:6]),
               "", "False positives by scene: " + "; ".join(
@@ -368,7 +399,8 @@ def markdown(res: dict) -> str:
               "(the default's other choices kept) scores ≥ 1 dB above the reference's. *dB*: held-out shots "
               "against their noise-free renders, coat only (no sparkles; on flake scenes away from the true "
               "flakes). *best fixed option set*: the best of the default's choices forced and each one-group "
-              "deviation from them."]
+              "deviation from them. *cost share*: the choice's seconds (stage_times' choice.NAME) over the default "
+              "fit's, mean over the scenes (0 where it did not run)."]
     return "\n".join(lines)
 
 

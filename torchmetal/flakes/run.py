@@ -219,7 +219,7 @@ def stage_observed(capture: Capture, st):
     else:
         m.observed_flakes, fr.report["observed_choice"] = choose_observed(capture, m, fr, shots=list(st.plan.flakes),
                                                                           renders=st.held_renders)
-    st.stage_times["flakes.observed"] = time.perf_counter() - t
+    st.stage_times["choice.observed flakes" if mode == "auto" else "flakes.observed"] = time.perf_counter() - t
     return capture, st
 
 
@@ -233,7 +233,7 @@ def stage_keep(capture: Capture, st):
     plain = st.first.to_material(report_extra=st.report(st.first, list(st.first.skipped)))
     keep, fr.report["flakes_choice"] = keep_flakes(capture, st.material, plain, fr, fr.report.get("observed_choice"),
                                                    shots=list(st.plan.flakes))
-    st.stage_times["flakes.choice"] = time.perf_counter() - t
+    st.stage_times["choice.flakes"] = time.perf_counter() - t
     if not keep:
         fr.report["skipped"] = f"detections found, but not kept: {fr.report['flakes_choice']['reason']}"
         st.flake_result = replace(fr, model=None)
@@ -254,5 +254,5 @@ def stage_density(capture: Capture, st):
     m.flakes, fr.report["density_map_choice"] = choose_density_map(capture, m, fr, shots=list(st.plan.flakes),
                                                                    renders=renders)
     st.held_renders = {}
-    st.stage_times["flakes.density_map"] = time.perf_counter() - t
+    st.stage_times["choice.density map"] = time.perf_counter() - t
     return capture, st
