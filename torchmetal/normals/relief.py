@@ -272,16 +272,19 @@ def _fit(data: _Data, heights: Tensor | None, s: Tensor, alpha: Tensor, iters: i
     x0 = torch.cat([s.clamp_min(1e-6).log(), alpha.clamp_min(1e-3).log()] + ([] if heights is None else [heights.reshape(-1)]))
     flat = data.flat() if shape is None else None
 
+    # the texture is each pixel's least-squares optimum given the shading (clamped at 0 where that is below): the
+    # cost's derivative with respect to it is 0 there, or it is held at 0, so the gradient needs no path through
+    # it (the envelope theorem; yellow_box's relief fit: heights equal to 3e-10 relative, loss to 1e-13, −20 % CPU)
     def value_grad(x: Tensor) -> tuple[float, Tensor]:
         x = x.detach().requires_grad_(True)
         if flat is None:
             n = relief_normals(x[6:].view(shape), (capture.height, capture.width), capture.size)
             a, b = data.rays.shading(n, x[:3].exp(), x[3:6].exp())
-            texture = _texture(a, b, y, weight)
+            texture = _texture(a.detach(), b.detach(), y, weight)
         else:  # the flat plane: only b moves (the same steps as _texture's on it)
             terms, wa, den = flat
             a, b = terms.shading(x[:3].exp(), x[3:6].exp())
-            texture = ((wa * (y - b)).sum(0) / den).clamp_min(0.0)
+            texture = ((wa * (y - b.detach())).sum(0) / den).clamp_min(0.0)
         # an unlit observation counts (its render is 0): else tilting a pixel away from the light would drop it
         r = (y - a * texture - b) * weight
         loss = r.square().sum() / count
