@@ -63,7 +63,7 @@ FORCED: dict[str, tuple[str, str, tuple[str, ...]]] = {
 CHOICES = ("clipping", "normals", "relief", "light", "weights", "lobe", "specular evidence", "specular clusters",
            "relabel", "gloss maps", "specular colour", "observed flakes", "flakes", "density map")
 #: the paper scheme (bench.zoo's "paper") with every other option at its simplest
-PAPER = {**METHODS["paper"], "normals": "given", "weights": "uniform", "lobe": "phong", "specular": "global",
+PAPER = {**METHODS["paper"], "weights": "uniform", "lobe": "phong", "specular": "global",
          "observed_flakes": "off"}
 MISS_DB = 1.0  # an extension that gains this much against the clean truth should have been taken
 BEST_DB = 0.5  # the default within this of the best fixed option set ...
