@@ -54,6 +54,7 @@ def test_cost_shares_are_the_choices_seconds_over_the_default_fits():
     md = selection.markdown(selection.summarise(scenes))
     assert "| normals | 0 | 0 | – | – | 0 | – | 18.8% |" in md
     assert "median 37.5%, at most 50.0% of a default fit's time (target ≤ 25%)" in md
+    assert "False positives by scene: none.\nMisses by scene: none." in md
 
 
 def test_section_end_to_end_on_two_tiny_scenes(tmp_path):

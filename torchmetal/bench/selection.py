@@ -362,6 +362,12 @@ def _rate(k: int, n: int, target: float | None = None) -> str:
     return s if target is None else s + ("" if k / n <= target else " **over**")
 
 
+def _by_scene(ch: dict, key: str) -> str:
+    """Per choice its first scenes under ``key`` ("none." where no choice has any)."""
+    return "; ".join(f"{n} {ch[n][key][:12]}" for n in CHOICES if ch[n][key]) + "." if any(ch[n][key] for n in CHOICES) \
+        else "none."
+
+
 def _share(x: float) -> str:
     return "–" if math.isnan(x) else f"{x:.1%}"
 
@@ -388,10 +394,8 @@ def markdown(res: dict) -> str:
               f"fit's time (target ≤ {CHOICES_SHARE:.0%}).",
               "", "Worst scenes against the best fixed set: " + ", ".join(
                   f"{w['seed']} ({w['vs_best']:+.2f} dB, best {w['best']})" for w in ov["worst"][:6]),
-              "", "False positives by scene: " + "; ".join(
-                  f"{n} {ch[n]['fp_scenes'][:12]}" for n in CHOICES if ch[n]["fp_scenes"]) + ".",
-              "Misses by scene: " + "; ".join(
-                  f"{n} {ch[n]['miss_scenes'][:12]}" for n in CHOICES if ch[n]["miss_scenes"]) + ".",
+              "", "False positives by scene: " + _by_scene(ch, "fp_scenes"),
+              "Misses by scene: " + _by_scene(ch, "miss_scenes"),
               "", "*truth = reference / extension*: scenes where the default made the choice (its Decision record; "
               "\"flakes\": always) and the generator's truth is that candidate (torchmetal.synth.random_scenes."
               "scene_truth; n/a scenes counted in neither). *false positive*: the extension taken where the truth "
