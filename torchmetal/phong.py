@@ -66,8 +66,19 @@ def specular_lobe(spec_q: Tensor, alpha: Tensor) -> Tensor:
         (B, 3, H, W) lobe in [0, 1].
     """
     inside = spec_q < 1.0
-    q = torch.where(inside, spec_q, torch.full_like(spec_q, 0.5))
-    lobe = exp_normal(channel_map(alpha) * log1p_exact(-q))
+    return lobe_from_log(lobe_log(spec_q, inside), inside, alpha)
+
+
+def lobe_log(spec_q: Tensor, inside: Tensor) -> Tensor:
+    """log1p(−q) where ``inside`` (there q < 1), log1p(−0.5) elsewhere: a finite stand-in the caller masks, so
+    that neither value nor gradient is ever inf or NaN; exact near the peak (:func:`log1p_exact`). The lobe's
+    exponent per unit of α (:func:`specular_lobe`), formed once where only α changes."""
+    return log1p_exact(-torch.where(inside, spec_q, torch.full_like(spec_q, 0.5)))
+
+
+def lobe_from_log(log: Tensor, inside: Tensor, alpha: Tensor) -> Tensor:
+    """(B, 3, H, W) exp(α·``log``) where ``inside``, 0 elsewhere (``log``, ``inside``: (B, 1, H, W), :func:`lobe_log`)."""
+    lobe = exp_normal(channel_map(alpha) * log)
     return torch.where(inside, lobe, torch.zeros_like(lobe))
 
 

@@ -281,11 +281,11 @@ def overall_stats(results: list[dict]) -> dict:
     vb, vp = np.asarray(vs_best), np.asarray(vs_paper)
     fin = lambda a: a[np.isfinite(a)]  # noqa: E731 - a perfect (infinite-dB) fit on both sides gives nan
     vb, vp = fin(vb), fin(vp)
-    together = np.asarray([sum(sh.values()) for sh in cost_shares(results)])
-    return {"choices_share_median": float(np.median(together)) if together.size else float("nan"),
-            "choices_share_max": float(together.max()) if together.size else float("nan"),
-            "reference_share": float(np.mean([sh.get("reference", 0.0) for sh in cost_shares(results)]))
-            if together.size else float("nan"),"scenes": len(results), "fitted": len(ok), "errors": [r["seed"] for r in results if "error" in r],
+    shares = cost_shares(results)
+    together = np.asarray([sum(sh.values()) for sh in shares])
+    return {"choices_share_median": float(np.median(together)) if shares else float("nan"),
+            "choices_share_max": float(together.max()) if shares else float("nan"),
+            "reference_share": float(np.mean([sh.get("reference", 0.0) for sh in shares])) if shares else float("nan"),"scenes": len(results), "fitted": len(ok), "errors": [r["seed"] for r in results if "error" in r],
             "within_best": float(np.mean(vb >= -BEST_DB)) if vb.size else float("nan"),
             "median_vs_best": float(np.median(vb)) if vb.size else float("nan"),
             "min_vs_best": float(vb.min()) if vb.size else float("nan"),

@@ -23,7 +23,7 @@ from torch import Tensor
 from torchmetal.fit.lobes import LOG_OFF, observation_lobe_terms
 from torchmetal.geometry import grid_shading_terms, is_flat, pixel_axes
 from torchmetal.lobes import grid_half_terms
-from torchmetal.phong import log1p_exact
+from torchmetal.phong import lobe_log
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -37,7 +37,7 @@ def observation_geometry(n_dot_l: Tensor, spec_q: Tensor, dist2: Tensor) -> tupl
     """
     u = torch.where(n_dot_l > 0, 1.0 / dist2, 0.0)
     inside = spec_q < 1.0
-    L = torch.where(inside, log1p_exact(-torch.where(inside, spec_q, 0.5)), LOG_OFF)
+    L = torch.where(inside, lobe_log(spec_q, inside), LOG_OFF)
     return n_dot_l * u, u, L
 
 

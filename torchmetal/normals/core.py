@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from torchmetal.geometry import direction_to, surface_points
-from torchmetal.phong import log1p_exact
+from torchmetal.phong import lobe_log
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -182,7 +182,7 @@ def model_state(ch: Chunk, theta: Tensor, spec: Spec | None, w: Tensor, jac: boo
         rmv = 2.0 * nl * n.unsqueeze(0) - ch.l - ch.v
         q = 0.5 * (rmv * rmv).sum(1, keepdim=True)
         inside = lit & (q < 1.0)
-        lg = log1p_exact(-torch.where(inside, q, torch.full_like(q, 0.5)))
+        lg = lobe_log(q, inside)
         sh, dsh = spec.lobe(ch.kappa, lg, inside)
         target = ch.y - ch.e * sh
     d = ((wea * target).sum(0) * iden).clamp_min(0.0)

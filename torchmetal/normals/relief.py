@@ -35,7 +35,7 @@ from torch import Tensor
 from torchmetal.fit.holdout import valid_pixels
 from torchmetal.geometry import shading_geometry
 from torchmetal.lbfgs import minimize
-from torchmetal.phong import channel_map, exp_normal, log1p_exact
+from torchmetal.phong import lobe_from_log, lobe_log
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -173,21 +173,20 @@ class _Rays:
 
 class _Terms:
     """n·l (N, 1, H, W), q (N, 1, H, W) and what follows from them alone: the diffuse factor a = E·max(n·l, 0) and
-    the lobe's log1p(−q) (:func:`~torchmetal.phong.specular_lobe`'s steps, in its order). On the flat plane they
-    are formed once per fit, not per step: only s and α move (values and gradients bit for bit as per step)."""
+    the lobe's log1p(−q) (:func:`~torchmetal.phong.specular_lobe` in its two steps). On the flat plane they are
+    formed once per fit, not per step: only s and α move (values and gradients bit for bit as per step)."""
 
     def __init__(self, irradiance: Tensor, nl: Tensor, q: Tensor):
         self.irradiance = irradiance
         self.a = irradiance * nl.clamp_min(0.0)
         self.unlit = ~(nl > 0)
-        inside = q < 1.0
-        self.outside = ~inside
-        self.log = log1p_exact(-torch.where(inside, q, torch.full_like(q, 0.5)))
+        self.inside = q < 1.0
+        self.log = lobe_log(q, self.inside)
 
     def shading(self, s: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
-        """(a, b): b = E·s·lobe (0 where n·l ≤ 0), the lobe exp(α·log1p(−q)) (0 where q ≥ 1). ``masked_fill``
-        where :func:`~torchmetal.phong.specular_lobe` has ``where`` against zeros: the same values and gradients."""
-        lobe = exp_normal(channel_map(alpha) * self.log).masked_fill(self.outside, 0.0)
+        """(a, b): b = E·s·lobe, 0 where n·l ≤ 0 (``masked_fill`` rather than ``where`` against zeros: the same
+        values and gradients)."""
+        lobe = lobe_from_log(self.log, self.inside, alpha)
         return self.a, (self.irradiance * s.view(1, 3, 1, 1) * lobe).masked_fill(self.unlit, 0.0)
 
 
