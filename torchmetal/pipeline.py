@@ -213,7 +213,7 @@ def stage_phong(capture: Capture, st: State) -> tuple[Capture, State]:
         # the choices left the capture as the reference fit saw it: its lobe stands, not chosen again (the weights
         # are: their test gains power with the pixels, and the zoo's 8-bit photo_srgb8 lost them on the grid, z 2.7)
         kw["lobe"] = ctx.model["lobe"]
-        st.chooser = ctx.fits[ctx.reference_key][1]
+        st.chooser = ctx.reference_result
     st.first = st.fit = same if same is not None else fit_phong(capture, robust=robust, **kw)
     # the fit's own choices keep their names (choice.weights, choice.lobe, …), beside the choices made before it
     st.stage_times.update({k if k.startswith("choice.") else f"phong.{k}": v for k, v in st.first.stage_times.items()})

@@ -80,3 +80,22 @@ def test_error_measures():
     from dataclasses import replace
 
     assert math.isnan(float(pixel_errors(pred, replace(hold, saturated=sat))[0]))
+
+
+def test_the_context_fits_the_same_data_once():
+    """Grids and shot subsets made apart (copies) share one fit where their data are equal; other data, or other
+    options, get their own (the registration's, normals', relief's and light's folds on a small capture)."""
+    from dataclasses import replace
+
+    from torchmetal.io.grid import strided_capture
+    from torchmetal.select.harness import capture_key, content_key
+
+    big = synth_capture(size=24, shots=5, seed=1, noise=0.0).capture
+    ctx = Context.fixed({"lobe": "phong", "specular": "global", "weights": "uniform"})
+    a, b = strided_capture(big, 100).subset([0, 1, 2]), strided_capture(big, 100).subset([0, 1, 2])
+    assert capture_key(a) != capture_key(b) and content_key(a) == content_key(b)
+    assert ctx.fit(a) is ctx.fit(b)
+    assert ctx.fit(a, scheme="paper") is not ctx.fit(a)
+    other = replace(a, images=a.images * 1.01)
+    assert content_key(other) != content_key(a) and ctx.fit(other) is not ctx.fit(a)
+    assert len(ctx.fits) == 3

@@ -86,7 +86,8 @@ def calibrate(capture: Capture, fit: FitResult, *, gains: bool, fit_kwargs: dict
 
 
 def calibrate_positions(capture: Capture, *, fit_kwargs: dict | None = None, rounds: int = POSITION_ROUNDS,
-                        base: LightCalibration | None = None, shared: bool = False) -> tuple[LightCalibration, FitResult]:
+                        base: LightCalibration | None = None, shared: bool = False,
+                        first: FitResult | None = None) -> tuple[LightCalibration, FitResult]:
     """Per-shot light offsets (or, ``shared``, the flash's one move of every light:
     :func:`~torchmetal.lightcal.positions.fit_offsets`) alternated ``rounds`` times with the material's fit
     on ``capture`` (each fit on the lights the last offsets moved; the rounds keep the lobe of the first), on
@@ -94,7 +95,7 @@ def calibrate_positions(capture: Capture, *, fit_kwargs: dict | None = None, rou
     base = base or LightCalibration()
     kw = fit_kwargs or {}
     cap = base.apply(capture)
-    fit, off = fit_phong(cap, **kw), None
+    fit, off = first if first is not None else fit_phong(cap, **kw), None
     kw = {**kw, "lobe": fit.lobe}  # the first fit's lobe (chosen there with lobe="auto") for the rounds
     for _ in range(rounds):
         off = fit_offsets(cap, lambda lights: fit.render(lights, cap.intensities, cap.cameras), off, shared=shared)

@@ -87,7 +87,7 @@ def reference_context(capture: Capture, fit_kwargs: dict) -> Context:
 
 
 def _fit(train: Capture, ctx: Context):
-    return fit_phong(train, **ctx.model)
+    return ctx.fit(train)
 
 
 def _render(fit):
@@ -114,8 +114,7 @@ CLIPPING_FIT = {"lobe": "phong", "specular": "global", "weights": "uniform"}
 
 
 def _clipping_fit(train: Capture, candidate: str, ctx: Context):
-    fit = fit_phong(pixel_clipped(train) if candidate == "pixel" else train, **{**ctx.model, **CLIPPING_FIT})
-    return _render(fit)
+    return _render(ctx.fit(pixel_clipped(train) if candidate == "pixel" else train, **CLIPPING_FIT))
 
 
 CLIPPING = Choice(
@@ -123,7 +122,7 @@ CLIPPING = Choice(
     grid=lambda c: strided_capture(c, CLIPPING_PIXELS),
     hold=lambda grid, group: pixel_clipped(grid).subset(group),  # no channel clipped: valid under either reading
     rule={"min_gain": CLIPPING_GAIN}, untested=_clipping_untested,
-    screen=lambda grid, ctx: clipping_screen(fit_phong(grid, **{**ctx.model, **CLIPPING_FIT}), grid), min_shots=3)
+    screen=lambda grid, ctx: clipping_screen(ctx.fit(grid, **CLIPPING_FIT), grid), min_shots=3)
 
 
 # ----------------------------------------------------------------------------- normals
@@ -200,7 +199,7 @@ def _light_untested(capture: Capture, ctx: Context) -> str | None:
 def _light_fit(train: Capture, candidate: str, ctx: Context):
     if candidate == "off":
         return _render(_fit(train, ctx))
-    cal, fit = calibrate_positions(train, fit_kwargs=ctx.model, shared=True)
+    cal, fit = calibrate_positions(train, fit_kwargs=ctx.model, shared=True, first=ctx.fit(train))
     unseen = cal.for_unseen()
     return lambda hold: fit.render(unseen.lights(hold), hold.intensities, hold.cameras) * unseen.factor(hold)
 

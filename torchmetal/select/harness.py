@@ -21,6 +21,7 @@ error measure, the pixel grid it is decided on, the choices it follows, and a ch
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -65,9 +66,14 @@ class Context:
             A capture whose choices all stay untested never pays for it.
         chosen: the choices made so far (name → chosen candidate), for the ones a choice follows.
         seconds: what the reference fit cost, once made.
-        fits: the model's fits by the capture they were fitted to (:func:`capture_key`), each kept with that
-            capture: a screen on a grid the reference (or another screen) already fitted reuses its fit, and the
-            final fit reuses the reference fit where that was on the whole, unchanged capture.
+        fits: the model's fits by the data they were fitted to and the options changed (:func:`content_key`): a
+            fit of the same shots on the same grid is made once, whichever choice asks for it (the reference
+            candidate of every choice whose grid is the same: on a capture small enough to be its own grid, the
+            registration's, normals', relief's and light's folds are one set of fits), and a screen on the
+            reference's grid reuses the reference fit.
+        reference_key: the identity (:func:`capture_key`) of the capture the reference fit was made on: the final
+            fit reuses it where that was the whole, unchanged capture.
+        reference_result: the reference fit itself, once made.
     """
 
     reference: Callable[[Context], dict]
@@ -75,6 +81,7 @@ class Context:
     seconds: float = 0.0
     fits: dict = field(default_factory=dict)
     reference_key: tuple | None = None
+    reference_result: FitResult | None = None
     _model: dict | None = None
 
     @classmethod
@@ -96,34 +103,48 @@ class Context:
 
     def keep(self, capture: Capture, fit, *, reference: bool = False) -> None:
         """Remember ``fit`` as the model's fit of ``capture`` (``reference``: it made the model's choices)."""
-        key = capture_key(capture)
-        self.fits[key] = (capture, fit)  # the capture kept alive: its tensors' addresses are not reused
+        self.fits[(content_key(capture), ())] = fit
         if reference:
-            self.reference_key = key
+            self.reference_key, self.reference_result = capture_key(capture), fit
 
-    def fit(self, capture: Capture) -> FitResult:
-        """The model fitted to ``capture`` (``fit_phong(capture, **model)``), once per capture."""
-        key = capture_key(capture)
+    def fit(self, capture: Capture, **changes) -> FitResult:
+        """The model fitted to ``capture`` (``fit_phong(capture, **model, **changes)``), once per data and changes."""
+        key = (content_key(capture), tuple(sorted(changes.items())))
         if key not in self.fits:
             model = self.model
             if key not in self.fits:  # the reference fit may be this very capture's
-                self.keep(capture, fit_phong(capture, **model))
-        return self.fits[key][1]
+                self.fits[key] = fit_phong(capture, **{**model, **changes})
+        return self.fits[key]
 
     def reference_fit(self, capture: Capture):
         """The reference fit where it was made on ``capture`` itself (unchanged, not a grid of it), else None."""
-        key = capture_key(capture)
-        return self.fits[key][1] if self.resolved and key == self.reference_key else None
+        return self.reference_result if self.resolved and capture_key(capture) == self.reference_key else None
+
+
+CONTENT_FIELDS = ("images", "saturated", "normals", "mask", "lights", "intensities", "cameras")
 
 
 def capture_key(capture: Capture) -> tuple:
-    """Identifies a capture's data: the storage, shape and strides of its tensors (a strided grid of a capture
-    is a view of it, so the same grid of the same capture has the same key), its surface size."""
+    """Identifies a capture object's data without reading it: the storage, shape and strides of its tensors, its
+    surface size (the final fit asks whether its capture is the one the reference fit was made on, at full size)."""
     parts = [capture.size]
-    for t in (capture.images, capture.saturated, capture.normals, capture.mask, capture.lights, capture.intensities,
-              capture.cameras):
+    for name in CONTENT_FIELDS:
+        t = getattr(capture, name)
         parts.append((t.data_ptr(), tuple(t.shape), tuple(t.stride()), str(t.dtype), str(t.device)))
     return tuple(parts)
+
+
+def content_key(capture: Capture) -> tuple:
+    """Identifies a capture's data by its values: a digest of its tensors' bytes, shapes and dtypes and its surface
+    size. Two grids or shot subsets of a capture made apart (a copy each time: a strided grid's normals, a
+    subset's shots) have the same key where they hold the same data. Read in full: meant for the choices' grids."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(repr((tuple(capture.size), capture.color_space, capture.normals_given)).encode())
+    for name in CONTENT_FIELDS:
+        t = getattr(capture, name).detach()
+        h.update(repr((name, tuple(t.shape), str(t.dtype))).encode())
+        h.update(t.cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return (h.hexdigest(),)
 
 
 @dataclass(frozen=True)
