@@ -75,3 +75,27 @@ def test_rank_keeps_the_simplest_winner_the_best_does_not_beat():
     assert d.chosen == "colour:K=3" and "does not lower it further" in d.reason
     errors["both:K=4"] = 0.6 * ref  # beyond noise against the simpler winner too: the richer model earns its place
     assert paired_choice("specular clusters", errors, "global", rank=rank).chosen == "both:K=4"
+
+
+def test_typical_pairing_sees_a_gain_a_few_heavy_errors_hide():
+    """A normal map trained on part of the shots: 95 % of the pixels' errors fall tenfold, 5 % blow up a
+    hundredfold. The mean rule keeps flat (mean MSE higher); the typical rule takes the estimate; an extension
+    better on only half of the pixels, worse on most, or better everywhere by less than the gain, is not taken."""
+    from torchmetal.select.rule import log_ratio, sign_z
+
+    g = torch.Generator().manual_seed(3)
+    flat = 0.01 + 0.01 * torch.rand(2000, dtype=torch.float64, generator=g)
+    est = flat * 0.1
+    est[::20] = flat[::20] * 100
+    assert float(est.mean()) > float(flat.mean())
+    assert paired_choice("normals", {"flat": flat, "estimate": est}, "flat", z_min=20.0).chosen == "flat"
+    d = paired_choice("normals", {"flat": flat, "estimate": est}, "flat", typical=True, min_gain=0.5)
+    assert d.chosen == "estimate" and d.z["estimate"] > 30 and d.scores["log_ratio"]["estimate"]["gain"] > 0.5
+    assert paired_choice("normals", {"flat": flat, "estimate": flat * 0.6}, "flat", typical=True,
+                         min_gain=0.5).chosen == "flat"  # everywhere lower, but not halved
+    assert sign_z(est, flat) == d.z["estimate"] and log_ratio(flat, flat) == (0.0, 0.0)
+    half = flat.clone()
+    half[::2] = flat[::2] * 0.5
+    half[1::2] = flat[1::2] * 2.0  # better on half the pixels, worse on the other half
+    assert paired_choice("normals", {"flat": flat, "estimate": half}, "flat", typical=True).chosen == "flat"
+    assert paired_choice("normals", {"flat": flat, "estimate": flat * 1.5}, "flat", typical=True).chosen == "flat"

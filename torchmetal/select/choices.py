@@ -11,10 +11,14 @@ choice       candidates (reference first)  error (paired)   screen (skips the te
 ============ ============================= ================ ============================================
 registration off, shift                    pixel median     every shot within 1 px of the others (untested)
 clipping     channel, pixel                block mean       their other channels hold < 0.5 % of the residual
-normals      flat, estimate                pixel median     the residual follows no tilt (tilt_screen)
-relief       flat, relief                  pixel median     as normals, on its downsampled grid
+normals      flat, estimate                pixel median (1) the residual follows no tilt (tilt_screen)
+relief       flat, relief                  pixel median (1) as normals, on its downsampled grid
 light        off, flash                    pixel median     moving every light gains < 0.5 % in-sample
 ============ ============================= ================ ============================================
+
+(1) paired by the rule's *typical* pairing (:func:`~torchmetal.select.rule.paired_choice`): a normal map or relief
+must be lower on most pixels and lower their errors' geometric mean by :data:`~torchmetal.select.rule.TYPICAL_GAIN`,
+not their mean.
 
 The clipping's errors pair up per block of pixels (:func:`~torchmetal.select.harness.block_means`): a misfit
 is spatially correlated, and per observation the rule's z overstated it (the random scenes' clipping test took
@@ -46,7 +50,7 @@ from torchmetal.registration import (
     valid_observations,
 )
 from torchmetal.select.harness import Choice, Context, decide, observation_errors, pixel_errors
-from torchmetal.select.rule import Decision
+from torchmetal.select.rule import TYPICAL_GAIN, Decision
 from torchmetal.select.screens import clipping_screen, light_screen, tilt_screen
 
 if TYPE_CHECKING:
@@ -56,7 +60,7 @@ REFERENCE_PIXELS = 128 * 128  # the reference fit's grid
 NORMALS_PIXELS = 64 * 64  # per-pixel photometric stereo needs no more to say whether the sample has relief
 CLIPPING_PIXELS = 128 * 128  # clipping sits in highlights, a few of its pixels each
 LIGHT_PIXELS = 128 * 128
-NORMALS_GAIN = 0.05  # a normal map (two parameters a pixel) must lower the per-pixel median held-out error by 5 %
+REGISTRATION_GAIN = 0.05  # shots moved back must lower the per-pixel median held-out error by 5 %
 CLIPPING_GAIN = 0.005  # dropping data must pay for itself (docs/design.md §4)
 LIGHT_GAIN = 0.02  # the flash's move: 2 % (docs/design.md §4)
 
@@ -141,7 +145,7 @@ def _normals_fit(train: Capture, candidate: str, ctx: Context):
 NORMALS = Choice(
     "normals", ("flat", "estimate"), fit=_normals_fit, errors=pixel_errors,
     grid=lambda c: strided_capture(c, NORMALS_PIXELS), follows=("clipping",),
-    rule={"min_gain": NORMALS_GAIN}, untested=_given, screen=_reference_screen(tilt_screen), floor=0.0)
+    rule={"min_gain": TYPICAL_GAIN, "typical": True}, untested=_given, screen=_reference_screen(tilt_screen), floor=0.0)
 
 
 # ----------------------------------------------------------------------------- relief
@@ -181,7 +185,7 @@ def _typical(d: Decision, errors: dict) -> None:
 RELIEF = Choice(
     "relief", ("flat", "relief"), fit=_relief_fit, errors=pixel_errors,
     grid=lambda c: c.downsampled(factor_for(c, RES)), follows=("clipping", "normals"),
-    rule={"min_gain": NORMALS_GAIN}, untested=_relief_untested, screen=_reference_screen(tilt_screen),
+    rule={"min_gain": TYPICAL_GAIN, "typical": True}, untested=_relief_untested, screen=_reference_screen(tilt_screen),
     check=_typical, floor=0.0)
 
 
@@ -249,7 +253,7 @@ def _registration_fit(train: Capture, candidate: str, ctx: Context):
 
 REGISTRATION = Choice(
     "registration", ("off", "shift"), fit=_registration_fit, errors=pixel_errors, grid=_registration_grid,
-    rule={"min_gain": NORMALS_GAIN}, untested=_registration_untested, floor=0.0)
+    rule={"min_gain": REGISTRATION_GAIN}, untested=_registration_untested, floor=0.0)
 
 
 #: the choices before the Phong fit, in the order they are made

@@ -40,7 +40,7 @@ if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
 
 #: the futility stop's bar: an extension worse by more than the smallest calibrated z (select.rule.CALIBRATED_Z's
-#: floor) on the groups so far is not fitted on the rest. Its own calibrated z would rarely stop (normals 20):
+#: floor) on the groups so far is not fitted on the rest. Its own calibrated z would rarely stop (clipping 30):
 #: the later groups would have to outweigh a loss beyond noise by that z to take the extension (docs/measurements.md)
 FUTILE_Z = 4.0
 Predict = Callable[["Capture"], Tensor]  # a fitted candidate: held-out shots (M shots) → its render (M, 3, H, W)
