@@ -91,8 +91,7 @@ def tilt_screen(fit: FitResult, capture: Capture) -> Screen:
     f = (gain / 2) / ((sse - gain).clamp_min(1e-300) / dof)
     p = (1 + 2 * f / dof).pow(-dof / 2)  # the F(2, d) survival function, exact
     share = float((p[inside] < TILT_P).double().mean())
-    explained = float(gain[inside].sum() / sse[inside].sum().clamp_min(1e-300))
-    reading = {"tilt_share": share, "explained": explained, "pixels": int(inside.sum())}
+    reading = {"tilt_share": share, "pixels": int(inside.sum())}
     if share > TILT_SHARE:
         return Screen(True, f"{share:.1%} of pixels follow a tilt beyond noise (p < {TILT_P:g}; {TILT_P:.0%} by chance)", reading)
     return Screen(False, f"the reference fit's residual follows no tilt beyond noise: {share:.1%} of pixels at p < "
