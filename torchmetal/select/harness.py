@@ -82,6 +82,7 @@ class Context:
     fits: dict = field(default_factory=dict)
     reference_key: tuple | None = None
     reference_result: FitResult | None = None
+    _reference_capture: Capture | None = None
     _model: dict | None = None
 
     @classmethod
@@ -104,8 +105,8 @@ class Context:
     def keep(self, capture: Capture, fit, *, reference: bool = False) -> None:
         """Remember ``fit`` as the model's fit of ``capture`` (``reference``: it made the model's choices)."""
         self.fits[(content_key(capture), ())] = fit
-        if reference:
-            self.reference_key, self.reference_result = capture_key(capture), fit
+        if reference:  # the capture kept alive with it: its tensors' addresses, the key, are not reused
+            self.reference_key, self.reference_result, self._reference_capture = capture_key(capture), fit, capture
 
     def fit(self, capture: Capture, **changes) -> FitResult:
         """The model fitted to ``capture`` (``fit_phong(capture, **model, **changes)``), once per data and changes."""
