@@ -96,15 +96,13 @@ def sign_z(err: Tensor, ref: Tensor) -> float:
 
 
 def log_ratio(err: Tensor, ref: Tensor) -> tuple[float, float]:
-    """(z, gain) of the paired log ratio log(ref + ε) − log(err + ε), ε = 1e-3 of ``ref``'s mean: its mean over
-    its standard error, and 1 − exp(−mean): the drop of the errors' geometric mean."""
+    """(mean, standard error) of the paired log ratio log(ref + ε) − log(err + ε), ε = 1e-3 of ``ref``'s mean: a
+    mean m lowers the errors' geometric mean by 1 − exp(−m)."""
     eps = 1e-3 * float(ref.mean()) + 1e-300
     d = (ref.double() + eps).log() - (err.double() + eps).log()
     if d.numel() < 2:
         return 0.0, 0.0
-    mean, sd = float(d.mean()), float(d.std())
-    z = mean / (sd / math.sqrt(d.numel())) if sd > 0 else (math.inf if mean > 0 else 0.0)
-    return z, 1.0 - math.exp(-mean)
+    return float(d.mean()), float(d.std()) / math.sqrt(d.numel())
 
 
 def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: float | None = None,
@@ -157,8 +155,10 @@ def _typical_choice(d: Decision, errors: dict[str, Tensor], ref: str, *, z_min: 
     for k, e in errors.items():
         if k != ref:
             d.z[k] = sign_z(e, errors[ref])
-            logs[k] = log_ratio(e, errors[ref])
-    d.scores["log_ratio"] = {k: {"z": z, "gain": g} for k, (z, g) in logs.items()}
+            mean, se = log_ratio(e, errors[ref])
+            z = mean / se if se > 0 else (math.inf if mean > 0 else 0.0)
+            logs[k] = (z, 1.0 - math.exp(-mean))
+            d.scores.setdefault("log_ratio", {})[k] = {"z": z, "gain": logs[k][1], "mean": mean, "se": se}
     wins = [k for k in d.z if d.z[k] > z_min and logs[k][0] > Z_MIN and logs[k][1] >= min_gain]
     others = ", ".join(f"{k}: lower on more pixels at z {d.z[k]:.1f}, geometric mean {-100 * logs[k][1]:+.1f} % "
                        f"(z {logs[k][0]:.1f})" for k in d.z)
