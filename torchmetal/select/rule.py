@@ -121,7 +121,7 @@ def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: floa
     two thirds of a capture's shots, a normal map fails badly on a few pixels the left-out shots light (a highlight
     moved by a wrong normal) and well on the rest; the mean of the per-pixel errors, heavy-tailed, then hides a
     gain the fit on every shot keeps (docs/measurements.md: on the random scenes of seeds 300-399 the misses fell
-    from 17 of 23 to 9, false positives from 3 of 53 flat scenes to 1, with ``min_gain`` :data:`TYPICAL_GAIN`)."""
+    from 17 of 23 to 11, false positives from 3 of 53 flat scenes to 1, with ``min_gain`` :data:`TYPICAL_GAIN`)."""
     z_min = z_min_for(name) if z_min is None else z_min
     d = Decision(name, tuple(errors), ref, reference=ref)
     for k, e in errors.items():
