@@ -285,7 +285,8 @@ def overall_stats(results: list[dict]) -> dict:
     together = np.asarray([sum(sh.values()) for sh in shares])
     return {"choices_share_median": float(np.median(together)) if shares else float("nan"),
             "choices_share_max": float(together.max()) if shares else float("nan"),
-            "reference_share": float(np.mean([sh.get("reference", 0.0) for sh in shares])) if shares else float("nan"),"scenes": len(results), "fitted": len(ok), "errors": [r["seed"] for r in results if "error" in r],
+            "reference_share": float(np.mean([sh.get("reference", 0.0) for sh in shares])) if shares else float("nan"),
+            "scenes": len(results), "fitted": len(ok), "errors": [r["seed"] for r in results if "error" in r],
             "within_best": float(np.mean(vb >= -BEST_DB)) if vb.size else float("nan"),
             "median_vs_best": float(np.median(vb)) if vb.size else float("nan"),
             "min_vs_best": float(vb.min()) if vb.size else float("nan"),

@@ -84,7 +84,7 @@ def reference_context(capture: Capture, fit_kwargs: dict) -> Context:
     def reference(ctx: Context) -> dict:
         grid = strided_capture(capture, REFERENCE_PIXELS)
         fit = fit_phong(grid, **fit_kwargs)
-        ctx.keep(grid, fit, reference=True)
+        ctx.keep_reference(grid, fit)
         return {**keep, **model_of(fit)}
 
     return Context(reference=reference)

@@ -106,11 +106,11 @@ class Context:
             self.seconds = time.perf_counter() - t0
         return self._model
 
-    def keep(self, capture: Capture, fit, *, reference: bool = False) -> None:
-        """Remember ``fit`` as the model's fit of ``capture`` (``reference``: it made the model's choices)."""
+    def keep_reference(self, capture: Capture, fit) -> None:
+        """Remember ``fit``, which made the model's choices, as the model's fit of ``capture``; the capture is kept
+        alive with it (its tensors' addresses, :func:`capture_key`, are then not reused by another)."""
         self.fits[(content_key(capture), ())] = fit
-        if reference:  # the capture kept alive with it: its tensors' addresses, the key, are not reused
-            self.reference_key, self.reference_result, self._reference_capture = capture_key(capture), fit, capture
+        self.reference_key, self.reference_result, self._reference_capture = capture_key(capture), fit, capture
 
     def fit(self, capture: Capture, **changes) -> FitResult:
         """The model fitted to ``capture`` (``fit_phong(capture, **model, **changes)``), once per data and changes."""

@@ -150,20 +150,20 @@ def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: floa
 
 
 def _typical_choice(d: Decision, errors: dict[str, Tensor], ref: str, *, z_min: float, min_gain: float) -> Decision:
-    """:func:`paired_choice`'s ``typical`` rule on ``d`` (its MSEs filled in)."""
-    logs = {}
+    """:func:`paired_choice`'s ``typical`` rule on ``d`` (its MSEs filled in); each extension's log ratio (z, gain,
+    mean, standard error) in ``d.scores["log_ratio"]``, where the harness's futility stop reads it too."""
+    logs = d.scores.setdefault("log_ratio", {})
     for k, e in errors.items():
         if k != ref:
             d.z[k] = sign_z(e, errors[ref])
             mean, se = log_ratio(e, errors[ref])
-            z = mean / se if se > 0 else (math.inf if mean > 0 else 0.0)
-            logs[k] = (z, 1.0 - math.exp(-mean))
-            d.scores.setdefault("log_ratio", {})[k] = {"z": z, "gain": logs[k][1], "mean": mean, "se": se}
-    wins = [k for k in d.z if d.z[k] > z_min and logs[k][0] > Z_MIN and logs[k][1] >= min_gain]
-    others = ", ".join(f"{k}: lower on more pixels at z {d.z[k]:.1f}, geometric mean {-100 * logs[k][1]:+.1f} % "
-                       f"(z {logs[k][0]:.1f})" for k in d.z)
+            logs[k] = {"z": mean / se if se > 0 else (math.inf if mean > 0 else 0.0), "gain": 1.0 - math.exp(-mean),
+                       "mean": mean, "se": se}
+    wins = [k for k in d.z if d.z[k] > z_min and logs[k]["z"] > Z_MIN and logs[k]["gain"] >= min_gain]
+    others = ", ".join(f"{k}: lower on more pixels at z {d.z[k]:.1f}, geometric mean {-100 * logs[k]['gain']:+.1f} % "
+                       f"(z {logs[k]['z']:.1f})" for k in d.z)
     if wins:
-        d.chosen = max(wins, key=lambda k: logs[k][1])
+        d.chosen = max(wins, key=lambda k: logs[k]["gain"])
         d.reason = f"{d.chosen} predicts the typical pixel better beyond noise: {others}"
     else:
         d.reason = (f"{others}: nothing lower on the typical pixel beyond noise (sign z > {z_min:g}, geometric mean "
