@@ -39,6 +39,27 @@ def test_fit_offsets_finds_the_lights_with_the_true_material():
     assert torch.equal(off, again)  # reproducible
 
 
+def test_fit_offsets_stops_once_converged(monkeypatch):
+    """FTOL ends a search when an accepted step gains less than 1e-6 of its error: the same offsets to within 1 % of
+    the move; shared (the pipeline's flash test), far fewer renders than the 15 iterations' 7 each (per shot, a shot
+    whose steps keep being rejected still runs them all)."""
+    import torchmetal.lightcal.positions as positions
+
+    r, cap, render = _scene(noise=0.01)
+    calls = []
+    counted = lambda lights: calls.append(1) or render(lights)  # noqa: E731
+    for shared in (False, True):
+        calls.clear()
+        off = fit_offsets(cap, counted, shared=shared)
+        stopped = len(calls)
+        monkeypatch.setattr(positions, "FTOL", 0.0)
+        calls.clear()
+        full = fit_offsets(cap, counted, shared=shared)
+        monkeypatch.setattr(positions, "FTOL", 1e-6)
+        assert float((off - full).norm(dim=1).max()) < 0.01 * float(full.norm(dim=1).max())
+        assert stopped < (0.6 if shared else 1.01) * len(calls), (stopped, len(calls))
+
+
 def test_fit_offsets_leaves_directional_lights_and_empty_masks_alone():
     r = synth_capture(size=24, shots=4, layout="far", texture="procedural", seed=1)
     cap = r.capture
