@@ -17,7 +17,7 @@ def _readme_commands():
 
 def test_readme_has_two_one_line_commands():
     cmds = _readme_commands().readme_commands()
-    assert cmds == ["bash scripts/setup.sh", ". .venv/bin/activate && python -m pytest -q"]
+    assert cmds == ["bash scripts/setup.sh", ". .venv/bin/activate && python -m pytest -q -n 2 --dist loadfile"]
 
 
 def test_ci_runs_exactly_the_readme_commands():
