@@ -16,7 +16,12 @@ error measure, the pixel grid it is decided on, the choices it follows, and a ch
    decides on all groups so far;
 4. futility: once every extension predicts worse beyond noise (z below −:data:`FUTILE_Z`) or, under the rule's
    typical pairing, cannot reach its gain (:func:`_futile`), the remaining groups are not fitted;
-5. the :class:`~torchmetal.select.rule.Decision` record, with the screen's reading and the seconds it took.
+5. the :class:`~torchmetal.select.rule.Decision` record, with the screen's reading, the rule's outcome after each
+   group (``scores["folds"]``: chosen, z and MSE on the groups so far) and the seconds it took.
+
+There is no early stop for a winner: a first group's z overstates what the next groups (other shots, other lights)
+show; on random scenes two flash moves at z 20 after one group (twice their bar) lost on all three
+(docs/measurements.md).
 """
 
 from __future__ import annotations
@@ -222,6 +227,7 @@ def _decide(choice: Choice, capture: Capture, ctx: Context) -> Decision:
     errors: dict[str, list[Tensor]] = {c: [] for c in choice.candidates}
     rule = dict(choice.rule)
     d = None
+    trail: list[dict] = []  # the rule's outcome on the groups so far, after each
     for i, group in enumerate(groups):
         train = grid.subset([k for k in range(n) if k not in group])
         hold = choice.hold(grid, list(group)) if choice.hold is not None else grid.subset(list(group))
@@ -236,6 +242,7 @@ def _decide(choice: Choice, capture: Capture, ctx: Context) -> Decision:
         d = _paired(choice, errors, rule, grid)
         if choice.check is not None:
             choice.check(d, errors)
+        trail.append({"chosen": d.chosen, "z": dict(d.z), "mse": dict(d.mse)})
         if i + 1 < len(groups) and all(_futile(d, c, rule) for c in d.z):
             d.reason += (f"; stopped after {i + 1} of {len(groups)} shot groups (every extension worse beyond noise, "
                          f"or short of the typical rule's gain)")
@@ -243,7 +250,7 @@ def _decide(choice: Choice, capture: Capture, ctx: Context) -> Decision:
             break
     d.holds = groups
     d.pixels = int(grid.height * grid.width)
-    d.scores.update(scores)
+    d.scores.update(scores, folds=trail)
     return d
 
 
