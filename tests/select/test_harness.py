@@ -29,12 +29,16 @@ def test_the_better_extension_wins_on_every_fold():
     assert d.chosen == "ext" and d.reference == "ref" and d.z["ext"] > 4 and d.seconds > 0
     assert len(d.holds) == 3 and sorted(k for g in d.holds for k in g) == list(range(7))
     assert len(fits) == 6 and all(n == 7 - len(g) for (n, _), g in zip(fits[::2], d.holds))
+    trail = d.scores["folds"]  # the rule's outcome after each group, the last one the decision's
+    assert len(trail) == 3 and trail[-1]["chosen"] == d.chosen and trail[-1]["z"] == d.z
+    assert trail[0]["z"]["ext"] < trail[-1]["z"]["ext"]  # more groups, more evidence
 
 
 def test_a_worse_extension_stops_after_one_fold():
     choice, fits = _toy({"ref": 0.01, "ext": 0.1})
     d = decide(choice, CAP, Context.fixed({}))
     assert d.chosen == "ref" and len(d.holds) == 1 and "stopped after 1 of 3" in d.reason and len(fits) == 2
+    assert [f["chosen"] for f in d.scores["folds"]] == ["ref"]
 
 
 def test_the_typical_rule_stops_once_its_gain_is_out_of_reach():

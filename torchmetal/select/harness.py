@@ -20,7 +20,7 @@ error measure, the pixel grid it is decided on, the choices it follows, and a ch
    group (``scores["folds"]``: chosen, z and MSE on the groups so far) and the seconds it took.
 
 There is no early stop for a winner: a first group's z overstates what the next groups (other shots, other lights)
-show; on random scenes two flash moves at z 20 after one group (twice their bar) lost on all three
+show; on random scenes two flash moves at z 20 after one group (twice their bar) were "off" once all three were in
 (docs/measurements.md).
 """
 
