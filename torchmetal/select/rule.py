@@ -79,13 +79,17 @@ def heldout_psnr(mse: dict) -> dict:
             for k, v in mse.items()}
 
 
+def mean_z(mean: float, se: float) -> float:
+    """``mean`` over its standard error ``se``; without spread, inf for a positive mean and 0 otherwise."""
+    return mean / se if se > 0 else (math.inf if mean > 0 else 0.0)
+
+
 def paired_z(err: Tensor, ref: Tensor) -> float:
     """z of the mean paired difference ref − err (> 0: ``err`` is lower), over M observations."""
     d = ref - err
     if d.numel() < 2:
         return 0.0
-    sd = float(d.std())
-    return float(d.mean()) / (sd / math.sqrt(d.numel())) if sd > 0 else (math.inf if float(d.mean()) > 0 else 0.0)
+    return mean_z(float(d.mean()), float(d.std()) / math.sqrt(d.numel()))
 
 
 def sign_z(err: Tensor, ref: Tensor) -> float:
@@ -157,7 +161,7 @@ def _typical_choice(d: Decision, errors: dict[str, Tensor], ref: str, *, z_min: 
         if k != ref:
             d.z[k] = sign_z(e, errors[ref])
             mean, se = log_ratio(e, errors[ref])
-            logs[k] = {"z": mean / se if se > 0 else (math.inf if mean > 0 else 0.0), "gain": 1.0 - math.exp(-mean),
+            logs[k] = {"z": mean_z(mean, se), "gain": 1.0 - math.exp(-mean),
                        "mean": mean, "se": se}
     wins = [k for k in d.z if d.z[k] > z_min and logs[k]["z"] > Z_MIN and logs[k]["gain"] >= min_gain]
     others = ", ".join(f"{k}: lower on more pixels at z {d.z[k]:.1f}, geometric mean {-100 * logs[k]['gain']:+.1f} % "
