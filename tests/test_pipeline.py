@@ -189,13 +189,18 @@ def test_the_statistics_refit_keeps_the_first_fits_clusters():
     the first fit did (the relabelling trial was 10 s of the real card's 18 s refit)."""
     from types import SimpleNamespace
 
-    from torchmetal.flakes.run import same_clusters
+    from torchmetal.fit.start import refit_options
 
-    assert same_clusters(SimpleNamespace(specular="global", selection={"k": 1})) == {}
-    assert same_clusters(SimpleNamespace(specular="maps", selection=None)) == {}
-    kept = same_clusters(SimpleNamespace(specular="clustered", selection={"k": 4, "relabel": False}))
-    assert kept == {"clusters": (4,), "relabel": False}
-    assert same_clusters(SimpleNamespace(specular="clustered", selection={"k": 2, "relabel": True}))["relabel"]
+    def fit(specular, selection):
+        return SimpleNamespace(specular=specular, selection=selection, lobe="phong", noise=None, decisions=[],
+                               s=torch.ones(3), alpha=torch.full((3,), 10.0), cluster_alpha=None)
+
+    assert "clusters" not in refit_options(fit("global", {"k": 1}))
+    assert "clusters" not in refit_options(fit("maps", None))
+    kept = refit_options(fit("clustered", {"k": 4, "relabel": False}))
+    assert kept["clusters"] == (4,) and kept["relabel"] is False and kept["weights"] == "uniform"
+    assert refit_options(fit("clustered", {"k": 2, "relabel": True}))["relabel"]
+    assert refit_options(fit("none", None))["start"] is None
 
 
 def test_glints_with_a_small_share_of_the_residual_leave_the_coating_fit_alone(monkeypatch):

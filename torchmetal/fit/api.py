@@ -47,6 +47,7 @@ from torchmetal.fit.refine import (
 )
 from torchmetal.fit.result import FitResult
 from torchmetal.fit.run import FitRun
+from torchmetal.fit.start import Start
 from torchmetal.geometry import is_flat
 from torchmetal.lobes import LOBES, check_lobe
 from torchmetal.memory import pixels_per_chunk, release_free_memory, streams_geometry
@@ -118,7 +119,7 @@ def fit_phong(
     robust: str | None = None, progress: bool = False, outliers: float | None = None,
     clusters: tuple[int, ...] = (2, 3, 4), max_pixels_per_chunk: int | None = None, sub_pixels: int = 1 << 16,
     select_pixels: int = 1 << 13, seed: int = 0, lobe: str = "phong", weights: str = "uniform",
-    relabel: bool = True, plan: ShotPlan | None = None,
+    relabel: bool = True, plan: ShotPlan | None = None, start: Start | None = None,
 ) -> FitResult:
     """Fit the Phong model of docs/design.md §2.2 (texture d(p), s, α per channel) to a capture.
 
@@ -161,6 +162,10 @@ def fit_phong(
             kept where the held-out shot prefers it); False: never (a refit keeping an earlier fit's structure).
         plan: the shots the choices leave out (:mod:`torchmetal.select.plan`), e.g. an earlier fit's
             ``shot_plan`` for a refit of the same capture; None: planned from this fit's first subsample fit.
+        start: a refit of a model another fit chose (:class:`~torchmetal.fit.start.Start`, ``Start.of(fit)``; with
+            that fit's ``lobe``, ``specular`` and ``weights``): it starts from that fit's values and does not test
+            its highlight, clusters' features or specular colour again. Ignored where the lobe differs or
+            ``weights`` is "auto".
 
     Returns:
         :class:`FitResult`.
@@ -177,7 +182,7 @@ def fit_phong(
         max_pixels_per_chunk = pixels_per_chunk(capture)
     kw = dict(specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers, clusters=clusters,
               chunk=max_pixels_per_chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed,
-              noise="auto" if weights == "auto" else weights == "noise", relabel=relabel, plan=plan)
+              noise="auto" if weights == "auto" else weights == "noise", relabel=relabel, plan=plan, start=start)
     run = FitRun(progress)
     try:
         res, lobe, lobe_sel = _fit_scheme(capture, run, scheme, lobe, kw)
@@ -316,11 +321,11 @@ def _fit_paper(capture, run: FitRun, *, specular: str, tol: float, max_iters: in
 
 
 def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outliers, clusters, chunk, sub_pixels,
-                select_pixels, seed, lobe="phong", decided=None, noise=False, relabel=True, plan=None) -> FitResult:
+                select_pixels, seed, lobe="phong", decided=None, noise=False, relabel=True, plan=None, start=None) -> FitResult:
     d = decided if decided is not None else subsample_decisions(
         capture, run, specular=specular, tol=tol, max_iters=max_iters, robust=robust, outliers=outliers,
         clusters=clusters, chunk=chunk, sub_pixels=sub_pixels, select_pixels=select_pixels, seed=seed, lobe=lobe,
-        noise=noise, relabel=relabel, plan=plan)
+        noise=noise, relabel=relabel, plan=plan, start=start)
     run.plan = d.plan
     weighting = d.weighting
     noise_info = None if weighting is None or weighting.variance is None else \

@@ -40,6 +40,7 @@ from torchmetal.fit.refine import (
 )
 from torchmetal.fit.run import FitRun
 from torchmetal.fit.shot_plan import shot_plan
+from torchmetal.fit.start import Start
 from torchmetal.select.plan import ShotPlan
 from torchmetal.select.rule import MIN_GAIN_ABS, paired_choice
 
@@ -75,25 +76,39 @@ class SubsampleDecisions:
 def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: float, max_iters: int, robust: str | None,
                         outliers: float | None, clusters: tuple[int, ...], chunk: int, sub_pixels: int,
                         select_pixels: int, seed: int, lobe: str = "phong", noise: bool | str = False,
-                        colour: bool = True, relabel: bool = True, plan: ShotPlan | None = None) -> SubsampleDecisions:
+                        colour: bool = True, relabel: bool = True, plan: ShotPlan | None = None,
+                        start: Start | None = None) -> SubsampleDecisions:
     """Steps 1–4b of the refine scheme (module docstring) on strided pixel subsamples of ``capture``
     (any object with ``images`` (N, 3, H, W) readable by :func:`~torchmetal.fit.problem.build_observations`,
     such as the tiled fit's memory-mapped capture): the same values bit for bit for the same pixels.
     ``noise``: weigh each observation by its expected variance (:func:`~torchmetal.fit.refine.noise_model`,
     fitted to the subsample fit's residuals); "auto": where a held-out shot prefers it (:func:`_weights_decision`).
     ``relabel``: False skips the relabelling trial of kept clusters. ``plan``: the shots to hold out
-    (:mod:`torchmetal.select.plan`; None: planned from this capture's first subsample fit)."""
+    (:mod:`torchmetal.select.plan`; None: planned from this capture's first subsample fit). ``start``: a refit of
+    a chosen model (:mod:`torchmetal.fit.start`; ignored unless ``lobe`` and ``specular`` are its): the subsample fit
+    starts from its lobe, noise weights use its noise model, its highlight is not tested again on a held-out shot
+    and its specular colour is kept."""
     imgs = capture.images
     dt = compute_dtype(imgs)
     n_shots, _, h, w = imgs.shape
     stride = grid_stride(h, w, sub_pixels)
     sel_stride = grid_stride(h, w, select_pixels)
     sub_tol = max(tol, 1e-4)
+    if start is not None and (start.lobe != lobe or start.specular != specular or noise == "auto"):
+        start = None  # not the model it was fitted with: chosen afresh
+    if start is not None:  # the subsample fit need only find the structure: the full fit starts near its solution
+        start, stride = start.to(imgs.device), sel_stride
     grids = _Grids(stride, sel_stride, dt, chunk, lobe)
-    sub, glob = _initial_fit(capture, run, grids, specular=specular, tol=tol, sub_tol=sub_tol, max_iters=max_iters)
+    weighting = None
+    if start is not None and robust is None and outliers is None:
+        sub, glob, weighting = _started_fit(capture, run, grids, start, noise=bool(noise), sub_tol=sub_tol,
+                                            max_iters=max_iters)
+        noise = False  # weighted already
+    else:
+        sub, glob = _initial_fit(capture, run, grids, specular=specular, tol=tol, sub_tol=sub_tol, max_iters=max_iters,
+                                 start=start)
     if plan is None and glob is not None:
         plan = shot_plan(sub, glob)
-    weighting = None
     if noise == "auto":
         with run.stage("choice.weights"):
             sub, glob, weighting = _weights_decision(capture, run, grids, sub, glob, robust=robust, outliers=outliers,
@@ -103,7 +118,7 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
                                                noise=noise, sub_tol=sub_tol, max_iters=max_iters)
     with run.stage("choice.specular evidence"):
         glob, s_fixed = _highlight_evidence(capture, run, grids, glob, sub_tol=sub_tol, max_iters=max_iters,
-                                            weighting=weighting, plan=plan)
+                                            weighting=weighting, plan=plan, tested=start is None)
     # 4. global vs clustered
     sel: Selection | None = None
     if glob is not None and specular in ("auto", "clustered"):
@@ -131,7 +146,8 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
     if use_maps:
         labeler = None
     with run.stage("choice.specular colour"):
-        white = colour and _colour_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, use_maps=use_maps,
+        white = (start.white and glob is not None and labeler is None and s_fixed is None and not use_maps) if start is not None \
+            else colour and _colour_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, use_maps=use_maps,
                                             labeler=labeler, plan=plan, grids=grids, tol=sub_tol, max_iters=max_iters,
                                             weighting=weighting)
     if labeler is not None:
@@ -158,15 +174,22 @@ class _Grids:
         return build_observations(capture, lobe=self.lobe, stride=stride, dtype=self.dtype, chunk=self.chunk, **kw)
 
 
-def _initial_fit(capture, run: FitRun, g: _Grids, *, specular, tol, sub_tol, max_iters) -> tuple[Observations, SpecFit | None]:
-    """1–2: the paper's scheme (loose tolerance) and a coarse α grid on the selection subsample, then the
-    variable projection on the subsample. Returns (subsample observations, global fit or None)."""
+def _initial_fit(capture, run: FitRun, g: _Grids, *, specular, tol, sub_tol, max_iters,
+                 start: Start | None = None) -> tuple[Observations, SpecFit | None]:
+    """1–2: the paper's scheme (loose tolerance) and a coarse α grid on the selection subsample (``start``: its α
+    instead), then the variable projection on the subsample. Returns (subsample observations, global fit or None)."""
     with run.stage("init"):
         sub = g.build(capture, g.stride)
-        coarse = sub if g.sel_stride == g.stride else g.build(capture, g.sel_stride)
     if specular == "none":
         run.skipped.append("specular: disabled by the caller (specular='none')")
         return sub, None
+    if start is not None:
+        with run.stage("refine"):
+            glob = fit_specular(sub, _start_beta(sub, start), tol=sub_tol, max_iters=max_iters,
+                                on_iter=run.logger("refine.sub", sub.num_pixels))
+        return sub, glob
+    with run.stage("init"):
+        coarse = sub if g.sel_stride == g.stride else g.build(capture, g.sel_stride)
     if g.lobe == "phong":
         n_coarse = coarse.num_pixels
         with run.stage("paper"):
@@ -178,6 +201,27 @@ def _initial_fit(capture, run: FitRun, g: _Grids, *, specular, tol, sub_tol, max
     with run.stage("refine"):
         glob = fit_specular(sub, beta0, tol=sub_tol, max_iters=max_iters, on_iter=run.logger("refine.sub", sub.num_pixels))
     return sub, glob
+
+
+def _started_fit(capture, run: FitRun, g: _Grids, start: Start, *, noise: bool, sub_tol,
+                 max_iters) -> tuple[Observations, SpecFit, Weighting | None]:
+    """1–2b from ``start``: the subsample weighted by its noise model at its lobe (``noise``; else uniform), fitted
+    from its α. Returns (observations, fit, weighting or None)."""
+    weighting = None
+    if noise and start.variance is not None:  # σ only scales robust weights and outlier cuts, neither asked for
+        weighting = Weighting(sigma=torch.ones(3, dtype=torch.float64, device=start.s.device), variance=start.variance)
+    with run.stage("init"):
+        sub = g.build(capture, g.stride, ref=Reference(start.s, start.alpha[:1]), weighting=weighting)
+    with run.stage("refine"):
+        glob = fit_specular(sub, _start_beta(sub, start), tol=sub_tol, max_iters=max_iters,
+                            on_iter=run.logger("refine.sub", sub.num_pixels))
+    return sub, glob, weighting
+
+
+def _start_beta(sub: Observations, start: Start) -> Tensor:
+    """(1, 3) log α: the start's α, or (several) per channel the one of least cost on ``sub``."""
+    alpha = start.alpha
+    return torch.log(alpha) if alpha.shape[0] == 1 else grid_beta(sub, 1, extra=alpha, grid=())
 
 
 def _weighted_refit(capture, run: FitRun, g: _Grids, sub: Observations, glob: SpecFit | None, *, robust, outliers,
@@ -247,8 +291,8 @@ def _weights_decision(capture, run: FitRun, g: _Grids, sub: Observations, glob: 
 
 
 def _highlight_evidence(capture, run: FitRun, g: _Grids, glob: SpecFit | None, *, sub_tol, max_iters,
-                        weighting, plan: ShotPlan | None) -> tuple[SpecFit | None, Tensor | None]:
-    """3: highlight evidence, in sample, then on a held-out shot (a sharp lobe can fit noise).
+                        weighting, plan: ShotPlan | None, tested: bool = True) -> tuple[SpecFit | None, Tensor | None]:
+    """3: highlight evidence, in sample, then (``tested``) on a held-out shot (a sharp lobe can fit noise).
     Returns (the global fit, None without evidence; ``s_fixed`` (1, 3): 0 in channels without evidence)."""
     if glob is None:
         return None, None
@@ -260,7 +304,7 @@ def _highlight_evidence(capture, run: FitRun, g: _Grids, glob: SpecFit | None, *
         frac = float(((glob.A - glob.cost) / glob.Y.clamp_min(1e-300)).max().clamp_min(0.0))
         reason = (f"no highlight evidence{one}: the best specular term explains {frac:.1e} of the image energy "
                   f"({float(glob.explained().max()):.1%} of the diffuse-only residual)")
-    elif n_shots >= 3:
+    elif n_shots >= 3 and tested:
         with run.stage("select"):
             ev_decision = heldout_evidence(capture, glob, stride=g.sel_stride, hold=plan.hold, tol=sub_tol,
                                            max_iters=max_iters, dtype=g.dtype, chunk=g.chunk, weighting=weighting)

@@ -305,11 +305,11 @@ def share_alpha(obs: Observations, fit: SpecFit) -> tuple[SpecFit, dict]:
 def grid_beta(
     obs: Observations, k: int, extra: Tensor | None = None, grid: tuple[float, ...] = (1, 4, 16, 64, 256, 1024, 4096)
 ) -> Tensor:
-    """Best β per element (K, 3) over a coarse α grid (plus ``extra`` (K, 3) α candidates)."""
+    """Best β per element (K, 3) over a coarse α grid (plus ``extra`` (K, 3) or (M, K, 3): M α candidates)."""
     dev = obs.device
     cands = [torch.full((k, 3), float(a), dtype=torch.float64, device=dev) for a in grid]
     if extra is not None:
-        cands.append(extra.to(torch.float64).clamp(ALPHA_MIN, ALPHA_MAX))
+        cands += list(extra.to(device=dev, dtype=torch.float64).clamp(ALPHA_MIN, ALPHA_MAX).reshape(-1, k, 3))
     best_cost = torch.full((k, 3), math.inf, dtype=torch.float64, device=dev)
     best = cands[0]
     for alpha in cands:

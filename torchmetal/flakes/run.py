@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from torchmetal.fit import FitResult, fit_phong
+from torchmetal.fit.start import refit_options
 from torchmetal.flakes.choice import HELD as FLAKE_HOLDS
 from torchmetal.flakes.choice import choose_observed, keep_flakes
 from torchmetal.flakes.density_choice import choose_density_map
@@ -159,15 +160,6 @@ def flake_stage_with_refits(capture, fit, seed: int, refit=None, coat_fit=None):
 
 
 
-def same_clusters(first: FitResult) -> dict:
-    """fit_phong options that keep ``first``'s clusters: their count, and relabelling only where it relabelled."""
-    sel = first.selection or {}
-    if first.specular != "clustered" or not sel.get("k"):
-        return {}
-    return {"clusters": (int(sel["k"]),), "relabel": bool(sel.get("relabel"))}
-
-
-
 def stage_flakes(capture: Capture, st):
     """Detection, noise tests, the refits away from the glints and the flake statistics (:func:`flake_stage_with_refits`)."""
     o = st.opts
@@ -176,15 +168,15 @@ def stage_flakes(capture: Capture, st):
         st.stage_times["flakes"] = 0.0
         return capture, st
     t = time.perf_counter()
-    # refits keep the lobe and the weights the first fit chose, and hold out the same shots
-    kw = {**o.fit_kwargs(), "lobe": st.first.lobe, "weights": "noise" if st.first.noise is not None else "uniform",
-          "plan": st.first.shot_plan}
+    # refits keep the lobe and the weights the first fit chose, start from its values, and hold out the same shots
+    model = refit_options(st.first)
+    kw = {**o.fit_kwargs(), **{k: model[k] for k in ("lobe", "weights", "start")}, "plan": st.first.shot_plan}
     two_fits = o.solver.robust == "auto" and o.solver.scheme == "refine"
     # the statistics' Huber refit keeps the first fit's specular structure (the trials of clusters and gloss
     # maps again cost more than the rest of the refit): its cluster count, and relabelling only where the first
     # fit relabelled (at full resolution it cost 10 s of the real card's 18 s refit); the coating's refit below
     # chooses it again, glints out
-    same = {**kw, "specular": st.first.specular if o.choices.specular == "auto" else o.choices.specular, **same_clusters(st.first)}
+    same = {**kw, **model} if o.choices.specular == "auto" else {**kw, "specular": o.choices.specular}
     refit = (lambda: fit_phong(capture, robust=ROBUST_GLINTS, **same)) if two_fits else None
     coat_fit = (lambda cap: fit_phong(cap, robust=None, **kw)) if two_fits else None
     st.flake_result, coat, texture = flake_stage_with_refits(capture, st.first, o.flakes.seed, refit, coat_fit)

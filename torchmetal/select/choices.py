@@ -36,6 +36,7 @@ import torch
 
 from torchmetal.clipping import partly_clipped, pixel_clipped
 from torchmetal.fit.api import fit_phong
+from torchmetal.fit.start import refit_options
 from torchmetal.io.grid import strided_capture
 from torchmetal.lightcal.estimate import calibrate_positions
 from torchmetal.normals.estimate import estimate_normals
@@ -65,16 +66,6 @@ CLIPPING_GAIN = 0.005  # dropping data must pay for itself (docs/design.md §4)
 LIGHT_GAIN = 0.02  # the flash's move: 2 % (docs/design.md §4)
 
 
-def model_of(fit) -> dict:
-    """:func:`~torchmetal.fit.fit_phong` options that refit ``fit``'s model without choosing it again."""
-    model = {"lobe": fit.lobe, "specular": fit.specular if fit.specular != "none" else "none",
-             "weights": "noise" if fit.noise is not None else "uniform"}
-    sel = fit.selection or {}
-    if fit.specular == "clustered" and sel.get("k"):
-        model |= {"clusters": (int(sel["k"]),), "relabel": bool(sel.get("relabel"))}
-    return model
-
-
 def reference_context(capture: Capture, fit_kwargs: dict) -> Context:
     """The :class:`~torchmetal.select.harness.Context` whose model is the reference fit's on the capture's grid
     (``fit_kwargs``: the fit's own options, ``lobe``/``weights`` "auto" where the final fit chooses them),
@@ -85,7 +76,7 @@ def reference_context(capture: Capture, fit_kwargs: dict) -> Context:
         grid = strided_capture(capture, REFERENCE_PIXELS)
         fit = fit_phong(grid, **fit_kwargs)
         ctx.keep_reference(grid, fit)
-        return {**keep, **model_of(fit)}
+        return {**keep, **refit_options(fit)}
 
     return Context(reference=reference)
 
@@ -114,7 +105,7 @@ def _clipping_untested(capture: Capture, ctx: Context) -> str | None:
 #: shot's are not valid under the channel reading), only how reading them shifted the fit elsewhere; a richer model
 #: absorbs that shift where the truth still shows it (zoo sphere_sharp72 with its chosen GGX: held-out gain 0.35 %,
 #: under the minimum, and 1.17 dB lost against its truth). A censored residual would let it see them (issue 46)
-CLIPPING_FIT = {"lobe": "phong", "specular": "global", "weights": "uniform"}
+CLIPPING_FIT = {"lobe": "phong", "specular": "global", "weights": "uniform", "start": None}
 
 
 def _clipping_fit(train: Capture, candidate: str, ctx: Context):
@@ -269,4 +260,4 @@ def choose(choice: Choice, capture: Capture, *, fit_kwargs: dict | None = None, 
     return decide(choice, capture, ctx)
 
 __all__ = ["CLIPPING", "DEFAULT_FIT", "LIGHT", "NORMALS", "PREFIT", "REGISTRATION", "RELIEF", "Context", "choose",
-           "model_of", "reference_context"]
+           "reference_context"]
