@@ -118,3 +118,43 @@ def test_relabel_keeps_labels_without_evidence():
     alpha = torch.full((2, 3), 40.0, dtype=torch.float64)
     labels, n = relabel(obs, s, alpha, per_obs=1e-6)
     assert n == 0 and torch.equal(labels, obs.labels)
+
+
+def test_a_cluster_whose_s_runs_away_keeps_the_global_terms(monkeypatch):
+    """A cluster whose highlight its shots saw only in the lobe's tail has an s without bound (random scene 221's
+    fold: s 1.5e6, renders of 1e6 on the left-out shots). Beyond S_RATIO_MAX times the global s it is held at the
+    global terms, and so is any element the holding sends beyond it; here the bound is lowered so that the
+    brighter cluster of a two-material sample crosses it."""
+    import torchmetal.fit.clusters as clusters
+    from torchmetal.fit.clusters import fit_clustered
+    from torchmetal.fit.problem import build_observations
+    from torchmetal.fit.refine import fit_specular, grid_beta
+
+    syn = synth(size=48, shots=8, seed=2, noise=0.003, spec_clusters=2, s=(0.9, 0.9, 0.9))
+    obs = build_observations(syn.capture, want_tmin=True)
+    glob = fit_specular(obs, grid_beta(obs, 1))
+    ij = grid_coords(obs.height, obs.width, 1, obs.device).to(obs.dtype)
+    lab = make_labeler(obs.tmin, ij, obs.n.sum(0) > 0, 2, spec=None)
+    obs.labels = lab(obs.tmin, ij)
+    free = fit_clustered(obs, lab, glob, tol=1e-6, max_iters=100)
+    ratio = float(free.s.max() / glob.s.max())
+    assert free.pinned is None or not bool(free.pinned.any())
+    monkeypatch.setattr(clusters, "S_RATIO_MAX", 0.5 * (1.0 + ratio))  # between the global s and the brighter cluster's
+    held = fit_clustered(obs, lab, glob, tol=1e-6, max_iters=100)
+    assert held.pinned is not None and bool(held.pinned.any())
+    free_s = held.s[~held.pinned]
+    assert bool((free_s <= clusters.S_RATIO_MAX * glob.s.max() * (1 + 1e-9)).all())
+    assert torch.allclose(held.s[held.pinned], glob.s.expand_as(held.s)[held.pinned].to(held.s.dtype))
+
+
+def test_the_full_resolution_fit_holds_a_runaway_cluster_too(monkeypatch):
+    """The full-resolution LM (and the relabelling's refits) starts from the subsample's clusters; an element that
+    runs beyond the bound there is held at the subsample fit's terms, and the report says so."""
+    import torchmetal.fit.clusters as clusters
+
+    syn = synth(size=48, shots=8, seed=2, noise=0.003, spec_clusters=2, s=(0.9, 0.9, 0.9))
+    monkeypatch.setattr(clusters, "S_RATIO_MAX", 0.9)  # below 1: the brightest full-resolution element crosses it
+    fit = fit_phong(syn.capture, specular="clustered", clusters=(2,))
+    assert fit.specular == "clustered"
+    assert any("ran beyond" in msg for msg in fit.skipped), fit.skipped
+    assert bool(torch.isfinite(fit.cluster_s).all())

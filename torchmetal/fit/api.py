@@ -27,7 +27,7 @@ from torch import Tensor
 
 from torchmetal.checks import check_finite
 from torchmetal.errors import FitError, InputError
-from torchmetal.fit.clusters import heldout_mse, relabel_pixels
+from torchmetal.fit.clusters import S_RATIO_MAX, heldout_mse, relabel_pixels, runaway
 from torchmetal.fit.colour import fit_white
 from torchmetal.fit.decisions import subsample_decisions
 from torchmetal.fit.gloss import fit_gloss_maps
@@ -400,6 +400,8 @@ def _refine_full(full: Observations, run: FitRun, d: SubsampleDecisions, *, tol:
         fit = fit_specular(full, torch.log(spec.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix,
                            on_iter=run.logger("refine", full.num_pixels), first=first)
         del first
+        if labeler is not None:
+            fit, s_fix, b_fix = _bounded(full, run, fit, spec, s_fix, b_fix, tol=tol, max_iters=max_iters)
         if d.white:  # one s for the three channels (fit.colour), chosen on the held-out shot
             fit = fit_white(full, fit, tol=tol, max_iters=max_iters, on_iter=run.logger("refine", full.num_pixels))
             s_fix = fit.s  # GGX's shared α would re-solve s per channel
@@ -408,7 +410,25 @@ def _refine_full(full: Observations, run: FitRun, d: SubsampleDecisions, *, tol:
             fit, moved = relabel_pixels(full, fit, lambda obs, f: fit_specular(
                 obs, torch.log(f.alpha), tol=tol, max_iters=max_iters, s_fixed=s_fix, beta_fixed=b_fix))
             run.log("relabel", 1, math.sqrt(float(fit.cost.sum()) / full.n_obs), 1.0, moved)
+            fit, s_fix, _ = _bounded(full, run, fit, spec, s_fix, b_fix, tol=tol, max_iters=max_iters)
     return fit, s_fix
+
+
+def _bounded(full: Observations, run: FitRun, fit: SpecFit, spec: SpecFit, s_fix: Tensor | None, b_fix: Tensor | None,
+             *, tol: float, max_iters: int) -> tuple[SpecFit, Tensor | None, Tensor | None]:
+    """The clustered ``fit`` with its runaway elements (:func:`~torchmetal.fit.clusters.runaway`: a cluster's lobe
+    its shots saw only in the tail) held at the subsample fit ``spec``'s terms. Returns (fit, s_fixed, beta_fixed)."""
+    bad = runaway(fit.s, spec.s)
+    if not bool(bad.any()):
+        return fit, s_fix, b_fix
+    pin = bad if fit.pinned is None else bad | fit.pinned
+    run.skipped.append(f"specular clusters: {int(bad.any(1).sum())} cluster(s) whose s ran beyond {S_RATIO_MAX:g}× "
+                       "the subsample fit's keep its terms")
+    s_fix, b_fix = pinned_terms(pin, spec.s, spec.alpha)
+    fit = fit_specular(full, torch.where(pin, b_fix, torch.log(fit.alpha)), tol=tol, max_iters=max_iters, s_fixed=s_fix,
+                       beta_fixed=b_fix, on_iter=run.logger("refine", full.num_pixels))
+    fit.pinned = pin
+    return fit, s_fix, b_fix
 
 
 def _refine_result(capture, run: FitRun, full: Observations, fit: SpecFit, tex: Tensor, k: int, *, sel,

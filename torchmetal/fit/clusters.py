@@ -212,20 +212,35 @@ def heldout_evidence(capture: Capture, glob: SpecFit, *, stride: int, hold: int,
     return d
 
 
+#: a cluster's s beyond this many times the global lobe's largest s is a lobe its shots saw only in its tail: a cluster
+#: whose highlight no fit shot put near its pixels, whose s grows without bound while its tail stays small (on a random
+#: scene's 5-shot fold, s 1.5e6 at α 1059, renders of 1e6 on the left-out shots); its pixels keep the global terms
+S_RATIO_MAX = 100.0
+RUNAWAY_ROUNDS = 3
+
+
+def runaway(s: Tensor, ref_s: Tensor) -> Tensor:
+    """(K, 3) bool: the elements of ``s`` (K, 3) beyond :data:`S_RATIO_MAX` times the largest of ``ref_s``."""
+    return s > S_RATIO_MAX * ref_s.max()
+
+
 def fit_clustered(obs: Observations, labeler: Labeler, glob: SpecFit, *, tol: float, max_iters: int) -> SpecFit:
-    """K-cluster fit on ``obs`` (labels set from its T_min); clusters without evidence keep ``glob``."""
+    """K-cluster fit on ``obs`` (labels set from its T_min); clusters without evidence, or with an s beyond
+    :data:`S_RATIO_MAX` times the global one, keep ``glob``."""
     k = labeler.k
     if obs.labels is None:
         raise ValueError("fit_clustered: observations need labels (build them with the labeler)")
     beta0 = torch.log(glob.alpha.expand(k, 3)).clone()
     fit = fit_specular(obs, beta0, tol=tol, max_iters=max_iters)
-    ok = evidence(fit)
-    if bool(ok.all()):
-        return fit
-    s_fix, b_fix = pinned_terms(~ok, glob.s.expand(k, 3), glob.alpha.expand(k, 3))
-    fit = fit_specular(obs, torch.where(ok, torch.log(fit.alpha), b_fix), tol=tol, max_iters=max_iters,
-                       s_fixed=s_fix, beta_fixed=b_fix)
-    fit.pinned = ~ok
+    pin = ~evidence(fit) | runaway(fit.s, glob.s)
+    for _ in range(RUNAWAY_ROUNDS):  # holding some elements can send another's s beyond the bound
+        if not bool(pin.any()) or (fit.pinned is not None and bool((pin == fit.pinned).all())):
+            break
+        s_fix, b_fix = pinned_terms(pin, glob.s.expand(k, 3), glob.alpha.expand(k, 3))
+        fit = fit_specular(obs, torch.where(pin, b_fix, torch.log(fit.alpha)), tol=tol, max_iters=max_iters,
+                           s_fixed=s_fix, beta_fixed=b_fix)
+        fit.pinned = pin
+        pin = pin | runaway(fit.s, glob.s)
     return fit
 
 
