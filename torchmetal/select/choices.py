@@ -4,7 +4,8 @@ They follow one reference fit (:func:`reference_context`): the default Phong fit
 the capture makes the coating's own choices once (lobe, specular structure, weights), and every candidate of
 the choices below is then fitted with that model — the model the final fit will use — so that a candidate
 fit repeats none of them and no candidate is scored against a simpler stand-in (a global lobe on a
-two-material sample misfits, and estimated normals, a relief or a moved light then "explain" the misfit).
+two-material sample misfits, and estimated normals, a relief or a moved light then "explain" the misfit),
+starting from the reference fit's values (:mod:`torchmetal.fit.start`).
 
 ============ ============================= ================ ============================================
 choice       candidates (reference first)  error (paired)   screen (skips the test)
