@@ -164,8 +164,8 @@ def fit_phong(
             ``shot_plan`` for a refit of the same capture; None: planned from this fit's first subsample fit.
         start: a refit of a model another fit chose (:class:`~torchmetal.fit.start.Start`, ``Start.of(fit)``; with
             that fit's ``lobe``, ``specular`` and ``weights``): it starts from that fit's values and does not test
-            its highlight, clusters' features or specular colour again. Ignored where the lobe differs or
-            ``weights`` is "auto".
+            its highlight or specular colour again (it still splits its own clusters). Ignored where the lobe or the
+            specular structure differs or ``weights`` is "auto".
 
     Returns:
         :class:`FitResult`.
@@ -423,7 +423,7 @@ def _bounded(full: Observations, run: FitRun, fit: SpecFit, spec: SpecFit, s_fix
         return fit, s_fix, b_fix
     pin = bad if fit.pinned is None else bad | fit.pinned
     run.skipped.append(f"specular clusters: {int(bad.any(1).sum())} cluster(s) whose s ran beyond {S_RATIO_MAX:g}× "
-                       "the subsample fit's keep its terms")
+                       "the subsample fit's largest keep the subsample fit's terms")
     s_fix, b_fix = pinned_terms(pin, spec.s, spec.alpha)
     fit = fit_specular(full, torch.where(pin, b_fix, torch.log(fit.alpha)), tol=tol, max_iters=max_iters, s_fixed=s_fix,
                        beta_fixed=b_fix, on_iter=run.logger("refine", full.num_pixels))
