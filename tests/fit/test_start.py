@@ -58,3 +58,15 @@ def test_a_started_clustered_refit_keeps_the_cluster_count_and_splits_its_own_pi
     assert "specular evidence" not in _names(started) and "specular clusters" in _names(started)
     assert "paper" not in started.stage_times
     assert abs(started.rmse - ref.rmse) <= 0.02 * ref.rmse
+
+
+def test_a_started_refit_of_a_maps_model_keeps_its_maps_untried():
+    """The forced maps trial (a held-out fit of maps on the selection grid) is not made again for a refit of a model
+    that kept gloss maps: the maps are fitted at full resolution, as the model says."""
+    cap = synth_capture(size=48, shots=8, texture="procedural", seed=6, noise=0.01).capture
+    ref = fit_phong(cap, specular="maps")
+    assert ref.specular == "maps"
+    started = fit_phong(cap.subset([0, 1, 2, 3, 4, 5]), **refit_options(ref))
+    assert started.specular == "maps" and started.gloss_alpha is not None
+    assert started.maps_selection["reason"].startswith("the model's gloss maps")
+    assert "gloss maps" not in _names(started)

@@ -140,7 +140,7 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
     with run.stage("choice.gloss maps"):
         use_maps, maps_info = _maps_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, plan=plan,
                                              sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
-                                             weighting=weighting, lobe=lobe)
+                                             weighting=weighting, lobe=lobe, started=start is not None)
     if maps_info is not None and maps_info.get("decision") is not None:
         run.decisions.append(maps_info["decision"])
     if use_maps:
@@ -339,15 +339,17 @@ def _colour_decision(capture: Capture, run: FitRun, glob: SpecFit | None, sel: S
 
 
 def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, plan, sel_stride, tol, max_iters, dt, chunk,
-                   weighting, lobe) -> tuple[bool, dict | None]:
+                   weighting, lobe, started: bool = False) -> tuple[bool, dict | None]:
     """Whether the full-resolution fit gets gloss maps (and the held-out evidence behind it).
 
     The maps start from the global fit (they carry the spatial variation themselves). With
     specular="auto" they are tried only when clusters were not kept, and must beat global on the
-    selection's held-out shot."""
+    selection's held-out shot; ``started`` (a refit of a maps model, :mod:`torchmetal.fit.start`): kept untried."""
     n_shots = int(capture.images.shape[0])
     if glob is None or specular not in ("auto", "maps"):
         return False, None
+    if started and specular == "maps":
+        return True, {"kept": True, "hold": -1, "mse": {}, "reason": "the model's gloss maps (a refit from its start)"}
     if n_shots < 3:
         if specular == "auto":
             run.skipped.append(f"gloss maps: a held-out test needs >= 3 shots, found {n_shots}")
