@@ -70,3 +70,14 @@ def test_a_started_refit_of_a_maps_model_keeps_its_maps_untried():
     assert started.specular == "maps" and started.gloss_alpha is not None
     assert started.maps_selection["reason"].startswith("the model's gloss maps")
     assert "gloss maps" not in _names(started)
+
+
+def test_noise_weights_from_a_start_without_a_noise_model_are_estimated():
+    """A start from a uniform-weights fit, asked for noise weights: the noise model is estimated from the refit's
+    residuals (as without a start), not silently left out."""
+    cap = synth_capture(size=48, shots=8, texture="procedural", seed=4, noise=0.01).capture
+    ref = fit_phong(cap, specular="global", weights="uniform")
+    st = Start.of(ref)
+    assert st.variance is None
+    refit = fit_phong(cap, specular="global", weights="noise", start=st)
+    assert refit.noise is not None and "paper" not in refit.stage_times

@@ -100,7 +100,7 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
         start, stride = start.to(imgs.device), sel_stride
     grids = _Grids(stride, sel_stride, dt, chunk, lobe)
     weighting = None
-    if start is not None and robust is None and outliers is None:
+    if start is not None and robust is None and outliers is None and (not noise or start.variance is not None):
         sub, glob, weighting = _started_fit(capture, run, grids, start, noise=bool(noise), sub_tol=sub_tol,
                                             max_iters=max_iters)
         noise = False  # weighted already
@@ -206,9 +206,10 @@ def _initial_fit(capture, run: FitRun, g: _Grids, *, specular, tol, sub_tol, max
 def _started_fit(capture, run: FitRun, g: _Grids, start: Start, *, noise: bool, sub_tol,
                  max_iters) -> tuple[Observations, SpecFit, Weighting | None]:
     """1–2b from ``start``: the subsample weighted by its noise model at its lobe (``noise``; else uniform), fitted
-    from its α. Returns (observations, fit, weighting or None)."""
+    from its α. Returns (observations, fit, weighting or None). A start without a noise model and weights asked for
+    estimate one instead (:func:`_weighted_refit`)."""
     weighting = None
-    if noise and start.variance is not None:  # σ only scales robust weights and outlier cuts, neither asked for
+    if noise:  # σ only scales robust weights and outlier cuts, neither asked for
         weighting = Weighting(sigma=torch.ones(3, dtype=torch.float64, device=start.s.device), variance=start.variance)
     with run.stage("init"):
         sub = g.build(capture, g.stride, ref=Reference(start.s, start.alpha[:1]), weighting=weighting)
