@@ -146,10 +146,12 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
     if use_maps:
         labeler = None
     with run.stage("choice.specular colour"):
-        white = (start.white and glob is not None and labeler is None and s_fixed is None and not use_maps) if start is not None \
-            else colour and _colour_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, use_maps=use_maps,
-                                            labeler=labeler, plan=plan, grids=grids, tol=sub_tol, max_iters=max_iters,
-                                            weighting=weighting)
+        if start is not None:  # the model's colour, not tested again
+            white = start.white and glob is not None and labeler is None and s_fixed is None and not use_maps
+        else:
+            white = colour and _colour_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed,
+                                                use_maps=use_maps, labeler=labeler, plan=plan, grids=grids, tol=sub_tol,
+                                                max_iters=max_iters, weighting=weighting)
     if labeler is not None:
         with run.stage("refine"):
             sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
