@@ -4,7 +4,7 @@ import torch
 
 from tests.fit.helpers import synth
 from torchmetal.fit import fit_phong
-from torchmetal.fit.clusters import SpecFeatureMap, colour_features, grid_coords, kmeans, make_labeler
+from torchmetal.fit.cluster_features import SpecFeatureMap, colour_features, grid_coords, kmeans, make_labeler
 
 
 def test_kmeans_separates_blobs():

@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from torchmetal.fit.cluster_features import Labeler
 from torchmetal.fit.clusters import (
-    Labeler,
     Selection,
     choose_specular,
     evidence,

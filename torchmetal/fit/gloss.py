@@ -35,7 +35,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchmetal.fit.clusters import colour_features, heldout_errors, mean_square
+from torchmetal.fit.cluster_features import colour_features
+from torchmetal.fit.clusters import heldout_errors, mean_square
 from torchmetal.fit.lm import LMEval, levenberg_marquardt
 from torchmetal.fit.problem import Observations, Reference, Weighting, build_observations
 from torchmetal.fit.refine import (

@@ -71,7 +71,7 @@ def choose_lobe(
 ) -> LobeSelection:
     """Fit each candidate lobe on all shots but a group (in turn, ``holds`` shots in ``folds`` groups) on a
     pixel grid of ``stride``; keep the lowest held-out MSE, Phong unless beaten beyond noise (module docstring).
-    With ``labeler`` (:class:`~torchmetal.fit.clusters.Labeler`, the kept specular clusters) every lobe is
+    With ``labeler`` (:class:`~torchmetal.fit.cluster_features.Labeler`, the kept specular clusters) every lobe is
     fitted per cluster: the lobes compete on the specular structure the fit will use (one global lobe
     averaged over two Phong materials looks like GGX's tail). With ``plan`` (:mod:`torchmetal.select.plan`, the
     capture's), its first ``holds`` shots are left out; without, the ranking of the base lobe's own fit."""
