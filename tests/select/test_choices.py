@@ -63,6 +63,18 @@ def test_flat_sample_is_screened_and_stays_flat(flat):
     assert not d.scores["screen"]["run"] and d.scores["screen"]["tilt_share"] < sc.tilt_screen.__globals__["TILT_SHARE"]
 
 
+def test_the_tilt_screen_asks_for_size_not_only_significance(bumpy):
+    """The bumpy sample's tilts explain most of the typical pixel's residual: above both tests' floors; a floor
+    above the reading screens the test out with the reading in the reason, and the floor changes nothing else."""
+    cap = replace(bumpy, normals=None)
+    fit = sc.reference_context(cap, dict(sc.DEFAULT_FIT)).fit(cap)
+    run = sc.tilt_screen(fit, cap)
+    explained = run.reading["explained_median"]
+    assert run.run and max(sc.NORMALS_EXPLAINED, sc.RELIEF_EXPLAINED) < explained <= 1.0
+    stop = sc.tilt_screen(fit, cap, min_explained=min(1.0, explained + 0.01))
+    assert not stop.run and stop.reading == run.reading and f"tilts explain {explained:.0%}" in stop.reason
+
+
 def test_given_normals_and_too_few_shots_are_not_tested(bumpy):
     d = choose(NORMALS, bumpy)
     assert d.chosen == "flat" and "own normals" in d.reason and not d.holds  # the pipeline then keeps "given"

@@ -9,7 +9,10 @@ find a gain beyond noise either, and its candidate fits are not run.
   texture is re-solved by any fit). Under the reference (the surface flat, the model right) the explained share
   of a pixel's residual follows an F(2, m − 5) law, m its valid observations, so each pixel gets an exact
   p-value; the screen passes when more pixels than :data:`TILT_SHARE` reach p < :data:`TILT_P` (1 % by chance).
-  An embossing, a bump or a lobe that misfits the surface shape lifts that share far above it.
+  An embossing, a bump or a lobe that misfits the surface shape lifts that share far above it. Significance is
+  not size: the tests' typical rule asks the typical pixel's held-out error to halve, so the screen also asks
+  the tilts to explain a share of the typical (median) pixel's residual in-sample — each test its own floor
+  (``min_explained``), calibrated on the random scenes (:mod:`torchmetal.select.choices`).
 - :func:`clipping_screen`: the share of the reference fit's squared residual that sits on the unclipped
   channels of partly clipped observations. Reading them per pixel drops exactly those; where they hold less
   than the test's minimum gain (:data:`torchmetal.select.choices.CLIPPING_GAIN`) of the residual, they pull the
@@ -58,8 +61,9 @@ def _tilted(normals: Tensor, axis: int, eps: float) -> Tensor:
     return F.normalize(normals + t, dim=0)
 
 
-def tilt_screen(fit: FitResult, capture: Capture) -> Screen:
-    """The normals' screen (module docstring) of ``fit``, the reference fitted to ``capture``."""
+def tilt_screen(fit: FitResult, capture: Capture, *, min_explained: float = 0.0) -> Screen:
+    """The normals' screen (module docstring) of ``fit``, the reference fitted to ``capture``; ``min_explained``:
+    the share of the median pixel's residual its two tilts must explain in-sample for the test to run."""
     y = capture.images.double()
     base = _render(fit, capture)
     # observations weighted by the inverse of a variance that grows with the value (shot noise; the 8-bit sRGB step
@@ -91,11 +95,16 @@ def tilt_screen(fit: FitResult, capture: Capture) -> Screen:
     f = (gain / 2) / ((sse - gain).clamp_min(1e-300) / dof)
     p = (1 + 2 * f / dof).pow(-dof / 2)  # the F(2, d) survival function, exact
     share = float((p[inside] < TILT_P).double().mean())
-    reading = {"tilt_share": share, "pixels": int(inside.sum())}
-    if share > TILT_SHARE:
-        return Screen(True, f"{share:.1%} of pixels follow a tilt beyond noise (p < {TILT_P:g}; {TILT_P:.0%} by chance)", reading)
-    return Screen(False, f"the reference fit's residual follows no tilt beyond noise: {share:.1%} of pixels at p < "
-                         f"{TILT_P:g} ({TILT_P:.0%} by chance, {TILT_SHARE:.0%} needed)", reading)
+    explained = float((gain / sse.clamp_min(1e-300))[inside].median())
+    reading = {"tilt_share": share, "explained_median": explained, "pixels": int(inside.sum())}
+    if share <= TILT_SHARE:
+        return Screen(False, f"the reference fit's residual follows no tilt beyond noise: {share:.1%} of pixels at p < "
+                             f"{TILT_P:g} ({TILT_P:.0%} by chance, {TILT_SHARE:.0%} needed)", reading)
+    if explained < min_explained:
+        return Screen(False, f"tilts explain {explained:.0%} of the typical pixel's residual in-sample ({share:.1%} of "
+                             f"pixels beyond noise), under the {min_explained:.0%} the test needs", reading)
+    return Screen(True, f"{share:.1%} of pixels follow a tilt beyond noise (p < {TILT_P:g}; {TILT_P:.0%} by chance), "
+                        f"explaining {explained:.0%} of the typical pixel's residual", reading)
 
 
 def clipping_screen(fit: FitResult, capture: Capture) -> Screen:
