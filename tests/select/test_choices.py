@@ -12,6 +12,7 @@ from tests.normals.test_relief import _embossed
 from torchmetal.clipping import partly_clipped, with_clipping
 from torchmetal.errors import InputError
 from torchmetal.geometry import shading_geometry
+from torchmetal.io.grid import strided_capture
 from torchmetal.lightcal import LightCalibration, with_light
 from torchmetal.normals import with_normals
 from torchmetal.phong import phong_shading
@@ -180,7 +181,7 @@ def test_a_processed_photo_drops_the_whole_observation():
     cap = _camera_processed(_clipped())
     d = choose(CLIPPING, cap)
     assert d.chosen == "pixel" and d.z["pixel"] > 4 and d.mse["pixel"] < d.mse["channel"], d.reason
-    assert d.scores["screen"]["run"] and d.scores["screen"]["residual_share"] > 0.005
+    assert d.scores["screen"]["run"] and d.scores["screen"]["residual_share"] >= sc.clipping_screen.__globals__["CLIPPING_SHARE"]
     out, rep = with_clipping(cap, "pixel")
     assert rep["chosen"] == "pixel" and partly_clipped(out) == 0
 
@@ -197,17 +198,21 @@ def test_nothing_partly_clipped_is_not_tested():
 
 
 def test_the_shared_card_tests_its_clipping():
-    """cards_blue (phone photos, 1 % of observations partly clipped): their other channels hold enough of the
-    residual for the test to run, and it is recorded with both candidates' held-out errors (docs/measurements.md
-    has its outcome under each pairing)."""
+    """cards_blue (phone photos, 1 % of observations partly clipped): their other channels hold about a tenth of the
+    residual (at the screen's floor unregistered, 14 % after the pipeline's registration); tested, the outcome is
+    recorded with both candidates' held-out errors (docs/measurements.md has it under each pairing)."""
     from torchmetal.io.capture import load_capture
     from torchmetal.io.shared_data import shared_capture, shared_data_dir
 
     path = shared_capture("cards_blue")
     if path is None:
         pytest.skip(f"shared real capture cards_blue not found under {shared_data_dir()} (set TORCHMETAL_SHARED_DATA)")
-    d = choose(CLIPPING, load_capture(path))
-    assert d.scores["screen"]["run"] and set(d.mse) == {"channel", "pixel"}, d.reason
+    cap = load_capture(path)
+    grid = strided_capture(cap, sc.CLIPPING_PIXELS)
+    fit = sc.reference_context(cap, dict(sc.DEFAULT_FIT)).fit(grid, **sc.CLIPPING_FIT)
+    assert 0.05 < sc.clipping_screen(fit, grid).reading["residual_share"] < 0.3
+    d = choose(replace(CLIPPING, screen=None), cap)
+    assert set(d.mse) == {"channel", "pixel"}, d.reason
     assert d.chosen in ("channel", "pixel") and (d.chosen == "pixel") == (d.z["pixel"] > z_min_for("clipping")), d.reason
 
 
