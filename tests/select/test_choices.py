@@ -73,7 +73,7 @@ def test_the_tilt_screen_asks_for_size_not_only_significance(bumpy):
     explained = run.reading["explained_median"]
     assert run.run and max(sc.NORMALS_EXPLAINED, sc.RELIEF_EXPLAINED) < explained <= 1.0
     stop = sc.tilt_screen(fit, cap, min_explained=min(1.0, explained + 0.01))
-    assert not stop.run and stop.reading == run.reading and f"tilts explain {explained:.0%}" in stop.reason
+    assert not stop.run and stop.reading == run.reading and f"tilts explain {explained:.1%}" in stop.reason
 
 
 def test_given_normals_and_too_few_shots_are_not_tested(bumpy):

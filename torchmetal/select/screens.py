@@ -103,10 +103,10 @@ def tilt_screen(fit: FitResult, capture: Capture, *, min_explained: float = 0.0)
         return Screen(False, f"the reference fit's residual follows no tilt beyond noise: {share:.1%} of pixels at p < "
                              f"{TILT_P:g} ({TILT_P:.0%} by chance, {TILT_SHARE:.0%} needed)", reading)
     if explained < min_explained:
-        return Screen(False, f"tilts explain {explained:.0%} of the typical pixel's residual in-sample ({share:.1%} of "
+        return Screen(False, f"tilts explain {explained:.1%} of the typical pixel's residual in-sample ({share:.1%} of "
                              f"pixels beyond noise), under the {min_explained:.0%} the test needs", reading)
     return Screen(True, f"{share:.1%} of pixels follow a tilt beyond noise (p < {TILT_P:g}; {TILT_P:.0%} by chance), "
-                        f"explaining {explained:.0%} of the typical pixel's residual", reading)
+                        f"explaining {explained:.1%} of the typical pixel's residual", reading)
 
 
 def clipping_screen(fit: FitResult, capture: Capture) -> Screen:
