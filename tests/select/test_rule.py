@@ -57,6 +57,9 @@ def test_a_decisive_gain_on_few_observations_wins():
     small = ref.clone()
     small[:4] = 0.9
     assert paired_choice("specular evidence", {"diffuse": ref, "specular": small}, "diffuse").chosen == "diffuse"
+    # without the decisive path (gloss maps over clusters) the halving must reach the z as well
+    d = paired_choice("gloss maps", {"base": ref, "maps": cand}, "base", z_min=4.0, decisive=False)
+    assert d.chosen == "base" and 0 < d.z["maps"] < 4 and d.mse["maps"] < 0.5 * d.mse["base"]
 
 
 def test_rank_keeps_the_simplest_winner_the_best_does_not_beat():

@@ -57,6 +57,7 @@ def test_truth_follows_the_scene(drawn):
         else:
             assert t["normals"] == "extension"
             assert t["relief"] == ("extension" if d["surface"] == "embossed" else "n/a")
+        assert t["registration"] == "reference"  # no drawn shot is moved
         assert t["clipping"] == ("extension" if d["clip"] == "processed" else "reference")
         assert t["lobe"] == ("reference" if d["lobe"] == "phong" else "extension")
         assert t["flakes"] == ("reference" if d["flakes"] == "none" else "extension")

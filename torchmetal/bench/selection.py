@@ -60,7 +60,7 @@ FORCED: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "flakes": ("flakes", "off", ("on",)),
 }
 #: the table's choices in the order the pipeline makes them
-CHOICES = ("clipping", "normals", "relief", "light", "weights", "lobe", "specular evidence", "specular clusters",
+CHOICES = ("registration", "clipping", "normals", "relief", "light", "weights", "lobe", "specular evidence", "specular clusters",
            "relabel", "gloss maps", "specular colour", "observed flakes", "flakes", "density map")
 #: the paper scheme (bench.zoo's "paper") with every other option at its simplest
 PAPER = {**METHODS["paper"], "weights": "uniform", "lobe": "phong", "specular": "global",

@@ -136,15 +136,19 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
             if sel.k == 1:
                 run.skipped.append(f"specular clusters: not kept ({sel.reason})")
     labeler: Labeler | None = sel.labeler if sel is not None and sel.k > 1 else None
-    # 4b. gloss maps (from the global fit): forced, or kept when they beat global/clustered on the held-out shot
+    spec = glob
+    if labeler is not None:
+        with run.stage("refine"):
+            sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
+                                     weighting=weighting, labeler=labeler, want_tmin=True)
+            spec = fit_clustered(sub, labeler, glob, tol=sub_tol, max_iters=max_iters)
+    # 4b. gloss maps (from the global or clustered fit): forced, or kept when they beat it on the held-out shot
     with run.stage("choice.gloss maps"):
         use_maps, maps_info = _maps_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, plan=plan,
                                              sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
-                                             weighting=weighting, lobe=lobe, started=start is not None)
+                                             weighting=weighting, lobe=lobe, started=start is not None, clustered=spec)
     if maps_info is not None and maps_info.get("decision") is not None:
         run.decisions.append(maps_info["decision"])
-    if use_maps:
-        labeler = None
     with run.stage("choice.specular colour"):
         if start is not None:  # the model's colour, not tested again
             white = start.white and glob is not None and labeler is None and s_fixed is None and not use_maps
@@ -152,13 +156,6 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
             white = colour and _colour_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed,
                                                 use_maps=use_maps, labeler=labeler, plan=plan, grids=grids, tol=sub_tol,
                                                 max_iters=max_iters, weighting=weighting)
-    if labeler is not None:
-        with run.stage("refine"):
-            sub = build_observations(capture, lobe=lobe, stride=stride, dtype=dt, chunk=chunk, ref=Reference(glob.s, glob.alpha),
-                                     weighting=weighting, labeler=labeler, want_tmin=True)
-            spec = fit_clustered(sub, labeler, glob, tol=sub_tol, max_iters=max_iters)
-    else:
-        spec = glob
     return SubsampleDecisions(spec, labeler, s_fixed, sel, use_maps, maps_info, weighting, white, plan)
 
 
@@ -342,12 +339,14 @@ def _colour_decision(capture: Capture, run: FitRun, glob: SpecFit | None, sel: S
 
 
 def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, plan, sel_stride, tol, max_iters, dt, chunk,
-                   weighting, lobe, started: bool = False) -> tuple[bool, dict | None]:
+                   weighting, lobe, started: bool = False, clustered: SpecFit | None = None) -> tuple[bool, dict | None]:
     """Whether the full-resolution fit gets gloss maps (and the held-out evidence behind it).
 
-    The maps start from the global fit (they carry the spatial variation themselves). With
-    specular="auto" they are tried only when clusters were not kept, and must beat global on the
-    selection's held-out shot; ``started`` (a refit of a maps model, :mod:`torchmetal.fit.start`): kept untried."""
+    The maps start from the kept specular structure: the global fit, or ``clustered`` (the subsample's clustered
+    fit) where clusters were kept — a sample of several materials whose gloss also varies inside each needs both
+    (random scenes with gloss maps and clusters kept gained 1–12 dB against the clean truth, docs/measurements.md).
+    With specular="auto" they must beat that structure on the selection's held-out shot; ``started`` (a refit of a
+    maps model, :mod:`torchmetal.fit.start`): kept untried."""
     n_shots = int(capture.images.shape[0])
     if glob is None or specular not in ("auto", "maps"):
         return False, None
@@ -361,16 +360,16 @@ def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, plan, 
     if s_fixed is not None and specular == "auto":
         run.skipped.append("gloss maps: not tried (some channels show no highlight)")
         return False, None
-    if specular == "auto" and sel is not None and sel.k > 1:  # a kept clustered result stays as it was
-        run.skipped.append("gloss maps: not tried (clustered specular kept)")
-        return False, None
     have_sel = sel is not None and sel.hold >= 0 and sel.errors is not None
     hold = sel.hold if have_sel else plan.hold
     base_errors = sel.errors if have_sel else None  # the kept candidate's errors on the same held-out shot
+    kept = sel is not None and sel.k > 1 and clustered is not None and specular == "auto"
+    base = Reference(clustered.s, clustered.alpha) if kept else Reference(glob.s, glob.alpha)
     with run.stage("select"):
-        ms = choose_maps(capture, Reference(glob.s, glob.alpha), stride=sel_stride, hold=hold, force=specular == "maps",
+        ms = choose_maps(capture, base, stride=sel_stride, hold=hold, force=specular == "maps",
                          tol=tol, max_iters=max_iters, dtype=dt, chunk=chunk, weighting=weighting, lobe=lobe,
-                         base_errors=base_errors)
+                         base_errors=base_errors, labeler=sel.labeler if kept else None,
+                         pinned=clustered.pinned if kept else None)
     if not ms.kept:
         run.skipped.append(f"gloss maps: not kept ({ms.reason})")
     return ms.kept, ms.to_dict()

@@ -51,7 +51,7 @@ from torchmetal.fit.refine import (
     spec_sums,
     texture_map,
 )
-from torchmetal.select.rule import MIN_GAIN_ABS, Decision, paired_choice
+from torchmetal.select.rule import MIN_GAIN_ABS, Decision, paired_choice, z_min_for
 
 if TYPE_CHECKING:
     from torchmetal.io.capture import Capture
@@ -282,7 +282,9 @@ def choose_maps(
         maps = fit_gloss_maps(obs, s0, a0, stride=stride, tol=tol, max_iters=max_iters - maps.iterations,
                               alpha_start=maps.alpha)
         errors["maps"] = _maps_errors(ho, obs, maps)
-    d = paired_choice("gloss maps", errors, "base", floor=MIN_GAIN_ABS * mean_square(ho))
+    over = k > 1  # on top of clusters: a calibrated z, reached even where the maps halve the error
+    d = paired_choice("gloss maps", errors, "base", floor=MIN_GAIN_ABS * mean_square(ho),
+                      z_min=z_min_for("gloss maps over clusters" if over else "gloss maps"), decisive=not over)
     d.holds, d.pixels = [hold], ho.num_pixels
     if early:
         d.reason += f" (stopped early, after {maps.iterations} iterations)"

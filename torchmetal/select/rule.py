@@ -38,6 +38,10 @@ MIN_GAIN_ABS = 1e-8  # … and by 1e-8 of the held-out mean square (−80 dB: no
 #: bench --sections selection` measures them again on seeds they were not set on. The normals and the relief pair
 #: by the typical rule instead (paired_choice's ``typical``; their mean-rule thresholds, 20 and 15, missed most gains).
 CALIBRATED_Z = {
+    # gloss maps tried on top of kept clusters (fit/decisions.py), and there without the decisive path: on seeds
+    # 200-299 they took the maps at z 2.4-13.6 on samples of several materials without gloss variation and lost up
+    # to 3.5 dB against the truth there; over a global lobe the maps keep Z_MIN (false positives 1 of 82)
+    "gloss maps over clusters": 15.0,
     "clipping": 30.0,
     "light": 10.0,
     "specular evidence": 20.0,
@@ -111,12 +115,14 @@ def log_ratio(err: Tensor, ref: Tensor) -> tuple[float, float]:
 
 def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: float | None = None,
                   min_gain: float = MIN_GAIN, floor: float = 0.0, rank: dict | None = None,
-                  typical: bool = False) -> Decision:
+                  typical: bool = False, decisive: bool = True) -> Decision:
     """The module's rule on held-out squared errors ``errors`` (candidate → (M,), the same M observations
     in the same order for every candidate); ``ref`` is kept unless another candidate wins (its MSE lower
     than the reference's by ``min_gain`` of it and by ``floor``, z > ``z_min``). With ``rank`` (candidate →
     sortable complexity, simpler first), the simplest winner the lowest-MSE winner does not beat by that
-    rule (module docstring). ``z_min`` None: the choice's calibrated threshold (:func:`z_min_for`).
+    rule (module docstring). ``z_min`` None: the choice's calibrated threshold (:func:`z_min_for`). ``decisive``
+    False: an extension that halves the reference's error must still reach ``z_min`` (a per-pixel model, whose
+    halving of one held-out shot's error need not carry to other lights).
 
     ``typical``: the rule of a choice whose extension must predict the typical observation better, not the mean
     (the normals and the relief, one error per pixel): it wins where it is lower on more observations than chance
@@ -135,7 +141,7 @@ def paired_choice(name: str, errors: dict[str, Tensor], ref: str, *, z_min: floa
     for k, e in errors.items():
         if k != ref:
             d.z[k] = paired_z(e, errors[ref])
-    rule = {"z_min": z_min, "min_gain": min_gain, "floor": floor}
+    rule = {"z_min": z_min, "min_gain": min_gain, "floor": floor, "decisive": decisive}
     wins = [k for k in d.z if _beats(d.mse[k], d.mse[ref], d.z[k], **rule)]
     lowest = min(wins, key=d.mse.get) if wins else ref
     d.chosen = lowest
@@ -175,18 +181,20 @@ def _typical_choice(d: Decision, errors: dict[str, Tensor], ref: str, *, z_min: 
     return d
 
 
-def _beats(mse: float, mse_ref: float, z: float, *, z_min: float, min_gain: float, floor: float) -> bool:
+def _beats(mse: float, mse_ref: float, z: float, *, z_min: float, min_gain: float, floor: float,
+           decisive: bool = True) -> bool:
     """The rule: an MSE ``mse`` with paired ``z`` beats ``mse_ref`` (module docstring)."""
-    beyond = z > z_min or (z > 0 and mse <= DECISIVE * mse_ref)
+    beyond = z > z_min or (decisive and z > 0 and mse <= DECISIVE * mse_ref)
     return beyond and mse < (1.0 - min_gain) * mse_ref - floor
 
 
 def _simplest_unbeaten(errors: dict[str, Tensor], mse: dict, ordered: list[str], best: str, *, z_min: float,
-                       min_gain: float, floor: float) -> str:
+                       min_gain: float, floor: float, decisive: bool = True) -> str:
     """The first of ``ordered`` (winners, simplest first) whose MSE ``best`` does not lower beyond noise."""
     for k in ordered:
         if k == best:
             return k
-        if not _beats(mse[best], mse[k], paired_z(errors[best], errors[k]), z_min=z_min, min_gain=min_gain, floor=floor):
+        if not _beats(mse[best], mse[k], paired_z(errors[best], errors[k]), z_min=z_min, min_gain=min_gain, floor=floor,
+                      decisive=decisive):
             return k
     return best

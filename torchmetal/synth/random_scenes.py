@@ -312,6 +312,7 @@ REFERENCE, EXTENSION, NA = "reference", "extension", "n/a"
 def scene_truth(rs: RandomScene) -> dict[str, str]:
     """Per choice (its ``Decision`` name), whether the truth is the reference, the extension or neither.
 
+    - registration: reference ("off": the generator never moves a shot).
     - clipping: a processed clip (the pixel's other channels wrong) → extension ("pixel"); else reference.
     - normals, relief: normals.npy given → n/a (the capture's own are kept); flat → reference; bumpy or
       embossed → extension (relief: embossed; a smooth bump is the estimate's, n/a for the relief).
@@ -341,6 +342,7 @@ def scene_truth(rs: RandomScene) -> dict[str, str]:
     n_mat = len(rs.materials)
     flakes = sc.flakes is not None
     return {
+        "registration": REFERENCE,
         "clipping": EXTENSION if rs.clip == "processed" else REFERENCE,
         "normals": normals,
         "relief": relief,
