@@ -343,8 +343,7 @@ def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, plan, 
     """Whether the full-resolution fit gets gloss maps (and the held-out evidence behind it).
 
     The maps start from the kept specular structure: the global fit, or ``clustered`` (the subsample's clustered
-    fit) where clusters were kept — a sample of several materials whose gloss also varies inside each needs both
-    (random scenes with gloss maps and clusters kept gained 1–12 dB against the clean truth, docs/measurements.md).
+    fit) where clusters were kept: a sample of several materials whose gloss also varies inside each needs both.
     With specular="auto" they must beat that structure on the selection's held-out shot; ``started`` (a refit of a
     maps model, :mod:`torchmetal.fit.start`): kept untried."""
     n_shots = int(capture.images.shape[0])

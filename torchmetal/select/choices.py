@@ -11,7 +11,7 @@ starting from the reference fit's values (:mod:`torchmetal.fit.start`).
 choice       candidates (reference first)  error (paired)   screen (skips the test)
 ============ ============================= ================ ============================================
 registration off, shift                    pixel median     every shot within 1 px of the others (untested)
-clipping     channel, pixel                block mean       their other channels hold < 0.5 % of the residual
+clipping     channel, pixel                block mean       their other channels hold < 10 % of the residual
 normals      flat, estimate                pixel median (1) the residual follows no tilt (tilt_screen), or
                                                             tilts explain < 25 % of the typical pixel's
 relief       flat, relief                  pixel median (1) as normals, on its downsampled grid; < 50 %
@@ -92,9 +92,8 @@ def reference_context(capture: Capture, fit_kwargs: dict) -> Context:
 def _without_maps(model: dict, fit) -> dict:
     """The model a test's candidates are fitted with: the reference's, but gloss maps as the structure they started
     from (clusters or one lobe). Per-pixel gloss is underdetermined on a fold's two thirds of the shots, and a test
-    whose reference candidate is underdetermined takes an extension that merely looks better (random scene 209:
-    with the maps the registration's shift won at z 1.3 and the scene lost 9.6 dB); the final fit decides the
-    maps again on every shot."""
+    whose reference candidate is underdetermined takes an extension that merely looks better (docs/measurements.md,
+    seventh session); the final fit decides the maps again on every shot."""
     if model.get("specular") != "maps":
         return model
     sel = fit.selection or {}
