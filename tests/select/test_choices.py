@@ -12,7 +12,6 @@ from tests.normals.test_relief import _embossed
 from torchmetal.clipping import partly_clipped, with_clipping
 from torchmetal.errors import InputError
 from torchmetal.geometry import shading_geometry
-from torchmetal.io.grid import strided_capture
 from torchmetal.lightcal import LightCalibration, with_light
 from torchmetal.normals import with_normals
 from torchmetal.phong import phong_shading
@@ -208,9 +207,8 @@ def test_the_shared_card_tests_its_clipping():
     if path is None:
         pytest.skip(f"shared real capture cards_blue not found under {shared_data_dir()} (set TORCHMETAL_SHARED_DATA)")
     cap = load_capture(path)
-    grid = strided_capture(cap, sc.CLIPPING_PIXELS)
-    fit = sc.reference_context(cap, dict(sc.DEFAULT_FIT)).fit(grid, **sc.CLIPPING_FIT)
-    assert 0.05 < sc.clipping_screen(fit, grid).reading["residual_share"] < 0.3
+    screen = CLIPPING.screen(CLIPPING.grid(cap), sc.reference_context(cap, dict(sc.DEFAULT_FIT)))
+    assert 0.05 < screen.reading["residual_share"] < 0.3
     d = choose(replace(CLIPPING, screen=None), cap)
     assert set(d.mse) == {"channel", "pixel"}, d.reason
     assert d.chosen in ("channel", "pixel") and (d.chosen == "pixel") == (d.z["pixel"] > z_min_for("clipping")), d.reason

@@ -146,7 +146,8 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
     with run.stage("choice.gloss maps"):
         use_maps, maps_info = _maps_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed, plan=plan,
                                              sel_stride=sel_stride, tol=sub_tol, max_iters=max_iters, dt=dt, chunk=chunk,
-                                             weighting=weighting, lobe=lobe, started=start is not None, clustered=spec)
+                                             weighting=weighting, lobe=lobe, started=start is not None, base=spec,
+                                             labeler=labeler)
     if maps_info is not None and maps_info.get("decision") is not None:
         run.decisions.append(maps_info["decision"])
     with run.stage("choice.specular colour"):
@@ -339,11 +340,13 @@ def _colour_decision(capture: Capture, run: FitRun, glob: SpecFit | None, sel: S
 
 
 def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, plan, sel_stride, tol, max_iters, dt, chunk,
-                   weighting, lobe, started: bool = False, clustered: SpecFit | None = None) -> tuple[bool, dict | None]:
+                   weighting, lobe, started: bool = False, base: SpecFit | None = None,
+                   labeler: Labeler | None = None) -> tuple[bool, dict | None]:
     """Whether the full-resolution fit gets gloss maps (and the held-out evidence behind it).
 
-    The maps start from the kept specular structure: the global fit, or ``clustered`` (the subsample's clustered
-    fit) where clusters were kept: a sample of several materials whose gloss also varies inside each needs both.
+    The maps start from the kept specular structure ``base`` (default ``glob``): the global fit, or the subsample's
+    clustered fit with its ``labeler`` where clusters were kept: a sample of several materials whose gloss also
+    varies inside each needs both.
     With specular="auto" they must beat that structure on the selection's held-out shot; ``started`` (a refit of a
     maps model, :mod:`torchmetal.fit.start`): kept untried."""
     n_shots = int(capture.images.shape[0])
@@ -362,13 +365,11 @@ def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, plan, 
     have_sel = sel is not None and sel.hold >= 0 and sel.errors is not None
     hold = sel.hold if have_sel else plan.hold
     base_errors = sel.errors if have_sel else None  # the kept candidate's errors on the same held-out shot
-    kept = sel is not None and sel.k > 1 and clustered is not None and specular == "auto"
-    base = Reference(clustered.s, clustered.alpha) if kept else Reference(glob.s, glob.alpha)
+    base = glob if base is None else base
     with run.stage("select"):
-        ms = choose_maps(capture, base, stride=sel_stride, hold=hold, force=specular == "maps",
+        ms = choose_maps(capture, Reference(base.s, base.alpha), stride=sel_stride, hold=hold, force=specular == "maps",
                          tol=tol, max_iters=max_iters, dtype=dt, chunk=chunk, weighting=weighting, lobe=lobe,
-                         base_errors=base_errors, labeler=sel.labeler if kept else None,
-                         pinned=clustered.pinned if kept else None)
+                         base_errors=base_errors, labeler=labeler, pinned=base.pinned)
     if not ms.kept:
         run.skipped.append(f"gloss maps: not kept ({ms.reason})")
     return ms.kept, ms.to_dict()

@@ -64,13 +64,17 @@ class Start:
         return Start(self.lobe, self.specular, move(self.s), move(self.alpha), move(self.variance), self.white)
 
 
-def refit_options(fit: FitResult) -> dict:
+def refit_options(fit: FitResult, *, maps: bool = True) -> dict:
     """:func:`~torchmetal.fit.fit_phong` options that refit ``fit``'s model without choosing it again: its lobe,
     specular structure (a clustered fit's cluster count, and relabelling only where it relabelled), weights, and
-    its :class:`Start`."""
-    model = {"lobe": fit.lobe, "specular": fit.specular, "weights": "noise" if fit.noise is not None else "uniform",
-             "start": Start.of(fit)}
+    its :class:`Start`. ``maps`` False: a gloss-maps model as the structure its maps started from (its clusters, or
+    one lobe), for refits on too few shots to determine per-pixel gloss (:mod:`torchmetal.select.choices`)."""
     sel = fit.selection or {}
-    if fit.specular == "clustered" and sel.get("k"):
+    specular = fit.specular
+    if specular == "maps" and not maps:
+        specular = "clustered" if int(sel.get("k") or 1) > 1 else "global"
+    model = {"lobe": fit.lobe, "specular": specular, "weights": "noise" if fit.noise is not None else "uniform",
+             "start": Start.of(fit)}
+    if specular == "clustered" and sel.get("k"):
         model |= {"clusters": (int(sel["k"]),), "relabel": bool(sel.get("relabel"))}
     return model

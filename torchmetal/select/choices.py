@@ -84,22 +84,12 @@ def reference_context(capture: Capture, fit_kwargs: dict) -> Context:
         grid = strided_capture(capture, REFERENCE_PIXELS)
         fit = fit_phong(grid, **fit_kwargs)
         ctx.keep_reference(grid, fit)
-        return {**keep, **_without_maps(refit_options(fit), fit)}
+        # gloss maps as the structure they started from: per-pixel gloss is underdetermined on a fold's two thirds
+        # of the shots, and a test whose reference candidate is underdetermined takes an extension that merely
+        # looks better (docs/measurements.md, seventh session); the final fit decides the maps on every shot
+        return {**keep, **refit_options(fit, maps=False)}
 
     return Context(reference=reference)
-
-
-def _without_maps(model: dict, fit) -> dict:
-    """The model a test's candidates are fitted with: the reference's, but gloss maps as the structure they started
-    from (clusters or one lobe). Per-pixel gloss is underdetermined on a fold's two thirds of the shots, and a test
-    whose reference candidate is underdetermined takes an extension that merely looks better (docs/measurements.md,
-    seventh session); the final fit decides the maps again on every shot."""
-    if model.get("specular") != "maps":
-        return model
-    sel = fit.selection or {}
-    k = int(sel.get("k") or 1)
-    return {**model, "specular": "clustered", "clusters": (k,), "relabel": bool(sel.get("relabel"))} if k > 1 else \
-        {**model, "specular": "global"}
 
 
 def _fit(train: Capture, ctx: Context):
