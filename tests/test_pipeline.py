@@ -201,6 +201,12 @@ def test_the_statistics_refit_keeps_the_first_fits_clusters():
     assert kept["clusters"] == (4,) and kept["relabel"] is False and kept["weights"] == "uniform"
     assert refit_options(fit("clustered", {"k": 2, "relabel": True}))["relabel"]
     assert refit_options(fit("none", None))["start"] is None
+    # a maps model refitted as the structure its maps grew from starts as that structure: fit_phong drops a start of
+    # another structure, and each refit searched for the lobe again
+    for k, structure in ((1, "global"), (3, "clustered")):
+        base = refit_options(fit("maps", {"k": k}), maps=False)
+        assert base["specular"] == base["start"].specular == structure
+    assert refit_options(fit("maps", {"k": 3}))["start"].specular == "maps"
 
 
 def test_glints_with_a_small_share_of_the_residual_leave_the_coating_fit_alone(monkeypatch):
