@@ -132,6 +132,8 @@ def test_flakes_not_kept_give_the_flake_free_material(monkeypatch):
     # (the relabelling is tried inside the clusters' choice: its seconds are theirs)
     assert {f"choice.{name}" for name in records if name != "relabel"} <= set(times)
     assert not any(k.startswith("phong.choice") for k in times)
+    # applying a choice made before the fit is a stage of its own (the registration resamples every shot)
+    assert {"registration", "clipping", "normals", "light"} <= set(times)
     monkeypatch.setattr(flake_run, "keep_flakes", lambda *a, **k: (False, {"kept": False, "reason": "MD says no"}))
     dropped, off = fit_material(cap, seed=0), fit_material(cap, seed=0, flakes="off")
     m = dropped.material

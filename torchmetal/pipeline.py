@@ -162,12 +162,13 @@ def stage_choices(capture: Capture, st: State) -> tuple[Capture, State]:
         return d
 
     def applied(choice, mode: str, apply, cap):
-        """A choice whose outcome one function applies: as ``mode`` says, or "auto" decided first."""
-        if mode != "auto":
-            return apply(cap, mode)
-        d = auto(choice, cap)
-        cap, report = apply(cap, d.chosen)
-        return cap, report | {"mode": "auto", "decision": d.to_dict()}
+        """A choice whose outcome one function applies: as ``mode`` says, or "auto" decided first. Applying it is
+        a stage of its own (``stage_times[NAME]``: the registration resamples every shot at full size)."""
+        d = auto(choice, cap) if mode == "auto" else None
+        t1 = time.perf_counter()
+        cap, report = apply(cap, mode if d is None else d.chosen)
+        st.stage_times[choice.name] = time.perf_counter() - t1
+        return cap, report if d is None else report | {"mode": "auto", "decision": d.to_dict()}
 
     capture, st.registration_report = applied(REGISTRATION, o.choices.registration, with_registration, capture)
     capture, st.clipping_report = applied(CLIPPING, o.choices.clipping, with_clipping, capture)
