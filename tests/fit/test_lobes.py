@@ -89,6 +89,29 @@ def test_ggx_shares_alpha_only_where_the_channels_agree():
     assert "specular" not in fit3.skips
 
 
+def test_a_refit_keeps_per_channel_ggx_alpha_untested(monkeypatch):
+    """A GGX fit that kept three α (the channels told apart) hands that to its refits (Start.per_channel): they do
+    not run the sharing test again (four full-size passes); a fit that shared α does not, and its refits test."""
+    import torchmetal.fit.api as api
+    from torchmetal.fit.start import Start, refit_options
+
+    cap3, _, _, _ = lobe_capture("ggx", alpha=(60.0, 100.0, 140.0))
+    fit3 = fit_phong(cap3, lobe="ggx", specular="global")
+    assert Start.of(fit3).per_channel
+    cap1, _, _, _ = lobe_capture("ggx", alpha=(100.0, 100.0, 100.0))
+    noisy = replace(cap1, images=cap1.images * (1 + 0.01 * torch.randn(cap1.images.shape, dtype=cap1.images.dtype,
+                                                                         generator=torch.Generator().manual_seed(2))))
+    shared = fit_phong(noisy, lobe="ggx", specular="global")
+    assert not Start.of(shared).per_channel and not Start.of(fit_phong(cap1)).per_channel  # shared; Phong
+    calls = []
+    real = api.share_alpha
+    monkeypatch.setattr(api, "share_alpha", lambda *a, **k: calls.append(1) or real(*a, **k))
+    refit = fit_phong(cap3, **refit_options(fit3))
+    assert not calls and float(((refit.alpha - fit3.alpha) / fit3.alpha).abs().max()) < 1e-3
+    fit_phong(noisy, **refit_options(shared))
+    assert calls  # tested again
+
+
 def test_bad_lobe_arguments():
     cap, _, _, _ = lobe_capture("phong", size=8, shots=3)
     with pytest.raises(InputError, match="lobe: expected one of"):

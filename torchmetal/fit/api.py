@@ -337,7 +337,8 @@ def _fit_refine(capture, run: FitRun, *, specular, tol, max_iters, robust, outli
     fit, s_fix = _refine_full(full, run, d, tol=tol, max_iters=max_iters)
     if full.source is not None:  # a large capture: the LM's freed temporaries go back before the texture's
         release_free_memory()
-    if lobe == "ggx" and not d.use_maps and s_fix is None:  # one roughness for the three channels, where the data allow it
+    # one roughness for the three channels, where the data allow it (a refit of a model with three keeps them: Start)
+    if lobe == "ggx" and not d.use_maps and s_fix is None and not d.per_channel:
         with run.stage("refine"):
             fit, shared = share_alpha(full, fit)
         if shared["shared"]:

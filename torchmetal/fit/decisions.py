@@ -71,6 +71,7 @@ class SubsampleDecisions:
     weighting: Weighting | None  # robust weights / outlier masks for the full-resolution observations
     white: bool = False  # one s for the three channels (:mod:`torchmetal.fit.colour`)
     plan: ShotPlan | None = None  # the shots the choices held out (None: no specular fit to plan by)
+    per_channel: bool = False  # a refit of a GGX model that kept an α per channel: kept, not tested again (Start)
 
 
 def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: float, max_iters: int, robust: str | None,
@@ -157,7 +158,8 @@ def subsample_decisions(capture: Capture, run: FitRun, *, specular: str, tol: fl
             white = colour and _colour_decision(capture, run, glob, sel, specular=specular, s_fixed=s_fixed,
                                                 use_maps=use_maps, labeler=labeler, plan=plan, grids=grids, tol=sub_tol,
                                                 max_iters=max_iters, weighting=weighting)
-    return SubsampleDecisions(spec, labeler, s_fixed, sel, use_maps, maps_info, weighting, white, plan)
+    return SubsampleDecisions(spec, labeler, s_fixed, sel, use_maps, maps_info, weighting, white, plan,
+                              per_channel=start is not None and start.per_channel)
 
 
 @dataclass(frozen=True)
