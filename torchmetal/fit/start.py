@@ -38,8 +38,8 @@ class Start:
         white: one s for the three channels (:mod:`torchmetal.fit.colour`).
         per_channel: a GGX fit that kept an α per channel (its likelihood-ratio test,
             :func:`~torchmetal.fit.refine.share_alpha`, told the channels apart): its refits keep them untested — the
-            test costs four full-size passes (4.5 s of a 9.5 s refit on the glass tiles), and the same photos less a
-            few glints tell the channels apart as well.
+            test costs four full-size passes, and the same photos less a few glints tell the channels apart as well
+            (docs/measurements.md, eighth session).
     """
 
     lobe: str
@@ -67,8 +67,7 @@ class Start:
     def to(self, device: torch.device) -> Start:
         """This start with its tensors on ``device``."""
         move = lambda t: None if t is None else t.to(device)  # noqa: E731
-        return Start(self.lobe, self.specular, move(self.s), move(self.alpha), move(self.variance), self.white,
-                     self.per_channel)
+        return replace(self, s=move(self.s), alpha=move(self.alpha), variance=move(self.variance))
 
 
 def refit_options(fit: FitResult, *, maps: bool = True) -> dict:
@@ -82,8 +81,7 @@ def refit_options(fit: FitResult, *, maps: bool = True) -> dict:
     if specular == "maps" and not maps:
         specular = "clustered" if int(sel.get("k") or 1) > 1 else "global"
         # the maps' own α (their mean, and each cluster's) start the structure they grew from: a start of another
-        # structure is dropped (fit_phong), and every refit would then search for the lobe again (paper scheme, α
-        # grid: 0.28 s a refit against 0.05 s started on the random scenes)
+        # structure is dropped (fit_phong), and every refit would then search for the lobe again (paper scheme, α grid)
         start = None if start is None else replace(start, specular=specular)
     model = {"lobe": fit.lobe, "specular": specular, "weights": "noise" if fit.noise is not None else "uniform",
              "start": start}

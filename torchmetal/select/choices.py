@@ -126,9 +126,9 @@ def _clipping_fit(train: Capture, candidate: str, ctx: Context):
 def _clipping_hold(grid: Capture, group: list[int]) -> Capture:
     """The held-out shots' observations with no channel clipped (valid under either reading), at pixels that some
     training shot saw unclipped in every channel. Elsewhere the "pixel" reading has no training observation of the
-    pixel and its texture is a guess: a phone's processed clip (random scene 300, 8 shots) dropped whole pixels
-    from every shot of a fold, and those guesses alone made the reading that recovers the truth (45.5 dB, against
-    18.2 with "channel") lose the test at z −4.6."""
+    pixel and its texture is a guess: where a phone's processed clip dropped whole pixels from every shot of a fold,
+    those guesses alone made the reading that recovers the truth lose the test (random scene 300,
+    docs/measurements.md, eighth session)."""
     pc = pixel_clipped(grid)
     train = [k for k in range(grid.num_shots) if k not in group]
     unseen = pc.saturated[train].all(0, keepdim=True)  # (1, 3, H, W): no training shot saw the pixel unclipped
