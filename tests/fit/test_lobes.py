@@ -98,6 +98,9 @@ def test_a_refit_keeps_per_channel_ggx_alpha_untested(monkeypatch):
     cap3, _, _, _ = lobe_capture("ggx", alpha=(60.0, 100.0, 140.0))
     fit3 = fit_phong(cap3, lobe="ggx", specular="global")
     assert Start.of(fit3).per_channel
+    maps = fit_phong(cap3, lobe="ggx", specular="maps")  # gloss maps never take the sharing test: nothing to keep
+    assert maps.specular == "maps" and not Start.of(maps).per_channel
+    assert not refit_options(maps, maps=False)["start"].per_channel
     cap1, _, _, _ = lobe_capture("ggx", alpha=(100.0, 100.0, 100.0))
     noisy = replace(cap1, images=cap1.images * (1 + 0.01 * torch.randn(cap1.images.shape, dtype=cap1.images.dtype,
                                                                          generator=torch.Generator().manual_seed(2))))

@@ -60,7 +60,8 @@ class Start:
         alpha = fit.alpha.detach().double().reshape(1, 3)
         if fit.cluster_alpha is not None:
             alpha = torch.cat([alpha, fit.cluster_alpha.detach().double().reshape(-1, 3)])
-        per_channel = fit.lobe == "ggx" and bool((alpha != alpha[:, :1]).any())  # share_alpha gives equal channels
+        # the sharing test ran (GGX without maps: fit.api) and kept three α (a shared α has equal channels)
+        per_channel = fit.lobe == "ggx" and fit.specular != "maps" and bool((alpha != alpha[:, :1]).any())
         return cls(lobe=fit.lobe, specular=fit.specular, s=fit.s.detach().double().reshape(1, 3), alpha=alpha,
                    variance=variance, white=chosen.get("specular colour") == "white", per_channel=per_channel)
 
