@@ -174,7 +174,8 @@ class Choice:
         untested: ``untested(capture, ctx)`` → a reason to keep the reference without a test, or None.
         screen: ``screen(grid, ctx)`` → :class:`Screen` (None: always tested).
         check: ``check(decision, errors)`` may overrule the rule's outcome (and says so in the reason).
-        folds: shot groups left out in turn; min_shots: fewer shots keep the reference untested.
+        folds: shot groups left out in turn (None: every shot alone, leave-one-out); min_shots: fewer shots keep
+            the reference untested.
         floor: the rule's absolute floor as a fraction of the held-out signal's mean square (rounding noise).
     """
 
@@ -189,7 +190,7 @@ class Choice:
     untested: Callable[[Capture, Context], str | None] | None = None
     screen: Callable[[Capture, Context], Screen] | None = None
     check: Callable[[Decision, dict], None] | None = None
-    folds: int = 3
+    folds: int | None = 3
     min_shots: int = 4
     floor: float = MIN_GAIN_ABS
 
@@ -223,7 +224,7 @@ def _decide(choice: Choice, capture: Capture, ctx: Context) -> Decision:
     scores = {"screen": {"run": screen.run, "reason": screen.reason, **screen.reading}} if screen else {}
     if screen is not None and not screen.run:
         return kept(choice, f"not tested: {screen.reason}", scores=scores)
-    groups = shot_groups(n, choice.folds)
+    groups = shot_groups(n, n if choice.folds is None else choice.folds)
     errors: dict[str, list[Tensor]] = {c: [] for c in choice.candidates}
     rule = dict(choice.rule)
     d = None
