@@ -98,14 +98,14 @@ def test_auto_keeps_global_on_a_uniform_sample():
     assert "gloss maps" in res.skips
 
 
-def _choose(cap, force=False):
+def _choose(cap, force=False, more_holds=None):
     from torchmetal.fit.gloss import choose_maps
     from torchmetal.fit.problem import Reference
 
     glob = fit_phong(cap, specular="global")
     base = Reference(glob.s.double().view(1, 3), glob.alpha.double().view(1, 3))
     return choose_maps(cap, base, stride=1, hold=0, force=force, tol=1e-4, max_iters=100, dtype=torch.float64,
-                       chunk=1 << 20, weighting=None)
+                       chunk=1 << 20, weighting=None, more_holds=more_holds)
 
 
 def test_choose_maps_stops_early_when_the_maps_lose():
@@ -115,6 +115,25 @@ def test_choose_maps_stops_early_when_the_maps_lose():
     assert sel.mse["maps"] >= sel.mse["base"]
     forced = _choose(synth(size=32, shots=10, seed=1, noise=0.01).capture, force=True)
     assert forced.kept and not forced.stopped_early and forced.iterations > sel.iterations
+
+
+def test_the_maps_test_leaves_out_each_held_shot_in_turn():
+    """Three shots left out in turn pair three shots' errors: the same gain reaches a higher z than on one (a single
+    shot's highlight covers too few pixels); a trial that loses on the first shot is not fitted without the others."""
+    cap = synth(size=40, shots=12, seed=3, spec_clusters=2, noise=0.01).capture
+    one, three = _choose(cap), _choose(cap, more_holds=[0, 5, 9])
+    assert three.decision.holds == [0, 5, 9] and one.decision.holds == [0]
+    assert three.kept and three.decision.z["maps"] > 1.3 * one.decision.z["maps"], (one.reason, three.reason)
+    uniform = _choose(synth(size=32, shots=10, seed=1, noise=0.01).capture, more_holds=[4, 7])
+    assert uniform.stopped_early and uniform.decision.holds == [0] and not uniform.kept
+
+
+def test_the_fit_leaves_out_the_plans_first_shots_for_the_maps():
+    from torchmetal.fit.gloss import HOLDS
+
+    res = fit_phong(synth(size=40, shots=12, seed=3, spec_clusters=2, noise=0.01).capture, specular="maps")
+    d = next(d for d in res.decisions if d["name"] == "gloss maps")  # forced: fitted without each held shot
+    assert d["chosen"] == "maps" and d["holds"] == res.shot_plan.holds(HOLDS) and len(d["holds"]) == HOLDS == 3
 
 
 def test_choose_maps_keeps_maps_where_the_gloss_varies():

@@ -25,6 +25,7 @@ from torchmetal.fit.clusters import (
     mean_square,
 )
 from torchmetal.fit.colour import choose_colour
+from torchmetal.fit.gloss import HOLDS as MAPS_HOLDS
 from torchmetal.fit.gloss import choose_maps
 from torchmetal.fit.lobe_choice import LOBE_GRID
 from torchmetal.fit.paper import paper_scheme
@@ -349,8 +350,9 @@ def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, plan, 
     The maps start from the kept specular structure ``base`` (default ``glob``): the global fit, or the subsample's
     clustered fit with its ``labeler`` where clusters were kept: a sample of several materials whose gloss also
     varies inside each needs both.
-    With specular="auto" they must beat that structure on the selection's held-out shot; ``started`` (a refit of a
-    maps model, :mod:`torchmetal.fit.start`): kept untried."""
+    With specular="auto" they must beat that structure on the shot plan's first :data:`~torchmetal.fit.gloss.HOLDS`
+    shots, each left out in turn (the selection's held-out shot first); ``started`` (a refit of a maps model,
+    :mod:`torchmetal.fit.start`): kept untried."""
     n_shots = int(capture.images.shape[0])
     if glob is None or specular not in ("auto", "maps"):
         return False, None
@@ -371,7 +373,8 @@ def _maps_decision(capture, run: FitRun, glob, sel, *, specular, s_fixed, plan, 
     with run.stage("select"):
         ms = choose_maps(capture, Reference(base.s, base.alpha), stride=sel_stride, hold=hold, force=specular == "maps",
                          tol=tol, max_iters=max_iters, dtype=dt, chunk=chunk, weighting=weighting, lobe=lobe,
-                         base_errors=base_errors, labeler=labeler, pinned=base.pinned)
+                         base_errors=base_errors, labeler=labeler, pinned=base.pinned,
+                         more_holds=plan.holds(MAPS_HOLDS))
     if not ms.kept:
         run.skipped.append(f"gloss maps: not kept ({ms.reason})")
     return ms.kept, ms.to_dict()
