@@ -7,8 +7,8 @@ see. Which shots those are is decided once, not by each choice:
   lobe) rank the shots by the specular energy the first subsample fit predicts in them
   (:func:`torchmetal.fit.shot_plan.shot_plan`): a shot without highlight cannot tell two lobes, or two
   specular structures, apart. The single-shot choices hold the first of that ranking; the gloss maps leave
-  out each of its first three in turn; the lobe deals the first ``HOLDS`` of it round-robin into groups. A refit of the same capture (the flake stage's) is given the
-  first fit's plan, so it holds the same shots;
+  out each of its first three in turn; the lobe deals the first ``HOLDS`` of it round-robin into groups. A
+  refit of the same capture (the flake stage's) is given the first fit's plan, so it holds the same shots;
 - the choices made before the fit (:mod:`torchmetal.select.harness`: registration, clipping, normals, relief, light) deal
   every shot into groups (:func:`shot_groups`; the normals leave each shot out alone);
 - the flake choices (observed flakes, keep flakes, density map) hold the shots with the most detections
